@@ -1,0 +1,1 @@
+"""Methods other than WorldTree (static 3DGS, Base, ...), each registered by name with its config."""

@@ -1,0 +1,1 @@
+"""NVIDIA-LS: build the long-sequence NVIDIA Dynamic Scene benchmark from raw multi-view captures."""

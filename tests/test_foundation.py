@@ -1,0 +1,93 @@
+"""The package installs, both CLIs list their commands, and shared helpers behave."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from worldtree.atomic import atomic_dir, atomic_write_json
+from worldtree.errors import UserError
+from worldtree.hashing import sha256_file, sha256_files
+from worldtree.imageio import read_image, read_mask, write_image
+
+
+@pytest.mark.parametrize(
+    ("module", "commands"),
+    [
+        ("benchmarks.cli", ["eval", "weights", "run", "sweep", "table", "plot", "prep", "demo"]),
+        ("nvidia_ls.cli", ["build", "synth", "verify", "info"]),
+    ],
+)
+def test_cli_help_lists_commands(module, commands):
+    out = subprocess.run([sys.executable, "-m", module, "--help"], capture_output=True, text=True, check=True)
+    for c in commands:
+        assert c in out.stdout
+
+
+def test_atomic_dir_leaves_nothing_on_failure(tmp_path):
+    final = tmp_path / "out"
+    with pytest.raises(RuntimeError), atomic_dir(final) as tmp:
+        (tmp / "a.txt").write_text("half")
+        raise RuntimeError("boom")
+    assert not final.exists()
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_atomic_dir_refuses_existing_without_force(tmp_path):
+    final = tmp_path / "out"
+    final.mkdir()
+    (final / "keep").write_text("old")
+    with pytest.raises(FileExistsError), atomic_dir(final) as tmp:
+        (tmp / "new").write_text("new")
+    assert (final / "keep").read_text() == "old"
+    with atomic_dir(final, force=True) as tmp:
+        (tmp / "new").write_text("new")
+    assert sorted(p.name for p in final.iterdir()) == ["new"]
+
+
+def test_atomic_json_roundtrip(tmp_path):
+    atomic_write_json(tmp_path / "r.json", {"a": np.float32(1.5), "b": np.arange(3)})
+    assert json.loads((tmp_path / "r.json").read_text()) == {"a": 1.5, "b": [0, 1, 2]}
+
+
+def test_sha256_matches_hashlib(tmp_path):
+    import hashlib
+
+    p = tmp_path / "x.bin"
+    p.write_bytes(b"abc" * 1000)
+    assert sha256_file(p) == hashlib.sha256(b"abc" * 1000).hexdigest()
+    q = tmp_path / "sub"
+    q.mkdir()
+    (q / "x.bin").write_bytes(b"abc" * 1000)
+    assert sha256_files([p]) == sha256_files([q / "x.bin"])
+
+
+def test_image_roundtrip_and_formats(tmp_path):
+    import cv2
+
+    rng = np.random.default_rng(0)
+    img = rng.integers(0, 256, (5, 7, 3), dtype=np.uint8)
+    write_image(tmp_path / "a.png", img)
+    np.testing.assert_array_equal(read_image(tmp_path / "a.png"), img)
+    # 16-bit: v*257 maps back exactly to v.
+    cv2.imwrite(str(tmp_path / "b.png"), cv2.cvtColor(img, cv2.COLOR_RGB2BGR).astype(np.uint16) * 257)
+    np.testing.assert_array_equal(read_image(tmp_path / "b.png"), img)
+    # RGBA: alpha is dropped.
+    rgba = np.concatenate([cv2.cvtColor(img, cv2.COLOR_RGB2BGR), np.zeros((5, 7, 1), np.uint8)], axis=2)
+    cv2.imwrite(str(tmp_path / "c.png"), rgba)
+    np.testing.assert_array_equal(read_image(tmp_path / "c.png"), img)
+    write_image(tmp_path / "m.png", img[:, :, 0] > 127)
+    np.testing.assert_array_equal(read_mask(tmp_path / "m.png"), img[:, :, 0] > 127)
+
+
+def test_unreadable_image_is_user_error(tmp_path):
+    p = tmp_path / "bad.png"
+    p.write_bytes(b"\x89PNG not really")
+    with pytest.raises(UserError, match="bad.png"):
+        read_image(p)
+    with pytest.raises(UserError, match="no such image"):
+        read_image(tmp_path / "missing.png")

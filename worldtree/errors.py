@@ -1,0 +1,37 @@
+"""The one exception type that command-line tools turn into a one-line message."""
+
+from __future__ import annotations
+
+
+class UserError(Exception):
+    """Bad input or configuration the user can fix.
+
+    The message must name the file or option at fault and the fix, on one line. The CLIs print it as
+    ``error: <message>`` and exit with status 2, without a traceback.
+    """
+
+
+def run_cli(app) -> None:
+    """Run a typer/click ``app``; print a :class:`UserError` as one line (exit 2) and Ctrl-C as exit 130."""
+    import sys
+
+    try:
+        app(standalone_mode=False)
+    except UserError as e:
+        print(f"error: {e}", file=sys.stderr)
+        raise SystemExit(2) from None
+    except KeyboardInterrupt:
+        print("interrupted: re-run the same command to resume from the last checkpoint", file=sys.stderr)
+        raise SystemExit(130) from None
+    except Exception as e:  # click's usage errors arrive here with standalone_mode=False
+        import click
+
+        if isinstance(e, click.exceptions.Exit):
+            raise SystemExit(e.exit_code) from None
+        if isinstance(e, click.ClickException):
+            e.show()
+            raise SystemExit(e.exit_code) from None
+        if isinstance(e, click.exceptions.Abort):
+            print("aborted", file=sys.stderr)
+            raise SystemExit(1) from None
+        raise
