@@ -1,6 +1,8 @@
-"""`wtbench prep`: Compute and cache 2D priors (flow, tracks, depth, dynamic masks) for a scene."""
+"""`wtbench prep`: compute and cache 2D priors (flow, tracks, depth, dynamic masks) for a scene."""
 
 from __future__ import annotations
+
+from pathlib import Path
 
 import typer
 
@@ -10,7 +12,96 @@ from worldtree.errors import UserError
 def register(app: typer.Typer) -> None:
     @app.command(
         "prep",
-        help="Compute and cache 2D priors (flow, tracks, depth, dynamic masks) for a scene. (not yet available)",
+        help="Compute and cache 2D priors (flow, tracks, depth, dynamic masks) for a scene. A second run with "
+        "the same inputs and settings reuses the cache; an interrupted run resumes. See docs/priors.md.",
     )
-    def _cmd() -> None:
-        raise UserError("`wtbench prep` is not available yet in this version (tracked as issue 5)")
+    def _cmd(
+        scene: Path = typer.Argument(..., help="Scene folder written by `nvls build` (holds cameras.json)."),
+        depth: str = typer.Option(
+            "classical", help="'classical' (plane-sweep stereo) or a file/folder to import."
+        ),
+        depth_kind: str = typer.Option("depth", help="Imported maps hold 'depth' or 'disparity'."),
+        depth_fit: bool = typer.Option(
+            False, help="Fit a per-frame scale/shift of the imported depth to the classical depth."
+        ),
+        depth_png_scale: float = typer.Option(1000.0, help="16-bit depth PNG values are divided by this."),
+        tracks: str = typer.Option(
+            "classical", help="'classical' (Lucas-Kanade) or a CoTracker .npy/.npz/.pt file."
+        ),
+        flow: str = typer.Option(
+            "classical", help="'classical' (OpenCV DIS) or a folder of <i>_<j>.flo/.npy."
+        ),
+        masks: Path | None = typer.Option(
+            None, help="Folder of dynamic masks (one per frame) replacing EPI masks."
+        ),
+        cache: Path | None = typer.Option(None, help="Cache folder (default: SCENE/priors, per downscale)."),
+        preview: bool = typer.Option(False, help="Also write PNG previews (depth, tracks, EPI masks)."),
+        downscale: int = typer.Option(1, help="Shrink frames by this integer factor first."),
+        epi_threshold: float = typer.Option(
+            1.5, help="Sampson distance (pixels) above which a pixel is dynamic."
+        ),
+        planes: int = typer.Option(64, help="Depth hypotheses of the plane sweep."),
+    ) -> None:
+        _run(scene, depth, depth_kind, depth_fit, depth_png_scale, tracks, flow, masks, cache, preview,
+             downscale, epi_threshold, planes)  # fmt: skip
+
+
+def _run(scene_dir, depth, depth_kind, depth_fit, depth_png_scale, tracks, flow, masks, cache, preview,
+         downscale, epi_threshold, planes) -> None:  # fmt: skip
+    import dataclasses
+
+    from rich.console import Console
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+    from worldtree.priors import DepthConfig, DepthImportConfig, EpiConfig, PriorsConfig, compute_priors
+    from worldtree.priors.preview import write_previews
+    from worldtree.scene import load_scene
+
+    if depth_kind not in ("depth", "disparity"):
+        raise UserError(f"--depth-kind {depth_kind!r}: choose depth or disparity")
+    if planes < 2:
+        raise UserError(f"--planes {planes}: need at least 2 depth hypotheses")
+    if not epi_threshold > 0:
+        raise UserError(f"--epi-threshold {epi_threshold}: must be a positive number of pixels")
+    if depth_fit and depth == "classical":
+        raise UserError("--depth-fit applies to imported depth; pass --depth DIR or drop --depth-fit")
+    console = Console(stderr=True)
+    sc = load_scene(scene_dir, downscale=downscale, load_masks=False)
+    cfg = PriorsConfig(
+        depth=dataclasses.replace(DepthConfig(), num_planes=planes),
+        epi=dataclasses.replace(EpiConfig(), threshold_px=epi_threshold),
+        depth_import=DepthImportConfig(kind=depth_kind, png_scale=depth_png_scale, fit_scale_shift=depth_fit),
+        depth_source=depth,
+        tracks_source=tracks,
+        flow_source=flow,
+        masks_source=str(masks) if masks is not None else None,
+    )
+    cache_dir = cache if cache is not None else Path(scene_dir) / "priors" / f"x{downscale}"
+    with Progress(
+        TextColumn("{task.description:<9}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
+        console=console, transient=False,
+    ) as bar:  # fmt: skip
+        tasks: dict[str, int] = {}
+
+        def progress(stage: str, done: int, total: int) -> None:
+            if stage not in tasks:
+                tasks[stage] = bar.add_task(stage, total=total)
+            bar.update(tasks[stage], completed=done)
+
+        pri = compute_priors(sc, cfg, cache_dir, progress)
+    console.print(f"scene {sc.name}: {sc.num_frames} frames at {sc.width}x{sc.height}")
+    for k, v in pri.sources.items():
+        console.print(f"  {k:<7} {v}")
+    console.print(
+        f"  {pri.tracks.shape[1]} tracks ({int(pri.track_dynamic.sum())} dynamic), "
+        f"dynamic pixels {100 * pri.epi_mask.mean():.1f}%, flow pairs {len(pri.flow)}"
+    )
+    console.print(f"cache: {cache_dir}")
+    if preview:
+        import numpy as np
+
+        imgs = np.clip(np.round(sc.images.numpy() * 255), 0, 255).astype(np.uint8)
+        files = write_previews(pri, imgs, Path(cache_dir) / "preview", threshold=epi_threshold)
+        console.print(
+            f"previews: {len(files)} PNGs in {Path(cache_dir) / 'preview'} (sheet.png is the overview)"
+        )

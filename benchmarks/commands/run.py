@@ -1,15 +1,79 @@
-"""`wtbench run`: Train a method on a scene, render the test camera and score it."""
+"""`wtbench run`: train a registered method on a scene, render the test camera and score it."""
 
 from __future__ import annotations
 
-import typer
+import shlex
+import sys
+from pathlib import Path
 
-from worldtree.errors import UserError
+import typer
 
 
 def register(app: typer.Typer) -> None:
     @app.command(
-        "run", help="Train a method on a scene, render the test camera and score it. (not yet available)"
+        "run",
+        help=(
+            "Train a method on a scene, render the test camera at every test time and score it. Writes "
+            "RUNS_DIR/<scene>/<method>/<preset[-overrides]>/; re-running resumes or skips a finished run."
+        ),
     )
-    def _cmd() -> None:
-        raise UserError("`wtbench run` is not available yet in this version (tracked as issue 4)")
+    def _cmd(
+        method: str | None = typer.Option(
+            None, "--method", "-m", help="Registered method name, e.g. static."
+        ),
+        scene: Path | None = typer.Option(
+            None, "--scene", "-s", help="Scene folder written by `nvls build`."
+        ),
+        runs_dir: Path = typer.Option(Path("runs"), "--out", "-o", help="Root folder of the run folders."),
+        preset: str = typer.Option("paper", "--preset", help="Config preset: quick (CPU minutes) or paper."),
+        device: str = typer.Option("auto", "--device", help="auto, cpu, cuda or cuda:N."),
+        steps: int | None = typer.Option(None, "--steps", help="Override the number of training steps."),
+        seed: int | None = typer.Option(None, "--seed", help="Override the random seed."),
+        downscale: int | None = typer.Option(None, "--downscale", help="Override the training image shrink."),
+        lpips_weights: Path | None = typer.Option(
+            None, "--lpips-weights", help="Folder holding alexnet-owt-7be5be79.pth and alex.pth."
+        ),
+        tensorboard: bool = typer.Option(False, "--tensorboard", help="Log scalars for TensorBoard."),
+        force: bool = typer.Option(False, "--force", help="Delete an existing run folder and start again."),
+        tag: str | None = typer.Option(None, "--tag", help="Run-folder name instead of preset+overrides."),
+        list_: bool = typer.Option(
+            False, "--list", help="List the registered methods and presets, then exit."
+        ),
+    ) -> None:
+        from benchmarks.runs import RunRequest, execute
+        from worldtree.errors import UserError
+
+        if list_:
+            _print_methods()
+            return
+        if method is None or scene is None:
+            raise UserError(
+                "`wtbench run` needs --method NAME and --scene FOLDER (see --list for the methods)"
+            )
+        overrides = {
+            k: v for k, v in (("steps", steps), ("seed", seed), ("downscale", downscale)) if v is not None
+        }
+        req = RunRequest(
+            scene=scene,
+            method=method,
+            runs_dir=runs_dir,
+            preset=preset,
+            device=device,
+            overrides=overrides,
+            lpips_weights=lpips_weights,
+            tensorboard=tensorboard,
+            force=force,
+            tag=tag,
+            command=shlex.join(["wtbench", *sys.argv[1:]]),
+        )
+        result = execute(req)
+        if not result.skipped:
+            scores = "  ".join(f"{k} {v:.4f}" for k, v in result.mean.items())
+            print(f"done: {result.folder.root}  {scores}")
+
+
+def _print_methods() -> None:
+    from baselines.registry import list_methods
+
+    for spec in list_methods():
+        print(f"{spec.name:12s} {spec.description}  (presets: {', '.join(sorted(spec.presets))})")

@@ -1,0 +1,363 @@
+"""Run folders: the layout of one method's run on one scene, its bookkeeping, and executing it end to end.
+
+Layout (``RUNS_DIR/<scene>/<method>/<tag>/``, ``tag`` = preset plus overrides, e.g. ``quick`` or
+``quick-steps200-seed1``)::
+
+    config.json     resolved typed config, preset, overrides, seed, scene, tool version
+    command.txt     the command line that made the run
+    checkpoints/    periodic atomic checkpoints (model + optimiser + density-control state + RNG states)
+    model/          final model: gaussians.pt (GaussianSet.load), gaussians.ply, model.json
+    renders/        the test camera at every test time, named like the ground truth (v001_tXXX.png)
+    metrics.csv     per-frame scores and a 'mean' row (benchmarks.evaluate), metrics.json beside it
+    timing.json     wall time per stage, iterations/s, peak memory, Gaussian count, device, backend
+    tensorboard/    TensorBoard scalars (only with --tensorboard)
+    DONE            written last; a finished run is skipped unless forced
+
+Running the same request again resumes from the newest checkpoint, or skips a run whose DONE exists.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import resource
+import shutil
+import sys
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+import worldtree
+from worldtree.atomic import atomic_write_json, atomic_write_text
+from worldtree.errors import UserError
+from worldtree.imageio import write_image
+
+TUNABLE = ("steps", "seed", "downscale")
+
+
+@dataclass(frozen=True)
+class RunFolder:
+    """Paths of one run."""
+
+    root: Path
+
+    @property
+    def config_json(self) -> Path:
+        return self.root / "config.json"
+
+    @property
+    def command_txt(self) -> Path:
+        return self.root / "command.txt"
+
+    @property
+    def checkpoints(self) -> Path:
+        return self.root / "checkpoints"
+
+    @property
+    def model(self) -> Path:
+        return self.root / "model"
+
+    @property
+    def renders(self) -> Path:
+        return self.root / "renders"
+
+    @property
+    def metrics_csv(self) -> Path:
+        return self.root / "metrics.csv"
+
+    @property
+    def metrics_json(self) -> Path:
+        return self.root / "metrics.json"
+
+    @property
+    def timing_json(self) -> Path:
+        return self.root / "timing.json"
+
+    @property
+    def tensorboard(self) -> Path:
+        return self.root / "tensorboard"
+
+    @property
+    def done(self) -> Path:
+        return self.root / "DONE"
+
+    def is_done(self) -> bool:
+        return self.done.is_file()
+
+
+def run_tag(preset: str, overrides: dict[str, Any]) -> str:
+    """Folder name of a configuration: the preset, then ``-<field><value>`` per override in a fixed order."""
+    parts = [preset] + [f"{k}{overrides[k]}" for k in TUNABLE if k in overrides]
+    return "-".join(parts)
+
+
+def peak_rss_mib() -> float:
+    """Peak resident memory of this process so far, MiB (Linux reports kilobytes, macOS bytes)."""
+    rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return rss / (1024.0 * 1024.0) if sys.platform == "darwin" else rss / 1024.0
+
+
+class StageTimer:
+    """Wall time of named stages, in the order they ran."""
+
+    def __init__(self) -> None:
+        self.stages: dict[str, float] = {}
+
+    @contextmanager
+    def stage(self, name: str) -> Iterator[None]:
+        t0 = time.perf_counter()
+        try:
+            yield
+        finally:
+            self.stages[name] = self.stages.get(name, 0.0) + time.perf_counter() - t0
+
+
+@dataclass(frozen=True)
+class TestView:
+    """The test camera at the size of the ground-truth images."""
+
+    K: torch.Tensor  # [3, 3] pixels
+    w2c: torch.Tensor  # [4, 4] OpenCV world-to-camera
+    width: int
+    height: int
+    times: list[int]
+    files: list[str]
+
+
+def native_test_view(root: Path) -> TestView:
+    """The test camera of scene ``root`` at the stored (not down-scaled) image size, from ``cameras.json``."""
+    from worldtree.scene import read_cameras_json
+
+    meta = read_cameras_json(root)
+    frames = meta.get("test_frames") or []
+    if not frames:
+        raise UserError(f"{root / 'cameras.json'}: lists no test frames, so nothing can be scored")
+    cams = {int(c["id"]): c for c in meta["cameras"]}
+    cid = int(meta.get("test_camera", 1))
+    if cid not in cams:
+        raise UserError(f"{root / 'cameras.json'}: test camera {cid} is not listed under 'cameras'")
+    return TestView(
+        K=torch.tensor(cams[cid]["K"], dtype=torch.float32),
+        w2c=torch.tensor(cams[cid]["w2c"], dtype=torch.float32),
+        width=int(meta["width"]),
+        height=int(meta["height"]),
+        times=[int(f["time"]) for f in frames],
+        files=[Path(f["file"]).name for f in frames],
+    )
+
+
+@dataclass
+class RunRequest:
+    """Everything ``wtbench run`` was asked to do."""
+
+    scene: Path
+    """Scene folder (written by ``nvls build``)."""
+    method: str
+    """Registered method name."""
+    runs_dir: Path = Path("runs")
+    """Root of all run folders."""
+    preset: str = "paper"
+    """Config preset of the method."""
+    device: str = "auto"
+    """auto, cpu, cuda or cuda:N."""
+    overrides: dict[str, int] = field(default_factory=dict)
+    """Overridden common config fields (steps, seed, downscale)."""
+    lpips_weights: Path | None = None
+    """Folder with the LPIPS weight files (None: the evaluator's default search)."""
+    tensorboard: bool = False
+    """Write TensorBoard scalars into the run folder."""
+    force: bool = False
+    """Delete an existing run folder (finished or not) and start again."""
+    tag: str | None = None
+    """Run-folder name; default: preset plus overrides."""
+    progress: bool = True
+    """Show training progress."""
+    command: str = ""
+    """Command line, recorded in command.txt."""
+
+
+@dataclass
+class RunResult:
+    folder: RunFolder
+    skipped: bool
+    mean: dict[str, float]
+
+
+def _config_record(spec, cfg, req: RunRequest) -> dict[str, Any]:
+    return {
+        "method": spec.name,
+        "preset": req.preset,
+        "overrides": dict(req.overrides),
+        "config": dataclasses.asdict(cfg),
+        "seed": cfg.seed,
+        "scene": str(req.scene.resolve()),
+        "device": req.device,
+        "version": worldtree.__version__,
+    }
+
+
+def _check_same_config(folder: RunFolder, record: dict[str, Any]) -> None:
+    try:
+        old = json.loads(folder.config_json.read_text())
+    except json.JSONDecodeError as e:
+        raise UserError(f"{folder.config_json}: damaged; re-run with --force to start this run again") from e
+    # Round-trip through JSON so tuples compare equal to the lists read back.
+    new = json.loads(json.dumps(record, default=str))
+    for key in ("method", "config", "scene"):
+        if old.get(key) != new.get(key):
+            raise UserError(
+                f"{folder.root} holds a run with a different {key}; use --force to replace it, "
+                "or --tag/-o to run elsewhere"
+            )
+
+
+def execute(req: RunRequest) -> RunResult:
+    """Train, render, score and record one run (resuming or skipping as described in the module doc)."""
+    from baselines.registry import get_method
+    from worldtree.checkpoint import seed_everything
+    from worldtree.device import pick_device
+    from worldtree.scene import load_scene
+    from worldtree.trainer import TrainContext
+
+    spec = get_method(req.method)
+    root = Path(req.scene)
+    if not root.is_dir():
+        raise UserError(f"--scene {root}: no such folder; give a scene folder written by `nvls build`")
+    view = native_test_view(root)
+    cfg = spec.config(req.preset)
+    for k, v in req.overrides.items():
+        if k not in TUNABLE:
+            raise UserError(f"override {k!r} is not one of {', '.join(TUNABLE)}")
+        if k in ("steps", "downscale") and v < 1:
+            raise UserError(f"--{k} {v}: must be at least 1")
+    cfg = dataclasses.replace(cfg, **req.overrides)
+    tag = req.tag or run_tag(req.preset, req.overrides)
+    folder = RunFolder(Path(req.runs_dir) / root.name / spec.name / tag)
+
+    if folder.is_done() and not req.force:
+        print(f"already finished: {folder.root} (use --force to run it again)", file=sys.stderr)
+        return RunResult(folder, skipped=True, mean=_read_mean(folder))
+    if req.force and folder.root.exists():
+        shutil.rmtree(folder.root)
+    record = _config_record(spec, cfg, req)
+    if folder.config_json.is_file():
+        _check_same_config(folder, record)
+        print(f"resuming: {folder.root}", file=sys.stderr)
+    folder.root.mkdir(parents=True, exist_ok=True)
+    atomic_write_json(folder.config_json, record)
+    atomic_write_text(folder.command_txt, req.command + "\n")
+
+    device = pick_device(req.device)
+    if device.type == "cuda":
+        torch.cuda.reset_peak_memory_stats(device)
+    seed_everything(cfg.seed)
+    timer = StageTimer()
+    with timer.stage("load"):
+        scene = load_scene(root, downscale=cfg.downscale)
+    with timer.stage("init"):
+        method = spec.build(cfg, scene, device)
+    with timer.stage("train"):
+        ctx = TrainContext(
+            checkpoint_dir=folder.checkpoints,
+            tensorboard_dir=folder.tensorboard if req.tensorboard else None,
+            progress=req.progress,
+            resume=True,
+        )
+        summary = method.fit(ctx)
+    with timer.stage("save_model"):
+        method.save_model(folder.model)
+    with timer.stage("render"):
+        _render_test(method, view, folder)
+    with timer.stage("eval"):
+        mean = _evaluate(folder, root, req, device)
+
+    stats = method.stats()
+    timing = {
+        "stages_s": timer.stages,
+        "total_s": sum(timer.stages.values()),
+        "train": {
+            "steps": summary.end_step,
+            "resumed_from_step": summary.start_step,
+            "steps_this_session": summary.steps_run,
+            "wall_s_this_session": summary.wall_s,
+            "wall_s_all_sessions": summary.total_wall_s,
+            "it_per_s": summary.it_per_s,
+            "final_loss": summary.final_loss,
+        },
+        "peak_rss_mib": peak_rss_mib(),
+        "cuda_peak_allocated_mib": (
+            torch.cuda.max_memory_allocated(device) / 2**20 if device.type == "cuda" else None
+        ),
+        "num_gaussians": stats.get("num_gaussians"),
+        "backend": stats.get("backend"),
+        "device": str(device),
+        "torch_threads": torch.get_num_threads(),
+        "method_stats": stats,
+    }
+    atomic_write_json(folder.timing_json, timing)
+    atomic_write_json(
+        folder.done, {"finished": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()), "mean": mean}
+    )
+    return RunResult(folder, skipped=False, mean=mean)
+
+
+def _render_test(method, view: TestView, folder: RunFolder) -> None:
+    """Render the test camera at every test time into ``renders/`` (existing renders of the final model are
+    kept, so an interrupted rendering stage resumes)."""
+    folder.renders.mkdir(parents=True, exist_ok=True)
+    for t, name in zip(view.times, view.files, strict=True):
+        out = folder.renders / name
+        if out.is_file():
+            continue
+        img = method.render(view.K, view.w2c, view.width, view.height, t)
+        if not torch.isfinite(img).all():
+            raise RuntimeError(f"render of test time {t} contains NaN/Inf; the model diverged")
+        arr = (img.detach().clamp(0, 1).cpu().numpy() * 255.0 + 0.5).astype(np.uint8)
+        write_image(out, arr)
+
+
+def _evaluate(folder: RunFolder, root: Path, req: RunRequest, device: torch.device) -> dict[str, float]:
+    from benchmarks.evaluate import evaluate_folder
+
+    mask_dir = root / "masks"
+    has_masks = mask_dir.is_dir() and any(mask_dir.iterdir())
+    res = evaluate_folder(
+        folder.renders,
+        root / "gt_images",
+        mask_dir=mask_dir if has_masks else None,
+        protocol="worldtree",
+        out_csv=folder.metrics_csv,
+        lpips_weights=req.lpips_weights,
+        device=str(device),
+    )
+    if not folder.metrics_json.is_file():
+        atomic_write_json(folder.metrics_json, res.record)
+    return _finite_means(res.mean)
+
+
+def _finite_means(row) -> dict[str, float]:
+    """The finite numbers of the table's mean row (LPIPS is empty when its weights are missing)."""
+    out = {}
+    for k, v in row.items():
+        if k == "frame":
+            continue
+        try:
+            fv = float(v)
+        except (TypeError, ValueError):
+            continue
+        if np.isfinite(fv):
+            out[str(k)] = fv
+    return out
+
+
+def _read_mean(folder: RunFolder) -> dict[str, float]:
+    try:
+        return dict(json.loads(folder.done.read_text()).get("mean", {}))
+    except (OSError, json.JSONDecodeError):
+        return {}

@@ -1,0 +1,118 @@
+"""Rasterizer speed: forward + backward ms/iteration and peak RSS, compiled CPU kernel vs PyTorch reference.
+
+    python -m benchmarks.speed_render [--gaussians 20000] [--threads 2] [--iters 10] [--sizes 320x180,480x270]
+
+Each (backend, size) runs in its own subprocess so that its peak RSS (resource.getrusage) is its own. One
+iteration = rasterize() (projection + compositing) and backward of a weighted sum of rgb, alpha and depth,
+i.e. what a training step spends in the renderer (no optimiser). Figures are printed, never asserted.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import resource
+import subprocess
+import sys
+import time
+
+
+def make_scene(n: int, width: int, height: int, seed: int = 0):
+    """A trained-scene-like cloud: N Gaussians in a box 2..6 units ahead, a few pixels wide each."""
+    import torch
+
+    g = torch.Generator().manual_seed(seed)
+    means = torch.rand(n, 3, generator=g) * torch.tensor([4.0, 2.4, 4.0]) - torch.tensor([2.0, 1.2, -2.0])
+    quats = torch.randn(n, 4, generator=g)
+    log_scales = torch.log(0.01 + 0.05 * torch.rand(n, 3, generator=g))
+    opacities = 0.1 + 0.8 * torch.rand(n, generator=g)
+    colors = torch.rand(n, 3, generator=g)
+    f = 0.8 * width
+    K = torch.tensor([[f, 0.0, (width - 1) / 2], [0.0, f, (height - 1) / 2], [0.0, 0.0, 1.0]])
+    w2c = torch.eye(4)
+    params = [means, quats, log_scales, opacities, colors, w2c]
+    for p in params:
+        p.requires_grad_(True)
+    return params, K
+
+
+def run_one(backend: str, n: int, width: int, height: int, threads: int, iters: int) -> dict:
+    import torch
+
+    from worldtree.render import rasterize
+
+    torch.set_num_threads(threads)
+    (means, quats, log_scales, opacities, colors, w2c), K = make_scene(n, width, height)
+    g = torch.Generator().manual_seed(1)
+    w_rgb = torch.rand(height, width, 3, generator=g)
+    w_a = torch.rand(height, width, generator=g)
+
+    def step():
+        out = rasterize(means, quats, log_scales, opacities, colors, K, w2c, width, height, backend=backend)
+        loss = (out.rgb * w_rgb).sum() + (out.alpha * w_a).sum() + 0.01 * out.depth.sum()
+        loss.backward()
+        return out
+
+    out = step()  # warm-up (and, for the compiled backend, loading the cached build)
+    step()
+    times = []
+    for _ in range(iters):
+        t0 = time.perf_counter()
+        step()
+        times.append(time.perf_counter() - t0)
+    times.sort()
+    peak_kb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss  # kilobytes on Linux
+    return {
+        "backend": out.backend,
+        "ms_median": 1000 * times[len(times) // 2],
+        "ms_min": 1000 * times[0],
+        "visible": int(out.visible.sum()),
+        "coverage": float(out.alpha.mean()),
+        "peak_rss_mb": peak_kb / 1024,
+    }
+
+
+def main(argv: list[str] | None = None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--gaussians", type=int, default=20000, help="number of Gaussians")
+    ap.add_argument("--threads", type=int, default=2, help="torch / OpenMP threads")
+    ap.add_argument("--iters", type=int, default=10, help="timed iterations per compiled run")
+    ap.add_argument("--reference-iters", type=int, default=3, help="timed iterations per reference run")
+    ap.add_argument("--sizes", default="320x180,480x270", help="comma-separated WIDTHxHEIGHT list")
+    ap.add_argument("--backends", default="cpu,reference", help="comma-separated backends to compare")
+    ap.add_argument("--one", help=argparse.SUPPRESS)  # internal: run a single configuration, print JSON
+    a = ap.parse_args(argv)
+    if a.one:
+        backend, size = a.one.split(":")
+        w, h = (int(v) for v in size.split("x"))
+        iters = a.iters if backend != "reference" else a.reference_iters
+        print(json.dumps(run_one(backend, a.gaussians, w, h, a.threads, iters)))
+        return
+
+    print(f"rasterizer forward+backward, {a.gaussians} Gaussians, {a.threads} threads (median ms/iteration)")
+    header = f"{'size':>9} {'backend':>10} {'ran':>10} {'ms/iter':>9} {'min ms':>8} {'visible':>8} {'cover':>6} {'peak RSS MB':>12}"
+    print(header)
+    print("-" * len(header))
+    for size in a.sizes.split(","):
+        res = {}
+        for backend in a.backends.split(","):
+            cmd = [sys.executable, "-m", "benchmarks.speed_render", "--one", f"{backend}:{size}"]
+            cmd += ["--gaussians", str(a.gaussians), "--threads", str(a.threads), "--iters", str(a.iters)]
+            cmd += ["--reference-iters", str(a.reference_iters)]
+            proc = subprocess.run(cmd, capture_output=True, text=True)
+            if proc.returncode != 0:
+                print(f"{size:>9} {backend:>10} failed: {proc.stderr.strip().splitlines()[-1:]}")
+                continue
+            r = json.loads(proc.stdout.strip().splitlines()[-1])
+            res[backend] = r
+            print(
+                f"{size:>9} {backend:>10} {r['backend']:>10} {r['ms_median']:9.1f} {r['ms_min']:8.1f} "
+                f"{r['visible']:8d} {r['coverage']:6.2f} {r['peak_rss_mb']:12.0f}"
+            )
+        if "cpu" in res and "reference" in res:
+            ratio = res["reference"]["ms_median"] / max(res["cpu"]["ms_median"], 1e-9)
+            print(f"{size:>9} speed-up of the compiled kernel over the reference: {ratio:.1f}x")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,358 @@
+"""Build one NVIDIA-LS scene from a raw rig capture (the library behind ``nvls build``).
+
+Stages: index the raw layout -> sample time steps -> rig poses (SfM on one time step, or an LLFF file) ->
+normalise the world -> undistort/resize every needed frame -> test masks (background model or imported) ->
+write images, cameras.json, poses_bounds.npy, preview.png, manifest.json into a temporary folder that is
+renamed into place at the end.
+"""
+
+from __future__ import annotations
+
+import io
+import time
+from collections.abc import Callable
+from contextlib import contextmanager
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from nvidia_ls import llff
+from nvidia_ls.layouts import RawCapture, open_raw
+from nvidia_ls.manifest import write_manifest
+from nvidia_ls.masks import MaskConfig, background_masks, import_masks
+from nvidia_ls.preview import contact_sheet
+from nvidia_ls.sampling import pingpong, sample_times, training_cameras
+from nvidia_ls.sfm import CAMERA_MODELS, run_sfm, sfm_candidates
+from nvidia_ls.undistort import Undistorter
+from nvidia_ls.writer import cameras_document, frame_file, mask_file, test_file
+from worldtree import __version__
+from worldtree.atomic import atomic_dir, atomic_write_bytes, atomic_write_json
+from worldtree.errors import UserError
+from worldtree.imageio import write_image
+
+NORMALIZE = ("auto", "rig", "none")
+
+
+@dataclass
+class BuildConfig:
+    """Options of ``nvls build`` (one source of defaults)."""
+
+    frames: int = 160
+    """Keep at most this many time steps (uniformly sampled when the capture is longer)."""
+    test_camera: int = 1
+    """Rig camera held out as the test view (never a training frame)."""
+    masks: Path | None = None
+    """Folder of imported test-camera masks (by source time: %05d/camNN.png or %05d.png); None = background model."""
+    poses: Path | None = None
+    """LLFF poses_bounds.npy of the rig cameras; skips SfM."""
+    size: tuple[int, int] | None = None
+    """Output (width, height); None keeps the raw size."""
+    camera_model: str = "shared"
+    """SfM intrinsics: "shared" (one SIMPLE_RADIAL for all cameras) or "per-camera"."""
+    sfm_tries: int = 8
+    """Number of time steps tried for SfM (the first, then spread over the sequence)."""
+    sfm_threads: int = 2
+    """CPU threads given to pycolmap."""
+    normalize: str = "auto"
+    """World frame: "rig" (axes of the mean camera, origin at the mean camera centre, median SfM point depth 1),
+    "none" (keep the SfM / --poses frame), "auto" (rig for SfM, none for --poses)."""
+    num_cameras: int | None = None
+    """Expected rig size; None = the highest camera number found."""
+    name: str | None = None
+    """Scene folder name; None = the raw folder's name (its parent's when it is called "dense")."""
+    force: bool = False
+    """Replace an existing output folder."""
+    seed: int = 0
+    """Seed of the SfM mapper."""
+    mask: MaskConfig = field(default_factory=MaskConfig)
+    """Background-model mask settings."""
+    preview_frames: int = 8
+    """Thumbnails per row of preview.png."""
+
+    def check(self) -> None:
+        if self.frames < 1:
+            raise UserError(f"--frames {self.frames}: must be at least 1")
+        if self.camera_model not in CAMERA_MODELS:
+            raise UserError(f"--camera-model {self.camera_model!r}: choose one of {', '.join(CAMERA_MODELS)}")
+        if self.normalize not in NORMALIZE:
+            raise UserError(f"--normalize {self.normalize!r}: choose one of {', '.join(NORMALIZE)}")
+        if self.size is not None and (self.size[0] < 8 or self.size[1] < 8):
+            raise UserError(f"--size {self.size[0]}x{self.size[1]}: too small; give WxH of at least 8x8")
+
+
+def parse_size(text: str | None) -> tuple[int, int] | None:
+    """``"480x270"`` -> ``(480, 270)``; None stays None."""
+    if text is None:
+        return None
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise UserError(f"--size {text!r}: expected WxH, e.g. 480x270") from None
+    return w, h
+
+
+@dataclass
+class _Timer:
+    seconds: dict[str, float] = field(default_factory=dict)
+
+    @contextmanager
+    def __call__(self, stage: str):
+        t0 = time.perf_counter()
+        try:
+            yield
+        finally:
+            self.seconds[stage] = self.seconds.get(stage, 0.0) + time.perf_counter() - t0
+
+
+def scene_name(raw_dir: Path, cfg: BuildConfig) -> str:
+    if cfg.name:
+        return cfg.name
+    raw_dir = raw_dir.resolve()
+    return raw_dir.parent.name if raw_dir.name in ("dense", "mv_images") else raw_dir.name
+
+
+def _rig_normalisation(w2cs: np.ndarray, depths: np.ndarray):
+    """Similarity ``world = s R sfm + t`` putting the mean camera at the origin with identity axes, median depth 1."""
+    M = np.mean(w2cs[:, :3, :3], axis=0)
+    U, _, Vt = np.linalg.svd(M)
+    R = U @ np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))]) @ Vt
+    centres = np.stack([-w[:3, :3].T @ w[:3, 3] for w in w2cs])
+    med = float(np.median(depths)) if depths.size else 1.0
+    s = 1.0 / med if np.isfinite(med) and med > 1e-12 else 1.0
+    t = -s * R @ centres.mean(axis=0)
+    return s, R, t
+
+
+def _apply_similarity(w2cs: np.ndarray, s: float, R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """World-to-camera poses after ``x' = s R x + t`` (camera frames scale with the world)."""
+    out = np.tile(np.eye(4), (len(w2cs), 1, 1))
+    for i, w in enumerate(w2cs):
+        Ri = w[:3, :3] @ R.T
+        out[i, :3, :3] = Ri
+        out[i, :3, 3] = s * w[:3, 3] - Ri @ t
+    return out
+
+
+def _point_depths(points: np.ndarray, obs_p: np.ndarray, obs_c: np.ndarray, w2cs: np.ndarray) -> np.ndarray:
+    cam = np.einsum("nij,nj->ni", w2cs[obs_c, :3, :3], points[obs_p]) + w2cs[obs_c, :3, 3]
+    return cam[:, 2]
+
+
+def build_scene(
+    raw_dir: str | Path,
+    out_dir: str | Path,
+    cfg: BuildConfig | None = None,
+    log: Callable[[str], None] | None = None,
+    progress: Callable[[str, int, int], None] | None = None,
+) -> Path:
+    """Build ``out_dir/<name>/`` from the raw capture in ``raw_dir``.
+
+    Args:
+        raw_dir: one scene's raw folder (any layout of :mod:`nvidia_ls.layouts`).
+        out_dir: parent folder of the scene folder.
+        cfg: options (defaults: :class:`BuildConfig`).
+        log: optional callable receiving warnings and notes (one line each).
+        progress: optional callable ``(stage, done, total)``.
+
+    Returns:
+        The scene folder. Raises :class:`UserError` for bad input; nothing is left half-written.
+    """
+    cfg = cfg or BuildConfig()
+    cfg.check()
+    say = log or (lambda _msg: None)
+    tick = progress or (lambda _s, _d, _t: None)
+    timer = _Timer()
+    warnings: list[str] = []
+
+    def warn(msg: str) -> None:
+        warnings.append(msg)
+        say(f"warning: {msg}")
+
+    raw_dir = Path(raw_dir)
+    with timer("index"):
+        raw: RawCapture = open_raw(raw_dir, cfg.num_cameras)
+    for w in raw.warnings:
+        warn(w)
+    final = Path(out_dir) / scene_name(raw_dir, cfg)
+    if final.exists() and not cfg.force:
+        raise UserError(f"{final}: already exists; pass --force to replace it")
+    train = training_cameras(raw.cameras, cfg.test_camera)
+    kept = sample_times(raw.times, cfg.frames)
+    if len(raw.times) < cfg.frames:
+        warn(f"only {len(raw.times)} time steps available, fewer than --frames {cfg.frames}; keeping all")
+    T = len(kept)
+    frame_cams = pingpong(train, T)
+    out_wh = cfg.size or (raw.width, raw.height)
+    if abs(out_wh[0] / out_wh[1] - raw.width / raw.height) > 0.01 * raw.width / raw.height:
+        raise UserError(
+            f"--size {out_wh[0]}x{out_wh[1]}: aspect differs from the raw {raw.width}x{raw.height}; keep the aspect"
+        )
+    n = len(raw.cameras)
+
+    # --- poses ---------------------------------------------------------------------------------------
+    pose_info: dict
+    with timer("sfm"):
+        if cfg.poses is not None:
+            Ks, w2cs, bounds = llff.load_poses_bounds(cfg.poses, n, raw.width, raw.height)
+            dists = np.zeros((n, 5))
+            depths = np.sqrt(bounds[:, 0] * bounds[:, 1])
+            pose_info = {"method": "file", "file": str(Path(cfg.poses).resolve())}
+        else:
+            res = run_sfm(
+                raw,
+                sfm_candidates(raw.times, cfg.sfm_tries),
+                cfg.camera_model,
+                cfg.sfm_threads,
+                cfg.seed,
+                log=say,
+            )
+            Ks, dists, w2cs = res.Ks, res.dists, res.w2cs
+            depths = _point_depths(res.points, res.obs_point, res.obs_cam, w2cs)
+            bounds = np.zeros((n, 2))
+            for i in range(n):
+                d = depths[(res.obs_cam == i) & (depths > 0)]
+                if d.size < 5:
+                    d = depths[depths > 0]
+                bounds[i] = [0.9 * np.percentile(d, 1), 1.1 * np.percentile(d, 99)]
+            pose_info = {
+                "method": "sfm",
+                "tool": "pycolmap",
+                "camera_model": cfg.camera_model,
+                "sfm_time": res.time,
+                "tried_times": res.tried,
+                "num_points": len(res.points),
+                "reprojection_error_px": res.reprojection_error,
+                "distortion": res.dists.tolist(),
+                "raw_intrinsics": res.Ks.tolist(),
+            }
+    mode = cfg.normalize if cfg.normalize != "auto" else ("none" if cfg.poses is not None else "rig")
+    if mode == "rig":
+        s, R, t = _rig_normalisation(w2cs, depths[depths > 0])
+        w2cs = _apply_similarity(w2cs, s, R, t)
+        bounds = bounds * s
+    else:
+        s, R, t = 1.0, np.eye(3), np.zeros(3)
+    world = {
+        "scale": s,
+        "R": R.tolist(),
+        "t": t.tolist(),
+        "mode": mode,
+        "note": "world = scale * R @ sfm + t",
+    }
+    pose_info["normalize"] = mode
+
+    tables: dict[tuple, Undistorter] = {}
+    undist: list[Undistorter] = []
+    for i in range(n):
+        key = (tuple(np.round(Ks[i].ravel(), 9)), tuple(np.round(dists[i], 12)))
+        if key not in tables:  # a shared camera model needs one remap table for the whole rig
+            tables[key] = Undistorter(Ks[i], dists[i], (raw.width, raw.height), out_wh)
+        undist.append(tables[key])
+    K_out = np.stack([u.K_out for u in undist])
+
+    try:
+        with atomic_dir(final, force=cfg.force) as tmp:
+            # --- frames ------------------------------------------------------------------------------
+            test_frames = np.zeros((T, out_wh[1], out_wh[0], 3), np.uint8)
+            thumbs_idx = set(
+                np.unique(np.round(np.linspace(0, T - 1, min(cfg.preview_frames, T))).astype(int))
+            )
+            thumbs: dict[int, np.ndarray] = {}
+            time_pos = {s_: i for i, s_ in enumerate(kept)}
+            for k, cid in enumerate(raw.cameras):
+                need = kept if cid == cfg.test_camera else [kept[i] for i in range(T) if frame_cams[i] == cid]
+                und = undist[k]
+                it = raw.iter_frames(cid, need)
+                while True:
+                    with timer("read"):
+                        item = next(it, None)
+                    if item is None:
+                        break
+                    src_t, img = item
+                    with timer("undistort"):
+                        img = und(img)
+                    ti = time_pos[src_t]
+                    if cid == cfg.test_camera:
+                        test_frames[ti] = img
+                        with timer("write"):
+                            write_image(tmp / test_file(ti), img)
+                    else:
+                        with timer("write"):
+                            write_image(tmp / frame_file(ti), img)
+                        if ti in thumbs_idx:
+                            thumbs[ti] = img
+                tick("frames", k + 1, n)
+
+            # --- masks -------------------------------------------------------------------------------
+            with timer("masks"):
+                if cfg.masks is not None:
+                    masks = import_masks(cfg.masks, kept, cfg.test_camera, out_wh[0], out_wh[1])
+                    mask_info = {"method": "imported", "source": str(Path(cfg.masks).resolve())}
+                else:
+                    masks = background_masks(test_frames, cfg.mask)
+                    mask_info = {"method": "background-median", **asdict(cfg.mask)}
+            with timer("write"):
+                for ti in range(T):
+                    write_image(tmp / mask_file(ti), masks[ti])
+                pb = llff.opencv_to_llff(w2cs, K_out, out_wh[1], out_wh[0], bounds)
+                buf = io.BytesIO()
+                np.save(buf, pb)
+                atomic_write_bytes(tmp / "poses_bounds.npy", buf.getvalue())
+                atomic_write_json(
+                    tmp / "cameras.json",
+                    cameras_document(
+                        width=out_wh[0],
+                        height=out_wh[1],
+                        cameras=raw.cameras,
+                        test_camera=cfg.test_camera,
+                        Ks=K_out,
+                        w2cs=w2cs,
+                        bounds=bounds,
+                        frame_cameras=frame_cams,
+                        source_times=kept,
+                        has_masks=True,
+                        world_transform=world,
+                    ),
+                )
+                sheet = contact_sheet(
+                    [(f"t{i} cam{frame_cams[i]:02d}", thumbs[i]) for i in sorted(thumbs)],
+                    [(f"test t{i}", test_frames[i], masks[i]) for i in sorted(thumbs)],
+                )
+                write_image(tmp / "preview.png", sheet)
+            with timer("hash"):
+                cfg_record = asdict(cfg)
+                for key in ("masks", "poses"):
+                    cfg_record[key] = None if cfg_record[key] is None else str(cfg_record[key])
+                write_manifest(
+                    tmp,
+                    {
+                        "tool": "nvls build",
+                        "tool_version": __version__,
+                        "created_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+                        "source": {
+                            "path": str(raw_dir.resolve()),
+                            "layout": raw.layout,
+                            "root": str(raw.root),
+                            "cameras": raw.cameras,
+                            "time_steps": len(raw.times),
+                            "width": raw.width,
+                            "height": raw.height,
+                        },
+                        "source_times": kept,
+                        "image_size": list(out_wh),
+                        "test_camera": cfg.test_camera,
+                        "train_cameras": train,
+                        "camera_order": frame_cams,
+                        "counts": {"frames": T, "test_frames": T, "masks": T, "cameras": n},
+                        "poses": pose_info,
+                        "masks": mask_info,
+                        "world_transform": world,
+                        "config": cfg_record,
+                        "timings_s": {k: round(v, 4) for k, v in timer.seconds.items()},
+                        "warnings": warnings,
+                    },
+                )
+    except FileExistsError:
+        raise UserError(f"{final}: appeared while building; pass --force to replace it") from None
+    return final

@@ -1,0 +1,140 @@
+"""``manifest.json`` of a built scene: provenance plus the sha256 of every file, and its verification."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from nvidia_ls import llff
+from nvidia_ls.sampling import pingpong
+from worldtree.atomic import atomic_write_json
+from worldtree.hashing import sha256_file
+
+MANIFEST = "manifest.json"
+MANIFEST_SCHEMA = 1
+
+
+def scene_files(scene: Path) -> list[str]:
+    """Relative paths (POSIX) of every file in the scene except the manifest, sorted."""
+    return sorted(
+        p.relative_to(scene).as_posix() for p in scene.rglob("*") if p.is_file() and p.name != MANIFEST
+    )
+
+
+def write_manifest(scene: str | Path, record: dict) -> dict:
+    """Add ``files`` (relative path -> sha256) to ``record`` and write it as ``manifest.json``."""
+    scene = Path(scene)
+    record = dict(record)
+    record["schema"] = MANIFEST_SCHEMA
+    record["files"] = {rel: sha256_file(scene / rel) for rel in scene_files(scene)}
+    atomic_write_json(scene / MANIFEST, record)
+    return record
+
+
+def _rotation_problem(R: np.ndarray, tol: float = 1e-4) -> str | None:
+    err = float(np.abs(R @ R.T - np.eye(3)).max())
+    if not np.isfinite(R).all() or err > tol:
+        return f"rotation not orthonormal (|R R^T - I| = {err:.2g})"
+    if np.linalg.det(R) < 0:
+        return "rotation is a reflection (det < 0)"
+    return None
+
+
+def verify_scene(scene: str | Path, check_hashes: bool = True) -> list[str]:
+    """Re-check a built scene; returns a list of problems (empty when all is well).
+
+    Checks: manifest readable; every listed file present with its sha256; no unlisted files; cameras.json
+    counts against the manifest and the folders; training frames never use the test camera and follow
+    the ping-pong order; rotations orthonormal; intrinsics positive; near < far; poses_bounds.npy agrees with
+    cameras.json.
+    """
+    scene = Path(scene)
+    problems: list[str] = []
+    mpath = scene / MANIFEST
+    if not mpath.is_file():
+        return [f"{mpath}: missing (not a scene built by `nvls build`?)"]
+    try:
+        man = json.loads(mpath.read_text())
+    except json.JSONDecodeError as e:
+        return [f"{mpath}: not valid JSON ({e.msg})"]
+    files = man.get("files", {})
+    for rel, digest in files.items():
+        p = scene / rel
+        if not p.is_file():
+            problems.append(f"{rel}: missing")
+        elif check_hashes and sha256_file(p) != digest:
+            problems.append(f"{rel}: checksum differs from the manifest (file changed)")
+    for rel in scene_files(scene):
+        if rel not in files:
+            problems.append(f"{rel}: not listed in the manifest")
+
+    cpath = scene / "cameras.json"
+    try:
+        cams = json.loads(cpath.read_text())
+    except (OSError, json.JSONDecodeError) as e:
+        problems.append(f"cameras.json: unreadable ({e})")
+        return problems
+    counts = man.get("counts", {})
+    frames, tests = cams.get("frames", []), cams.get("test_frames", [])
+    n_img = len(list((scene / "images").glob("*.png")))
+    n_gt = len(list((scene / "gt_images").glob("*.png")))
+    n_mask = len(list((scene / "masks").glob("*.png")))
+    if counts.get("frames") != len(frames) or n_img != len(frames):
+        problems.append(
+            f"frame count mismatch: manifest {counts.get('frames')}, cameras.json {len(frames)}, images/ {n_img}"
+        )
+    if counts.get("test_frames") != len(tests) or n_gt != len(tests):
+        problems.append(
+            f"test frame count mismatch: manifest {counts.get('test_frames')}, cameras.json {len(tests)}, "
+            f"gt_images/ {n_gt}"
+        )
+    n_mask_expected = sum(1 for f in tests if f.get("mask"))
+    if n_mask != n_mask_expected:
+        problems.append(f"mask count mismatch: cameras.json lists {n_mask_expected}, masks/ holds {n_mask}")
+    test_cam = cams.get("test_camera")
+    used = [f.get("camera") for f in frames]
+    if test_cam in used:
+        problems.append(f"training frames use the test camera {test_cam}")
+    train = man.get("train_cameras")
+    if train and used != pingpong(train, len(used)):
+        problems.append("training frame cameras do not follow the ping-pong order of the manifest")
+
+    by_id = {}
+    for c in cams.get("cameras", []):
+        cid = c.get("id")
+        by_id[cid] = c
+        K = np.asarray(c.get("K"), float)
+        w2c = np.asarray(c.get("w2c"), float)
+        if K.shape != (3, 3) or not np.isfinite(K).all() or K[0, 0] <= 0 or K[1, 1] <= 0:
+            problems.append(f"camera {cid}: bad intrinsics K")
+        if w2c.shape != (4, 4) or not np.isfinite(w2c).all():
+            problems.append(f"camera {cid}: w2c is not a finite 4x4 matrix")
+            continue
+        msg = _rotation_problem(w2c[:3, :3])
+        if msg:
+            problems.append(f"camera {cid}: {msg}")
+    for f in frames + tests:
+        if f.get("camera") not in by_id:
+            problems.append(f"{f.get('file')}: camera {f.get('camera')} is not listed in cameras.json")
+    near, far = cams.get("near"), cams.get("far")
+    if not (isinstance(near, (int, float)) and isinstance(far, (int, float)) and 0 < near < far):
+        problems.append(f"cameras.json: near/far must satisfy 0 < near < far (got {near}, {far})")
+
+    pb_path = scene / "poses_bounds.npy"
+    if pb_path.is_file():
+        try:
+            pb = np.load(pb_path, allow_pickle=False)
+        except (ValueError, OSError) as e:
+            problems.append(f"poses_bounds.npy: unreadable ({e})")
+        else:
+            ids = sorted(by_id)
+            if pb.shape != (len(ids), 17):
+                problems.append(f"poses_bounds.npy: shape {pb.shape}, expected ({len(ids)}, 17)")
+            elif ids:
+                _, w2cs, _ = llff.llff_to_opencv(pb)
+                ref = np.stack([np.asarray(by_id[i]["w2c"], float) for i in ids])
+                if not np.allclose(w2cs, ref, atol=1e-5):
+                    problems.append("poses_bounds.npy: poses disagree with cameras.json")
+    return problems

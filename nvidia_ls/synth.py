@@ -1,0 +1,521 @@
+"""A synthetic raw capture: a textured room and moving textured objects seen by a static camera rig.
+
+The scene is rendered exactly by :mod:`nvidia_ls.raycast`, so every ground-truth quantity is known: camera
+intrinsics and poses, per-pixel depth, dynamic masks, object ids and the rigid motion of each object.
+
+World frame (OpenCV-like): x right, y down, z forward (away from the rig). The floor is the plane
+``y = FLOOR_Y``; the rig looks along +z.
+
+Library use::
+
+    from nvidia_ls.synth import SynthConfig, write_raw_scene, make_scene, render_view
+    raw = write_raw_scene("raw/Synth", SynthConfig(cameras=12, steps=24, width=160, height=90))
+    scene = make_scene(SynthConfig())
+    view = render_view(scene, scene.Ks[0], scene.w2cs[0], scene.width, scene.height, time=3.5)
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from nvidia_ls import llff
+from nvidia_ls.raycast import Primitive, cast
+from worldtree import __version__
+from worldtree.atomic import atomic_dir, atomic_write_json
+from worldtree.errors import UserError
+from worldtree.imageio import write_image
+
+FLOOR_Y = 1.0
+MOTIONS = ("constant", "slow_fast")
+LAYOUTS = ("multiview", "camera_folders", "videos")
+
+
+@dataclass
+class SynthConfig:
+    """Configuration of a synthetic raw scene (one source of defaults; also the ``nvls synth`` options)."""
+
+    cameras: int = 12
+    """Number of rig cameras, in two rows (first row cam01.., left to right)."""
+    steps: int = 30
+    """Number of time steps rendered."""
+    width: int = 320
+    """Image width in pixels."""
+    height: int = 180
+    """Image height in pixels."""
+    seed: int = 0
+    """Seed of textures and of the small per-camera aiming jitter."""
+    motion: str = "constant"
+    """Motion profile: "constant" speed, or "slow_fast" (first half 4x slower than the second half)."""
+    objects: int = 2
+    """Number of moving objects (1: a sphere; 2: a sphere and a box)."""
+    supersample: int = 2
+    """Anti-aliasing: rays per pixel along each axis for the colour images (depth/masks use pixel centres)."""
+    depth: bool = False
+    """Also write ground-truth z-depth maps (float32 .npy, world units) for every camera and time."""
+    image_ext: str = "png"
+    """Raw image format: "png" (lossless) or "jpg"."""
+    layout: str = "multiview"
+    """Raw layout: "multiview" (mv_images/%05d/cam%02d), "camera_folders" (cam%02d/%05d) or "videos"."""
+    fov_deg: float = 60.0
+    """Horizontal field of view of every camera (degrees)."""
+    rig_width: float = 1.6
+    """Distance between the outermost cameras of a row (world units)."""
+    fps: float = 30.0
+    """Frame rate of the videos written for layout "videos"."""
+
+    def check(self) -> None:
+        """Raise :class:`UserError` for values the generator cannot honour."""
+        if self.cameras < 2:
+            raise UserError(f"--cameras {self.cameras}: need at least 2 cameras")
+        if self.steps < 1:
+            raise UserError(f"--steps {self.steps}: need at least 1 time step")
+        if self.width < 16 or self.height < 16:
+            raise UserError(f"--width/--height {self.width}x{self.height}: need at least 16x16 pixels")
+        if self.motion not in MOTIONS:
+            raise UserError(f"--motion {self.motion!r}: choose one of {', '.join(MOTIONS)}")
+        if self.objects not in (0, 1, 2):
+            raise UserError(f"--objects {self.objects}: choose 0, 1 or 2")
+        if self.supersample < 1:
+            raise UserError(f"--supersample {self.supersample}: must be >= 1")
+        if self.image_ext not in ("png", "jpg"):
+            raise UserError(f"--image-ext {self.image_ext!r}: choose png or jpg")
+        if self.layout not in LAYOUTS:
+            raise UserError(f"--layout {self.layout!r}: choose one of {', '.join(LAYOUTS)}")
+        if not 10.0 <= self.fov_deg <= 120.0:
+            raise UserError(f"--fov-deg {self.fov_deg}: choose a field of view between 10 and 120 degrees")
+
+
+@dataclass
+class SynthScene:
+    """Everything needed to render the synthetic scene at any camera and (fractional) time.
+
+    Attributes:
+        cfg: the configuration it was made from.
+        Ks: ``[N, 3, 3]`` intrinsics (OpenCV: pixel centres at integer coordinates).
+        w2cs: ``[N, 4, 4]`` world-to-camera poses (OpenCV).
+        static: primitives of the static set (object id 0).
+        objects: the moving primitives (object ids 1..).
+    """
+
+    cfg: SynthConfig
+    Ks: np.ndarray
+    w2cs: np.ndarray
+    static: list[Primitive]
+    objects: list[Primitive]
+
+    @property
+    def width(self) -> int:
+        return self.cfg.width
+
+    @property
+    def height(self) -> int:
+        return self.cfg.height
+
+    def phase(self, time: float) -> float:
+        """Motion phase in [0, 1] at (fractional) time step ``time`` in [0, steps-1]."""
+        tau = 0.0 if self.cfg.steps <= 1 else float(np.clip(time / (self.cfg.steps - 1), 0.0, 1.0))
+        if self.cfg.motion == "constant":
+            return tau
+        # slow_fast: speed 1 on the first half, 4 on the second, integrated and normalised to end at 1.
+        slow, fast = 1.0, 4.0
+        total = 0.5 * slow + 0.5 * fast
+        return (slow * min(tau, 0.5) + fast * max(tau - 0.5, 0.0)) / total
+
+    def object_pose(self, index: int, time: float) -> np.ndarray:
+        """``[4, 4]`` world-from-object transform of moving object ``index`` (0-based) at time ``time``."""
+        phi = 2.0 * math.pi * self.phase(time)
+        T = np.eye(4)
+        if index == 0:  # the sphere: sweeps left-right-left while bouncing and spinning
+            T[:3, :3] = _axis_angle([0.0, 1.0, 0.3], 3.0 * phi)
+            T[:3, 3] = [
+                1.3 * math.sin(phi),
+                FLOOR_Y - 0.45 - 0.35 * abs(math.sin(2 * phi)),
+                3.6 + 0.5 * math.cos(phi),
+            ]
+        elif index == 1:  # the box: circles in depth while tumbling
+            T[:3, :3] = _axis_angle([0.0, 1.0, 0.0], 2.0 * phi) @ _axis_angle([1.0, 0.0, 0.0], phi)
+            T[:3, 3] = [
+                0.9 + 0.8 * math.cos(phi + 1.0),
+                0.1 + 0.3 * math.sin(2 * phi),
+                5.0 + 0.8 * math.sin(phi + 1.0),
+            ]
+        else:
+            raise IndexError(f"object {index}: the scene has {len(self.objects)} moving objects")
+        return T
+
+
+@dataclass
+class SynthView:
+    """One rendered view. rgb ``[H, W, 3]`` uint8; depth ``[H, W]`` float32 z-depth (inf = no hit);
+    object_id ``[H, W]`` int16 (0 static set, k >= 1 moving object k, -1 nothing)."""
+
+    rgb: np.ndarray
+    depth: np.ndarray
+    object_id: np.ndarray
+
+    @property
+    def dynamic_mask(self) -> np.ndarray:
+        """``[H, W]`` bool: pixel centre sees a moving object."""
+        return self.object_id > 0
+
+
+def _axis_angle(axis, angle: float) -> np.ndarray:
+    rvec = np.asarray(axis, dtype=np.float64)
+    rvec = rvec / np.linalg.norm(rvec) * angle
+    return cv2.Rodrigues(rvec)[0]
+
+
+def _texture(rng: np.random.Generator, size: int, vivid: bool) -> np.ndarray:
+    """Multi-octave colour noise plus random discs and rectangles: rich corners and blobs for SIFT."""
+    tex = np.zeros((size, size, 3), np.float32)
+    for cells, amp in ((4, 0.35), (8, 0.25), (16, 0.2), (32, 0.12), (64, 0.08)):
+        grid = rng.random((cells, cells, 3)).astype(np.float32)
+        tex += amp * cv2.resize(grid, (size, size), interpolation=cv2.INTER_CUBIC)
+    tex = np.clip(tex, 0, 1)
+    if vivid:
+        # Moving objects: saturated stripes so they stand apart from the earthy static set.
+        hue = rng.random(3)
+        stripes = (np.sin(np.arange(size) * 2 * np.pi / (size / 6))[None, :] > 0).astype(np.float32)
+        tex = 0.5 * tex + 0.5 * (
+            stripes[..., None] * hue[None, None, :] + (1 - stripes[..., None]) * hue[::-1]
+        )
+    img = (tex * 255).astype(np.uint8)
+    n_shapes = 60 if vivid else 90
+    for _ in range(n_shapes):
+        col = tuple(int(x) for x in rng.integers(0, 256, 3))
+        x, y = (int(v) for v in rng.integers(0, size, 2))
+        r = int(rng.integers(size // 64 + 2, size // 12 + 3))
+        if rng.random() < 0.5:
+            cv2.circle(img, (x, y), r, col, -1, lineType=cv2.LINE_AA)
+        else:
+            cv2.rectangle(img, (x - r, y - r // 2), (x + r, y + r), col, -1, lineType=cv2.LINE_AA)
+    return img.astype(np.float32) / 255.0
+
+
+def _look_at(centre: np.ndarray, target: np.ndarray) -> np.ndarray:
+    """OpenCV world-to-camera ``[4, 4]`` looking from ``centre`` at ``target`` with image y along world +y."""
+    z = target - centre
+    z = z / np.linalg.norm(z)
+    x = np.cross(np.array([0.0, 1.0, 0.0]), z)
+    x = x / np.linalg.norm(x)
+    y = np.cross(z, x)
+    R = np.stack([x, y, z])
+    w2c = np.eye(4)
+    w2c[:3, :3] = R
+    w2c[:3, 3] = -R @ centre
+    return w2c
+
+
+def _rig(cfg: SynthConfig, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """Intrinsics and poses of a two-row rig on a gentle arc centred on the scene."""
+    n = cfg.cameras
+    per_row = math.ceil(n / 2)
+    f = 0.5 * cfg.width / math.tan(math.radians(cfg.fov_deg) / 2)
+    K = np.array([[f, 0, (cfg.width - 1) / 2], [0, f, (cfg.height - 1) / 2], [0, 0, 1.0]])
+    target = np.array([0.0, 0.2, 4.0])
+    radius = 4.0
+    half_angle = math.asin(min(0.99, cfg.rig_width / 2 / radius))
+    Ks, w2cs = [], []
+    for i in range(n):
+        row, col = divmod(i, per_row)
+        ncol = per_row if row == 0 else n - per_row
+        a = 0.0 if ncol == 1 else -half_angle + 2 * half_angle * col / (ncol - 1)
+        centre = np.array([radius * math.sin(a), -0.12 + 0.24 * row, target[2] - radius * math.cos(a)])
+        aim = target + rng.normal(0.0, 0.05, 3)  # real rigs are never aimed perfectly
+        Ks.append(K.copy())
+        w2cs.append(_look_at(centre, aim))
+    return np.stack(Ks), np.stack(w2cs)
+
+
+def make_scene(cfg: SynthConfig) -> SynthScene:
+    """Build the scene description (textures, rig, objects) for ``cfg``; deterministic in ``cfg.seed``."""
+    cfg.check()
+    rng = np.random.default_rng(cfg.seed)
+    Ks, w2cs = _rig(cfg, rng)
+    tpu = 64.0  # texels per world unit: about one texel per pixel at 480 px width on the back wall
+
+    def plane(origin, u_axis, v_axis, size_u, size_v) -> Primitive:
+        u = np.asarray(u_axis, float)
+        v = np.asarray(v_axis, float)
+        R = np.stack([u, v, np.cross(u, v)], axis=1)
+        return Primitive(
+            "plane",
+            np.array([size_u, size_v, 0.0]),
+            _texture(rng, 512, False),
+            tpu,
+            0,
+            R,
+            np.asarray(origin, float),
+        )
+
+    x0, x1, ceil, back, front = -3.5, 3.5, -2.5, 8.0, -1.0
+    static = [
+        plane([x0, FLOOR_Y, front], [1, 0, 0], [0, 0, 1], x1 - x0, back - front),  # floor
+        plane([x0, ceil, back], [1, 0, 0], [0, 1, 0], x1 - x0, FLOOR_Y - ceil),  # back wall
+        plane([x0, ceil, front], [0, 0, 1], [0, 1, 0], back - front, FLOOR_Y - ceil),  # left wall
+        plane([x1, ceil, front], [0, 0, 1], [0, 1, 0], back - front, FLOOR_Y - ceil),  # right wall
+        plane([x0, ceil, front], [1, 0, 0], [0, 0, 1], x1 - x0, back - front),  # ceiling
+    ]
+    for centre, half in (([-1.6, FLOOR_Y - 0.45, 5.2], 0.45), ([1.9, FLOOR_Y - 0.35, 6.3], 0.35)):
+        static.append(
+            Primitive(
+                "box",
+                np.full(3, half),
+                _texture(rng, 256, False),
+                tpu,
+                0,
+                np.eye(3),
+                np.asarray(centre, float),
+            )
+        )
+    objects = []
+    if cfg.objects >= 1:
+        objects.append(Primitive("sphere", np.array([0.45, 0, 0]), _texture(rng, 256, True), tpu, 1))
+    if cfg.objects >= 2:
+        objects.append(Primitive("box", np.full(3, 0.3), _texture(rng, 256, True), tpu, 2))
+    return SynthScene(cfg, Ks, w2cs, static, objects)
+
+
+def _rays(K: np.ndarray, w2c: np.ndarray, width: int, height: int, ss: int):
+    """World origin ``[3]``, unit directions ``[H*ss, W*ss, 3]`` and z-per-unit-length ``[H*ss, W*ss]``."""
+    offs = (np.arange(ss) + 0.5) / ss - 0.5  # sub-pixel offsets around each pixel centre
+    xs = (np.arange(width)[:, None] + offs[None, :]).reshape(-1)
+    ys = (np.arange(height)[:, None] + offs[None, :]).reshape(-1)
+    u, v = np.meshgrid(xs, ys)
+    pix = np.stack([u, v, np.ones_like(u)], axis=-1)
+    dc = pix @ np.linalg.inv(K).T
+    norm = np.linalg.norm(dc, axis=-1, keepdims=True)
+    dc = dc / norm
+    R = w2c[:3, :3]
+    origin = -R.T @ w2c[:3, 3]
+    return origin, dc @ R, dc[..., 2]
+
+
+def _trace(prims, poses, origin, dirs, zfac):
+    shape = dirs.shape[:2]
+    t, rgb, oid = cast(prims, poses, origin, dirs.reshape(-1, 3))
+    return t.reshape(shape) * zfac, rgb.reshape(*shape, 3), oid.reshape(shape)
+
+
+def _downsample(rgb: np.ndarray, ss: int) -> np.ndarray:
+    if ss > 1:
+        # INTER_AREA with an integer factor is the exact box average of each ss x ss block.
+        h, w = rgb.shape[0] // ss, rgb.shape[1] // ss
+        rgb = cv2.resize(rgb.astype(np.float32), (w, h), interpolation=cv2.INTER_AREA)
+    return np.clip(np.round(rgb * 255.0), 0, 255).astype(np.uint8)
+
+
+class _CameraRenderer:
+    """Renders one camera at many times, tracing the static set once and only the objects per time."""
+
+    def __init__(self, scene: SynthScene, K, w2c, width: int, height: int, supersample: int):
+        self.scene = scene
+        self.ss = supersample
+        self.K = np.asarray(K, float)
+        self.w2c = np.asarray(w2c, float)
+        self.rays = [_rays(K, w2c, width, height, s) for s in sorted({1, supersample})]
+        self.static = [_trace(scene.static, [None] * len(scene.static), *r) for r in self.rays]
+
+    def _composite(self, k: int, time: float):
+        origin, dirs, zfac = self.rays[k]
+        depth, rgb, oid = (a.copy() for a in self.static[k])
+        ss = self.ss if k == len(self.rays) - 1 else 1
+        for i, prim in enumerate(self.scene.objects):
+            T = self.scene.object_pose(i, time)
+            box = self._bbox(prim, T, ss, depth.shape)
+            if box is None:
+                continue
+            y0, y1, x0, x1 = box
+            d_o, rgb_o, id_o = _trace(
+                [prim], [(T[:3, :3], T[:3, 3])], origin, dirs[y0:y1, x0:x1], zfac[y0:y1, x0:x1]
+            )
+            front = d_o < depth[y0:y1, x0:x1]
+            depth[y0:y1, x0:x1][front] = d_o[front]
+            rgb[y0:y1, x0:x1][front] = rgb_o[front]
+            oid[y0:y1, x0:x1][front] = id_o[front]
+        return depth, rgb, oid
+
+    def _bbox(self, prim: Primitive, T: np.ndarray, ss: int, shape):
+        """Pixel box (on the ``ss``-times grid) that contains the object's bounding sphere, or None."""
+        # Only rays near the object can hit it: tracing just its screen box makes objects almost free.
+        radius = float(np.linalg.norm(prim.size)) if prim.kind == "box" else float(prim.size[0])
+        pc = self.w2c[:3, :3] @ T[:3, 3] + self.w2c[:3, 3]
+        h, w = shape
+        if pc[2] <= radius * 1.05:  # object reaches behind the camera: trace everything
+            return 0, h, 0, w
+        u = (self.K[0, 0] * pc[0] / pc[2] + self.K[0, 2] + 0.5) * ss
+        v = (self.K[1, 1] * pc[1] / pc[2] + self.K[1, 2] + 0.5) * ss
+        # Conservative screen radius of a sphere seen at distance z (covers perspective stretching).
+        dist = float(np.linalg.norm(pc))
+        r_pix = ss * max(self.K[0, 0], self.K[1, 1]) * radius / np.sqrt(max(dist**2 - radius**2, 1e-9))
+        r_pix *= dist / pc[2] + 0.05
+        x0, x1 = int(max(0, np.floor(u - r_pix) - 2)), int(min(w, np.ceil(u + r_pix) + 2))
+        y0, y1 = int(max(0, np.floor(v - r_pix) - 2)), int(min(h, np.ceil(v + r_pix) + 2))
+        if x0 >= x1 or y0 >= y1:
+            return None
+        return y0, y1, x0, x1
+
+    def render(self, time: float) -> SynthView:
+        depth, rgb, oid = self._composite(0, time)  # pixel centres: exact depth and ids
+        if self.ss > 1:
+            _, rgb, _ = self._composite(len(self.rays) - 1, time)
+        return SynthView(_downsample(rgb, self.ss), depth.astype(np.float32), oid)
+
+
+def render_view(
+    scene: SynthScene,
+    K: np.ndarray,
+    w2c: np.ndarray,
+    width: int,
+    height: int,
+    time: float,
+    supersample: int = 1,
+) -> SynthView:
+    """Render any pinhole camera at any (fractional) time step.
+
+    Args:
+        scene: from :func:`make_scene`.
+        K: ``[3, 3]`` OpenCV intrinsics (pixels); w2c: ``[4, 4]`` OpenCV world-to-camera.
+        width, height: image size in pixels.
+        time: time step in [0, steps-1] (fractional values interpolate the motion).
+        supersample: rays per pixel along each axis for the colours.
+
+    Returns:
+        :class:`SynthView` with rgb, z-depth (world units) and object ids.
+    """
+    return _CameraRenderer(
+        scene, np.asarray(K, float), np.asarray(w2c, float), width, height, supersample
+    ).render(time)
+
+
+def gt_near_far(scene: SynthScene) -> np.ndarray:
+    """``[N, 2]`` near/far per camera: 1st/99th depth percentile of the static set, widened by 10%."""
+    out = []
+    for K, w2c in zip(scene.Ks, scene.w2cs, strict=True):
+        origin, dirs, zfac = _rays(K, w2c, scene.width, scene.height, 1)
+        depth, _, _ = _trace(scene.static, [None] * len(scene.static), origin, dirs, zfac)
+        d = depth[np.isfinite(depth)]
+        out.append([0.9 * np.percentile(d, 1), 1.1 * np.percentile(d, 99)])
+    return np.asarray(out)
+
+
+def write_raw_scene(
+    out_dir: str | Path, cfg: SynthConfig | None = None, force: bool = False, progress=None
+) -> Path:
+    """Render the scene and write it as a raw capture plus ground truth.
+
+    Layout (for ``cfg.layout == "multiview"``)::
+
+        OUT/mv_images/%05d/cam%02d.png     raw images (or cam%02d/%05d.png, or cam%02d.mp4)
+        OUT/gt/cameras.json                 K, w2c (OpenCV) per camera, image size, config
+        OUT/gt/poses_bounds.npy             the same poses in LLFF format, (N, 17)
+        OUT/gt/masks/%05d/cam%02d.png       dynamic mask of every camera and time (0/255)
+        OUT/gt/objects.json                 per-time world-from-object 4x4 of each moving object
+        OUT/gt/depth/%05d/cam%02d.npy       float32 z-depth, world units (only with cfg.depth)
+
+    Args:
+        out_dir: the scene folder to create.
+        cfg: generator settings (defaults: :class:`SynthConfig`).
+        force: replace an existing folder.
+        progress: optional callable ``(done, total)`` called after each camera.
+
+    Returns:
+        ``out_dir``.
+    """
+    cfg = cfg or SynthConfig()
+    cfg.check()
+    out_dir = Path(out_dir)
+    if out_dir.exists() and not force:
+        raise UserError(f"{out_dir}: already exists; choose another folder or pass --force to replace it")
+    scene = make_scene(cfg)
+    n, steps = cfg.cameras, cfg.steps
+    with atomic_dir(out_dir, force=True) as tmp:
+        gt = tmp / "gt"
+        for ci in range(n):
+            cam = ci + 1
+            renderer = _CameraRenderer(
+                scene, scene.Ks[ci], scene.w2cs[ci], cfg.width, cfg.height, cfg.supersample
+            )
+            writer = None
+            if cfg.layout == "videos":
+                writer = cv2.VideoWriter(
+                    str(tmp / f"cam{cam:02d}.mp4"),
+                    cv2.VideoWriter_fourcc(*"mp4v"),
+                    cfg.fps,
+                    (cfg.width, cfg.height),
+                )
+                if not writer.isOpened():
+                    raise UserError("OpenCV cannot write mp4v videos here; use --layout multiview")
+            for t in range(steps):
+                view = renderer.render(float(t))
+                if cfg.layout == "multiview":
+                    write_image(tmp / "mv_images" / f"{t:05d}" / f"cam{cam:02d}.{cfg.image_ext}", view.rgb)
+                elif cfg.layout == "camera_folders":
+                    write_image(tmp / f"cam{cam:02d}" / f"{t:05d}.{cfg.image_ext}", view.rgb)
+                else:
+                    writer.write(cv2.cvtColor(view.rgb, cv2.COLOR_RGB2BGR))
+                write_image(gt / "masks" / f"{t:05d}" / f"cam{cam:02d}.png", view.dynamic_mask)
+                if cfg.depth:
+                    (gt / "depth" / f"{t:05d}").mkdir(parents=True, exist_ok=True)
+                    np.save(gt / "depth" / f"{t:05d}" / f"cam{cam:02d}.npy", view.depth)
+            if writer is not None:
+                writer.release()
+            if progress is not None:
+                progress(ci + 1, n)
+        bounds = gt_near_far(scene)
+        gt.mkdir(parents=True, exist_ok=True)
+        np.save(
+            gt / "poses_bounds.npy", llff.opencv_to_llff(scene.w2cs, scene.Ks, cfg.height, cfg.width, bounds)
+        )
+        atomic_write_json(
+            gt / "cameras.json",
+            {
+                "convention": "opencv: x right, y down, z forward; w2c maps world to camera; pixel centres at "
+                "integer coordinates",
+                "width": cfg.width,
+                "height": cfg.height,
+                "cameras": [
+                    {
+                        "id": i + 1,
+                        "K": scene.Ks[i],
+                        "w2c": scene.w2cs[i],
+                        "near": bounds[i, 0],
+                        "far": bounds[i, 1],
+                    }
+                    for i in range(n)
+                ],
+                "config": asdict(cfg),
+                "tool_version": __version__,
+            },
+        )
+        atomic_write_json(
+            gt / "objects.json",
+            {
+                "note": "world_from_object 4x4 per time step; object ids match gt/masks (id k = objects[k-1])",
+                "objects": [
+                    {
+                        "id": i + 1,
+                        "kind": p.kind,
+                        "size": p.size,
+                        "world_from_object": [scene.object_pose(i, float(t)) for t in range(steps)],
+                    }
+                    for i, p in enumerate(scene.objects)
+                ],
+                "phase": [scene.phase(float(t)) for t in range(steps)],
+            },
+        )
+    return out_dir
+
+
+def read_gt_cameras(raw_dir: str | Path) -> tuple[np.ndarray, np.ndarray]:
+    """``(Ks [N, 3, 3], w2cs [N, 4, 4])`` from ``RAW/gt/cameras.json`` of a synthetic scene."""
+    meta = json.loads((Path(raw_dir) / "gt" / "cameras.json").read_text())
+    Ks = np.asarray([c["K"] for c in meta["cameras"]], float)
+    w2cs = np.asarray([c["w2c"] for c in meta["cameras"]], float)
+    return Ks, w2cs

@@ -1,0 +1,91 @@
+"""File names and the ``cameras.json`` document of a built scene (layout: docs/scene_format.md)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+SCHEMA = 1
+CONVENTION = "opencv: x right, y down, z forward; w2c maps world to camera"
+
+
+def frame_file(index: int) -> str:
+    """Relative path of training frame ``index``."""
+    return f"images/{index:05d}.png"
+
+
+def test_file(time: int) -> str:
+    """Relative path of the test image at kept time ``time``."""
+    return f"gt_images/v001_t{time:03d}.png"
+
+
+def mask_file(time: int) -> str:
+    """Relative path of the test mask at kept time ``time``."""
+    return f"masks/v001_t{time:03d}.png"
+
+
+def cameras_document(
+    *,
+    width: int,
+    height: int,
+    cameras: list[int],
+    test_camera: int,
+    Ks: np.ndarray,
+    w2cs: np.ndarray,
+    bounds: np.ndarray,
+    frame_cameras: list[int],
+    source_times: list[int],
+    has_masks: bool,
+    world_transform: dict,
+) -> dict:
+    """The ``cameras.json`` content.
+
+    Args:
+        width, height: stored image size.
+        cameras: rig camera ids, in the order of ``Ks``/``w2cs``/``bounds``.
+        test_camera: id of the held-out camera.
+        Ks: ``[N, 3, 3]`` intrinsics for the stored size; w2cs: ``[N, 4, 4]`` OpenCV world-to-camera.
+        bounds: ``[N, 2]`` near/far per camera (world units).
+        frame_cameras: camera id of each training frame; source_times: raw time index of each kept time.
+        has_masks: whether test masks are written.
+        world_transform: ``{"scale", "R", "t", "note"}`` from the SfM frame to the stored world.
+    """
+    cams = []
+    for i, cid in enumerate(cameras):
+        cams.append(
+            {
+                "id": int(cid),
+                "K": np.asarray(Ks[i]).tolist(),
+                "dist": [0.0, 0.0, 0.0, 0.0, 0.0],
+                "w2c": np.asarray(w2cs[i]).tolist(),
+                "near": float(bounds[i, 0]),
+                "far": float(bounds[i, 1]),
+            }
+        )
+    frames = [
+        {"index": i, "file": frame_file(i), "camera": int(c), "time": i, "source_time": int(source_times[i])}
+        for i, c in enumerate(frame_cameras)
+    ]
+    test_frames = [
+        {
+            "index": t,
+            "file": test_file(t),
+            "mask": mask_file(t) if has_masks else None,
+            "camera": int(test_camera),
+            "time": t,
+            "source_time": int(s),
+        }
+        for t, s in enumerate(source_times)
+    ]
+    return {
+        "schema": SCHEMA,
+        "width": int(width),
+        "height": int(height),
+        "convention": CONVENTION,
+        "test_camera": int(test_camera),
+        "cameras": cams,
+        "frames": frames,
+        "test_frames": test_frames,
+        "near": float(bounds[:, 0].min()),
+        "far": float(bounds[:, 1].max()),
+        "world_transform": world_transform,
+    }

@@ -1,0 +1,186 @@
+"""Skinning of Gaussians to motion-scaffold nodes: KNN lookup, skinning weights and DQB deformation.
+
+Nodes carry a pose per frame (position [T, M, 3], rotation [T, M, 4] (w, x, y, z)) and a radius ``sigma``
+[M] in scene units. A Gaussian at reference time t_ref with mean ``x`` follows its K nearest nodes ``n_k``:
+
+    w_k   = exp(-|x - n_k(t_ref)|^2 / (2 sigma_k^2)) + 1e-6   (+ learned correction; 0 where masked)
+    T(t)  = DQB_k(w_k, T_k(t) T_k(t_ref)^-1)                  (see dualquat.blend, identity mix included)
+    x(t)  = T(t) x,   rot(t) = q_T(t) rot
+
+Everything is differentiable in PyTorch with respect to the points, node poses, ``sigma`` and the correction;
+the neighbour indices are integers and carry no gradient.
+"""
+
+from __future__ import annotations
+
+import torch
+
+from worldtree.motion import dualquat, se3
+
+__all__ = ["deform", "deform_neighbours", "gather_frames", "knn", "normalize_weights", "skinning_weights"]
+
+WEIGHT_FLOOR = 1e-6
+"""Added to every unmasked Gaussian kernel value (MoSca), so a point never has all-zero raw weights."""
+
+
+def knn(
+    query: torch.Tensor, ref: torch.Tensor, k: int, chunk_size: int = 4096
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """The ``k`` nearest ``ref`` points of each query point, nearest first.
+
+    Args:
+        query: [..., 3] points (e.g. Gaussian means at the reference time).
+        ref: [M, 3] points (e.g. node positions at the reference time).
+        k: neighbours wanted; clamped to M (so M < k gives M columns and M = 0 gives none).
+        chunk_size: query rows per ``torch.cdist`` call, bounding memory at ``chunk_size * M`` distances.
+
+    Returns:
+        ``(idx, dist2)``: [..., min(k, M)] int64 indices into ``ref`` and the squared distances, recomputed
+        exactly from the coordinates (``cdist`` may use a matrix product, which is only good for ranking).
+    """
+    if ref.dim() != 2 or ref.shape[-1] != 3 or query.shape[-1] != 3:
+        raise ValueError(
+            f"knn: expected query [..., 3] and ref [M, 3], got {tuple(query.shape)}, {tuple(ref.shape)}"
+        )
+    if k < 0 or chunk_size < 1:
+        raise ValueError(f"knn: k must be >= 0 and chunk_size >= 1, got k={k}, chunk_size={chunk_size}")
+    k = min(k, ref.shape[0])
+    flat = query.reshape(-1, 3)
+    idx = torch.empty((flat.shape[0], k), dtype=torch.long, device=query.device)
+    if k > 0:
+        with torch.no_grad():
+            ref_d = ref.detach()
+            for start in range(0, flat.shape[0], chunk_size):
+                block = flat[start : start + chunk_size].detach()
+                dist = torch.cdist(block, ref_d)
+                idx[start : start + chunk_size] = torch.topk(
+                    dist, k, dim=-1, largest=False, sorted=True
+                ).indices
+    idx = idx.reshape(*query.shape[:-1], k)
+    diff = query[..., None, :] - ref[idx]
+    return idx, (diff * diff).sum(-1)
+
+
+def skinning_weights(
+    points: torch.Tensor,
+    nb_pos: torch.Tensor,
+    nb_sigma: torch.Tensor,
+    valid: torch.Tensor | None = None,
+    correction: torch.Tensor | None = None,
+    min_sigma: float = 1e-8,
+) -> torch.Tensor:
+    """Raw (unnormalised) skinning weights [..., K] of points to their K neighbour nodes.
+
+    Args:
+        points: [..., 3] positions at the reference time.
+        nb_pos: [..., K, 3] neighbour node positions at the same time.
+        nb_sigma: [..., K] node radii (scene units); ``sigma`` is floored at ``min_sigma`` (a zero radius
+            gives a kernel of 1 at the node and 0 elsewhere, with finite gradients).
+        valid: [..., K] bool mask (e.g. graph edges or padded neighbours); False gives weight 0.
+        correction: [..., K] learned additive correction, added before masking and normalisation; the
+            corrected weight is floored at 0.
+
+    Returns:
+        ``exp(-d^2 / (2 sigma^2)) + 1e-6`` (``max(0, ... + correction)`` with a correction), zero where masked. Normalise with
+        :func:`normalize_weights`, or pass to :func:`worldtree.motion.dualquat.blend` which does it.
+    """
+    diff = points[..., None, :] - nb_pos
+    d2 = (diff * diff).sum(-1)
+    var2 = 2.0 * nb_sigma.clamp(min=min_sigma) ** 2
+    w = torch.exp(-d2 / var2) + WEIGHT_FLOOR  # exponent <= 0: underflows to 0, never overflows
+    if correction is not None:
+        # A negative weight would make the blend ill-posed (weights cancelling): floor the sum at 0, which
+        # drops that neighbour (its gradient is 0 until the correction rises again).
+        w = (w + correction).clamp(min=0.0)
+    if valid is not None:
+        w = torch.where(valid, w, torch.zeros_like(w))
+    return w
+
+
+def normalize_weights(weights: torch.Tensor, eps: float = 1e-12) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(weights / W, W)`` with ``W = sum_k weights`` [...]; the division uses ``max(W, eps)``."""
+    w_sum = weights.sum(-1)
+    return weights / w_sum.clamp(min=eps)[..., None], w_sum
+
+
+def gather_frames(traj: torch.Tensor, frame: torch.Tensor, knn_idx: torch.Tensor) -> torch.Tensor:
+    """Per-neighbour values ``traj[frame, knn_idx]`` [..., K, C] for items with their own frame.
+
+    ``traj`` [T, M, C] (node positions or rotations over time), ``frame`` [...] int frame per item (e.g. each
+    Gaussian's reference frame), ``knn_idx`` [..., K]. Use it to build the inputs of
+    :func:`deform_neighbours` when Gaussians have different reference times.
+    """
+    return traj[frame[..., None], knn_idx]
+
+
+def deform_neighbours(
+    points: torch.Tensor,
+    quats: torch.Tensor,
+    nb_pos_ref: torch.Tensor,
+    nb_sigma: torch.Tensor,
+    nb_q_rel: torch.Tensor,
+    nb_t_rel: torch.Tensor,
+    valid: torch.Tensor | None = None,
+    correction: torch.Tensor | None = None,
+    mix_identity: bool = True,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Deform points and orientations by DQB of their neighbours' relative transforms (gathered form).
+
+    Args:
+        points: [..., 3] Gaussian means at the reference time.
+        quats: [..., 4] Gaussian rotations (w, x, y, z), any norm (kept).
+        nb_pos_ref: [..., K, 3] neighbour node positions at the reference time (for the weights).
+        nb_sigma: [..., K] neighbour radii.
+        nb_q_rel, nb_t_rel: [..., K, 4], [..., K, 3] relative transforms ``T_k(t) T_k(t_ref)^-1``
+            (:func:`worldtree.motion.se3.relative`).
+        valid, correction: see :func:`skinning_weights`.
+        mix_identity: see :func:`worldtree.motion.dualquat.blend`.
+
+    Returns:
+        ``(points_t [..., 3], quats_t [..., 4])``.
+    """
+    w = skinning_weights(points, nb_pos_ref, nb_sigma, valid, correction)
+    q_b, t_b = dualquat.blend(nb_q_rel, nb_t_rel, w, mix_identity=mix_identity)
+    return dualquat.apply_points(q_b, t_b, points), dualquat.apply_rotations(q_b, quats)
+
+
+def deform(
+    points: torch.Tensor,
+    quats: torch.Tensor,
+    node_pos_ref: torch.Tensor,
+    node_quat_ref: torch.Tensor,
+    node_pos_t: torch.Tensor,
+    node_quat_t: torch.Tensor,
+    sigma: torch.Tensor,
+    knn_idx: torch.Tensor,
+    valid: torch.Tensor | None = None,
+    correction: torch.Tensor | None = None,
+    mix_identity: bool = True,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Move Gaussians that share one reference time to time t.
+
+    Args:
+        points: [..., 3] Gaussian means at the reference time (scene units).
+        quats: [..., 4] Gaussian rotations at the reference time, any norm (the norm is kept).
+        node_pos_ref, node_quat_ref: [M, 3], [M, 4] node poses at the reference time (quats any norm).
+        node_pos_t, node_quat_t: [M, 3], [M, 4] node poses at the target time.
+        sigma: [M] node radii (scene units).
+        knn_idx: [..., K] int64 node indices per Gaussian (:func:`knn`).
+        valid: [..., K] bool neighbour mask; correction: [..., K] learned weight correction.
+        mix_identity: blend with the identity by ``clamp(sum of raw weights, 0, 1)`` (default, MoSca).
+
+    Returns:
+        ``(points_t [..., 3], quats_t [..., 4])``. With K = 0 (no nodes) the inputs come back unchanged.
+    """
+    q_rel, t_rel = se3.relative(node_quat_t, node_pos_t, node_quat_ref, node_pos_ref)  # [M, 4], [M, 3]
+    return deform_neighbours(
+        points,
+        quats,
+        node_pos_ref[knn_idx],
+        sigma[knn_idx],
+        q_rel[knn_idx],
+        t_rel[knn_idx],
+        valid=valid,
+        correction=correction,
+        mix_identity=mix_identity,
+    )

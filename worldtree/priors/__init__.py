@@ -1,0 +1,27 @@
+"""2D priors of a monocular video: optical flow, long-term tracks, depth, epipolar errors and dynamic masks.
+
+Classical priors run offline on the CPU (OpenCV DIS flow, Lucas-Kanade tracks, plane-sweep stereo, Sampson
+errors); priors computed elsewhere (Metric3D, CoTracker, RAFT, SAM2 masks) can be imported instead. One entry
+point, :func:`compute_priors`, returns a :class:`Priors` and caches results by inputs and settings.
+"""
+
+from worldtree.priors.api import Priors, compute_priors
+from worldtree.priors.config import (
+    DepthConfig,
+    DepthImportConfig,
+    EpiConfig,
+    FlowConfig,
+    PriorsConfig,
+    TrackConfig,
+)
+
+__all__ = [
+    "DepthConfig",
+    "DepthImportConfig",
+    "EpiConfig",
+    "FlowConfig",
+    "Priors",
+    "PriorsConfig",
+    "TrackConfig",
+    "compute_priors",
+]

@@ -1,0 +1,294 @@
+"""One interface to every 2D prior: :func:`compute_priors` (classical or imported, cached)."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+
+import worldtree
+from worldtree.atomic import atomic_write_json
+from worldtree.errors import UserError
+from worldtree.hashing import sha256_file
+from worldtree.priors import depth as depth_mod
+from worldtree.priors import epipolar, flow, imported, tracks
+from worldtree.priors.cache import CacheEntry, PriorCache, hash_key, inputs_fingerprint
+from worldtree.priors.config import PriorsConfig, config_dict
+
+ProgressFn = Callable[[str, int, int], None]
+"""``progress(stage, done, total)``: called as work advances; stage is flow/depth/tracks/epipolar."""
+
+
+@dataclass
+class Priors:
+    """All 2D priors of a video of T frames at H x W (numpy, float32 unless said).
+
+    Attributes:
+        depth: ``[T, H, W]`` depth along the camera z axis, scene units.
+        depth_conf: ``[T, H, W]`` confidence in [0, 1]; 0 where filled or on dynamic-mask pixels.
+        flow: ``{(i, j): FlowPair}`` flow from frame i to j ``[H, W, 2]`` pixels and its validity ``[H, W]``.
+        tracks: ``[T, N, 2]`` point positions in pixels (x, y); placeholders where not visible.
+        track_vis: ``[T, N]`` bool visibility.
+        track_dynamic: ``[N]`` bool, the track lies on a dynamic pixel in >= ``epi.track_min_frames`` frames.
+        epi_error: ``[T, H, W]`` epipolar (Sampson) error in pixels, max over flow pairs.
+        epi_mask: ``[T, H, W]`` bool dynamic mask (EPI threshold, or the imported masks).
+        sources: where each prior came from (``classical`` or ``imported:<path>``).
+        config: the settings used.
+        cache_dir: the cache root, or None when nothing was cached.
+    """
+
+    depth: np.ndarray
+    depth_conf: np.ndarray
+    flow: dict[tuple[int, int], flow.FlowPair]
+    tracks: np.ndarray
+    track_vis: np.ndarray
+    track_dynamic: np.ndarray
+    epi_error: np.ndarray
+    epi_mask: np.ndarray
+    sources: dict[str, str]
+    config: PriorsConfig = field(default_factory=PriorsConfig)
+    cache_dir: Path | None = None
+
+    @property
+    def num_frames(self) -> int:
+        return int(self.depth.shape[0])
+
+    def torch(self, device: torch.device | str = "cpu") -> dict[str, torch.Tensor]:
+        """Dense per-frame priors as tensors on ``device`` (depth, depth_conf, tracks, ... ; not the flow)."""
+        names = ("depth", "depth_conf", "tracks", "track_vis", "track_dynamic", "epi_error", "epi_mask")
+        return {n: torch.from_numpy(np.ascontiguousarray(getattr(self, n))).to(device) for n in names}
+
+
+def _scene_arrays(scene) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    imgs = scene.images.detach().cpu().numpy()
+    imgs_u8 = np.clip(np.round(imgs * 255.0), 0, 255).astype(np.uint8)
+    return imgs_u8, scene.Ks.detach().cpu().double().numpy(), scene.w2cs.detach().cpu().double().numpy()
+
+
+def _path_digest(path: str) -> dict:
+    p = Path(path)
+    if p.is_file():
+        return {"path": str(p), "sha256": sha256_file(p)}
+    if p.is_dir():
+        return {"path": str(p), "files": {q.name: sha256_file(q) for q in sorted(p.iterdir()) if q.is_file()}}
+    return {"path": str(p), "missing": True}
+
+
+def _tick(progress: ProgressFn | None, stage: str, done: int, total: int) -> None:
+    if progress is not None:
+        progress(stage, done, total)
+
+
+# ------------------------------------------------------------------------------------------------ stages
+def _flows(imgs, cfg: PriorsConfig, cache: PriorCache, fp: str, progress) -> tuple[dict, str, str]:
+    T, H, W = imgs.shape[:3]
+    if cfg.flow_source != "classical":
+        fields = imported.read_flows(cfg.flow_source, T, H, W)
+        out = {}
+        for (i, j), f in fields.items():
+            # The FB check needs the reverse field; without it every in-image correspondence is kept.
+            if (j, i) in fields:
+                valid = flow.fb_consistency(f, fields[(j, i)], cfg.flow.fb_alpha, cfg.flow.fb_beta)
+            else:
+                valid = flow.lands_inside(f)
+            out[(i, j)] = flow.FlowPair(f, valid)
+        key = hash_key("flow-imported", _path_digest(cfg.flow_source))
+        return out, key, f"imported:{cfg.flow_source}"
+    key = hash_key("flow", fp, cfg.flow)
+    entry = cache.entry("flow", key, {"inputs": fp, "settings": config_dict(cfg.flow)})
+    grays = [flow.to_gray_u8(im) for im in imgs]
+    pairs = [(i, j) for i, j in flow.flow_pairs(T, cfg.flow.offsets) if i < j]
+    out: dict[tuple[int, int], flow.FlowPair] = {}
+    for n, (i, j) in enumerate(pairs):
+        item = f"{i:05d}_{j:05d}"
+        got = entry.load(item) if entry is not None else None
+        if got is None:
+            fw, bw = flow.compute_pair(grays[i], grays[j], cfg.flow)
+            if entry is not None:
+                # float16 halves the cache; its step is below 0.02 px for flows under 32 px.
+                entry.save(item, fwd=fw.flow.astype(np.float16), fwd_valid=fw.valid,
+                           bwd=bw.flow.astype(np.float16), bwd_valid=bw.valid)  # fmt: skip
+        else:
+            fw = flow.FlowPair(got["fwd"].astype(np.float32), got["fwd_valid"])
+            bw = flow.FlowPair(got["bwd"].astype(np.float32), got["bwd_valid"])
+        out[(i, j)], out[(j, i)] = fw, bw
+        _tick(progress, "flow", n + 1, len(pairs))
+    if entry is not None:
+        entry.mark_complete()
+    return out, key, "classical"
+
+
+def _classical_depth(imgs, Ks, w2cs, near, far, cfg: PriorsConfig, cache: PriorCache, fp: str, progress):
+    d = cfg.depth
+    near = d.near if d.near is not None else near
+    far = d.far if d.far is not None else far
+    if not (np.isfinite(near) and np.isfinite(far) and 0 < near < far):
+        raise UserError(f"depth bounds near={near}, far={far} are invalid; fix cameras.json or pass near/far")
+    key = hash_key("depth", fp, d, near, far)
+    entry = cache.entry("depth", key, {"inputs": fp, "settings": config_dict(d), "near": near, "far": far})
+    T = len(imgs)
+    depth = np.empty(imgs.shape[:3], np.float32)
+    conf = np.empty(imgs.shape[:3], np.float32)
+    for t in range(T):
+        got = entry.load(f"{t:05d}") if entry is not None else None
+        if got is None:
+            r = depth_mod.frame_depth(t, imgs, Ks, w2cs, near, far, d)
+            if entry is not None:
+                entry.save(f"{t:05d}", depth=r.depth, conf=r.conf)
+            depth[t], conf[t] = r.depth, r.conf
+        else:
+            depth[t], conf[t] = got["depth"], got["conf"]
+        _tick(progress, "depth", t + 1, T)
+    if entry is not None:
+        entry.mark_complete()
+    return depth, conf
+
+
+def _depth(
+    imgs, Ks, w2cs, scene, cfg: PriorsConfig, cache, fp, progress
+) -> tuple[np.ndarray, np.ndarray, str]:
+    T, H, W = imgs.shape[:3]
+    if cfg.depth_source == "classical":
+        d, c = _classical_depth(imgs, Ks, w2cs, scene.near, scene.far, cfg, cache, fp, progress)
+        return d, c, "classical"
+    raw = imported.read_depth(cfg.depth_source, T, H, W, cfg.depth_import)
+    ref = ref_conf = None
+    if cfg.depth_import.fit_scale_shift:
+        ref, ref_conf = _classical_depth(imgs, Ks, w2cs, scene.near, scene.far, cfg, cache, fp, progress)
+    d = imported.imported_to_depth(raw, cfg.depth_import, ref, ref_conf)
+    fit = ", scale/shift fitted to classical" if cfg.depth_import.fit_scale_shift else ""
+    # Network depth carries no confidence of its own: trust it everywhere.
+    return d, np.ones_like(d), f"imported:{cfg.depth_source} ({cfg.depth_import.kind}{fit})"
+
+
+def _tracks(
+    imgs, cfg: PriorsConfig, cache: PriorCache, fp: str, progress
+) -> tuple[np.ndarray, np.ndarray, str]:
+    T = imgs.shape[0]
+    key = hash_key("tracks", fp, cfg.tracks)
+    entry = cache.entry("tracks", key, {"inputs": fp, "settings": config_dict(cfg.tracks)})
+    got = entry.load("all") if entry is not None and entry.complete else None
+    if got is not None:
+        _tick(progress, "tracks", T, T)
+        return got["xy"], got["visible"], "classical"
+    # Tracking carries state from frame to frame, so it restarts from frame 0 when interrupted (it is fast).
+    tr = tracks.track_video(imgs, cfg.tracks, on_frame=lambda t: _tick(progress, "tracks", t + 1, T))
+    if entry is not None:
+        entry.save("all", xy=tr.xy, visible=tr.visible, seed_frame=tr.seed_frame)
+        entry.mark_complete()
+    return tr.xy, tr.visible, "classical"
+
+
+def _epi_errors(flows, Ks, w2cs, T, cfg: PriorsConfig, cache, flow_key: str, progress) -> np.ndarray:
+    key = hash_key("epipolar", flow_key, cfg.epi, np.round(Ks, 9), np.round(w2cs, 9))
+    entry: CacheEntry | None = cache.entry(
+        "epipolar", key, {"flow_key": flow_key, "settings": config_dict(cfg.epi)}
+    )
+    got = entry.load("all") if entry is not None and entry.complete else None
+    if got is not None:
+        _tick(progress, "epipolar", T, T)
+        return got["error"].astype(np.float32)
+    use = cfg.epi.use_poses
+    err = epipolar.epipolar_error_maps(
+        flows, T, Ks if use else None, w2cs if use else None, cfg.epi,
+        on_frame=lambda t: _tick(progress, "epipolar", t + 1, T),
+    )  # fmt: skip
+    if entry is not None:
+        entry.save("all", error=err.astype(np.float16))
+        entry.mark_complete()
+    return err
+
+
+def _refill_dynamic(depth, conf, mask, imgs, cfg: PriorsConfig) -> tuple[np.ndarray, np.ndarray]:
+    """Zero the confidence on dynamic pixels and replace their depth by the edge-aware fill.
+
+    Multi-view stereo assumes a static world, so its matches on moving objects are noise; the fill is a
+    smooth guess from the surrounding static surfaces (confidence 0 says so).
+    """
+    depth, conf = depth.copy(), conf.copy()
+    for t in np.flatnonzero(mask.reshape(len(mask), -1).any(1)):
+        w = np.where(mask[t], 0.0, conf[t]).astype(np.float32)
+        if not (w > 0).any():
+            continue
+        inv = depth_mod.edge_aware_fill(
+            1.0 / np.maximum(depth[t], 1e-9), w, imgs[t], cfg.depth.fill_lambda, cfg.depth.fill_sigma
+        )
+        depth[t] = np.where(mask[t], 1.0 / np.maximum(inv, 1e-9), depth[t])
+        conf[t] = np.where(mask[t], 0.0, conf[t])
+    return depth.astype(np.float32), conf.astype(np.float32)
+
+
+# ------------------------------------------------------------------------------------------------ entry point
+def compute_priors(
+    scene,
+    cfg: PriorsConfig | None = None,
+    cache_dir: str | Path | None = None,
+    progress: ProgressFn | None = None,
+) -> Priors:
+    """Compute (or load from the cache) every prior of ``scene`` (a :class:`worldtree.scene.Scene`).
+
+    Args:
+        scene: training frames ``images`` [T,H,W,3] in [0,1], ``Ks`` [T,3,3], ``w2cs`` [T,4,4], near/far.
+        cfg: settings and sources; defaults to classical priors with default settings.
+        cache_dir: cache root; None computes everything and stores nothing.
+        progress: optional ``progress(stage, done, total)`` callback.
+
+    Returns:
+        :class:`Priors`. A ``priors.json`` record (sources, keys, settings, version, shapes) is written to the
+        cache root when there is one.
+    """
+    cfg = cfg or PriorsConfig()
+    imgs, Ks, w2cs = _scene_arrays(scene)
+    T, H, W = imgs.shape[:3]
+    if T < 2:
+        raise UserError(f"scene {scene.name}: {T} training frame(s); priors need at least 2")
+    cache = PriorCache(cache_dir)
+    fp = inputs_fingerprint(imgs, Ks, w2cs)
+
+    # Read imported tracks and masks first, so a bad file fails before any long computation.
+    imported_tracks = None
+    if cfg.tracks_source != "classical":
+        imported_tracks = imported.read_tracks(cfg.tracks_source, T, H, W)
+    mask = None
+    if cfg.masks_source is not None:
+        mask = imported.read_masks(cfg.masks_source, T, H, W)
+    flows, flow_key, flow_src = _flows(imgs, cfg, cache, fp, progress)
+    depth, depth_conf, depth_src = _depth(imgs, Ks, w2cs, scene, cfg, cache, fp, progress)
+    if imported_tracks is not None:
+        xy, vis = imported_tracks
+        tracks_src = f"imported:{cfg.tracks_source}"
+    else:
+        xy, vis, tracks_src = _tracks(imgs, cfg, cache, fp, progress)
+    err = _epi_errors(flows, Ks, w2cs, T, cfg, cache, flow_key, progress)
+    if mask is not None:
+        mask_src = f"imported:{cfg.masks_source}"
+    else:
+        mask = epipolar.epi_masks(err, cfg.epi)
+        mask_src = f"epipolar (threshold {cfg.epi.threshold_px} px)"
+    dynamic = epipolar.label_dynamic_tracks(xy, vis, mask, cfg.epi.track_min_frames)
+    if depth_src == "classical":
+        depth, depth_conf = _refill_dynamic(depth, depth_conf, mask, imgs, cfg)
+
+    sources = {"flow": flow_src, "depth": depth_src, "tracks": tracks_src, "masks": mask_src}
+    pri = Priors(depth, depth_conf, flows, xy, vis, dynamic, err, mask, sources, cfg,
+                 Path(cache_dir) if cache_dir is not None else None)  # fmt: skip
+    if cache_dir is not None:
+        atomic_write_json(
+            Path(cache_dir) / "priors.json",
+            {
+                "version": worldtree.__version__,
+                "scene": scene.name,
+                "inputs": fp,
+                "frames": T,
+                "size": [W, H],
+                "sources": sources,
+                "config": config_dict(cfg),
+                "num_tracks": int(xy.shape[1]),
+                "num_dynamic_tracks": int(dynamic.sum()),
+                "dynamic_pixel_fraction": float(mask.mean()),
+            },
+        )
+    return pri

@@ -1,0 +1,138 @@
+"""Typed settings of every 2D prior: the one source of their defaults.
+
+Each dataclass is frozen and hashed (as JSON of its fields) into the cache key of the prior it drives, so
+changing a field recomputes exactly the priors that depend on it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+from typing import Literal
+
+
+@dataclass(frozen=True)
+class FlowConfig:
+    """Dense optical flow (OpenCV DIS) between frame pairs, forward and backward."""
+
+    preset: Literal["ultrafast", "fast", "medium"] = "medium"
+    """DIS preset; "medium" adds variational refinement and is the most accurate."""
+    offsets: tuple[int, ...] = (1, 3)
+    """Frame gaps k: flow is computed for every pair (t, t+k), both directions."""
+    fb_alpha: float = 0.5
+    """Forward-backward check: valid where |f + b(x+f)| < fb_alpha (|f| + |b(x+f)|) + fb_beta."""
+    fb_beta: float = 0.5
+    """Constant slack of the forward-backward check, in pixels."""
+
+
+@dataclass(frozen=True)
+class TrackConfig:
+    """Long-term point tracks: pyramidal Lucas-Kanade chained frame to frame with forward-backward checks."""
+
+    grid_step: int = 12
+    """Spacing in pixels of the seed grid (also the spacing of re-seeding in uncovered areas)."""
+    max_corners: int = 1500
+    """Shi-Tomasi corners added to the grid at the first frame (fewer at re-seeding, see below)."""
+    corner_quality: float = 0.01
+    """Shi-Tomasi quality level relative to the strongest corner."""
+    min_distance: int = 6
+    """No new seed closer than this (pixels) to a live track."""
+    win_size: int = 21
+    """Lucas-Kanade window side in pixels."""
+    levels: int = 3
+    """Pyramid levels above the full resolution."""
+    fb_max_px: float = 1.0
+    """A step is kept when tracking back lands within this many pixels of the start."""
+    min_eigen: float = 1e-3
+    """Lucas-Kanade minimum-eigenvalue threshold (cv2 minEigThreshold): drops textureless points."""
+    reseed_every: int = 4
+    """Re-seed uncovered areas every this many frames (1 = every frame)."""
+    max_tracks: int = 16000
+    """Upper bound on the number of tracks N; seeding stops when reached."""
+    bidirectional: bool = True
+    """Also track re-seeded points backwards in time, so they cover frames before their seed frame."""
+    min_length: int = 3
+    """Tracks visible in fewer frames than this are dropped."""
+
+
+@dataclass(frozen=True)
+class DepthConfig:
+    """Multi-view plane-sweep stereo over neighbouring training frames (known poses)."""
+
+    num_planes: int = 64
+    """Fronto-parallel depth hypotheses, uniform in inverse depth between near and far."""
+    num_sources: int = 4
+    """Source frames per reference frame: the nearest in time with a usable baseline."""
+    max_time_gap: int = 6
+    """Source frames are at most this many frames away from the reference frame."""
+    min_baseline_ratio: float = 0.005
+    """A source is usable when its camera centre is at least this fraction of the far bound away."""
+    patch: int = 7
+    """Side of the square ZNCC window in pixels (odd)."""
+    best_k: int = 2
+    """Per hypothesis, the cost is the mean of the best_k source costs (robust to occlusion)."""
+    min_conf: float = 0.5
+    """Pixels whose confidence is below this are filled from confident neighbours."""
+    min_texture: float = 2.0 / 255.0
+    """Patch intensity standard deviation below which the match is not trusted (textureless)."""
+    fill_lambda: float = 200.0
+    """Smoothness weight of the edge-aware fill (cv2.ximgproc fast global smoother)."""
+    fill_sigma: float = 8.0
+    """Colour sensitivity of the edge-aware fill (intensity units of 0..255)."""
+    near: float | None = None
+    """Nearest depth hypothesis in scene units; None uses the scene's near bound."""
+    far: float | None = None
+    """Farthest depth hypothesis in scene units; None uses the scene's far bound."""
+
+
+@dataclass(frozen=True)
+class EpiConfig:
+    """Epipolar error maps and dynamic (EPI) masks from flow and camera poses."""
+
+    threshold_px: float = 1.5
+    """A pixel is dynamic when its Sampson distance exceeds this (pixels at the working resolution)."""
+    track_min_frames: int = 2
+    """A track is dynamic when it lies on an over-threshold pixel in at least this many frames."""
+    use_poses: bool = True
+    """Use the fundamental matrix of the known relative pose; False estimates it from flow (LMedS)."""
+    lmeds_points: int = 4000
+    """Flow correspondences sampled per pair for the LMedS estimate."""
+    min_baseline: float = 1e-6
+    """Below this camera-centre distance (scene units) a pair is treated as a pure rotation."""
+    open_px: int = 1
+    """Radius of the morphological opening that removes isolated mask pixels (0 = none)."""
+
+
+@dataclass(frozen=True)
+class DepthImportConfig:
+    """How imported depth maps are read and aligned."""
+
+    kind: Literal["depth", "disparity"] = "depth"
+    """What the files hold: metric/relative depth or (inverse) disparity."""
+    png_scale: float = 1000.0
+    """16-bit PNG values are divided by this (1000 = millimetres to metres)."""
+    fit_scale_shift: bool = False
+    """Fit a per-frame scale and shift to the classical depth (in the file's own space: depth or disparity)."""
+
+
+@dataclass(frozen=True)
+class PriorsConfig:
+    """All prior settings plus where each prior comes from ("classical" or a path to import)."""
+
+    flow: FlowConfig = field(default_factory=FlowConfig)
+    tracks: TrackConfig = field(default_factory=TrackConfig)
+    depth: DepthConfig = field(default_factory=DepthConfig)
+    epi: EpiConfig = field(default_factory=EpiConfig)
+    depth_import: DepthImportConfig = field(default_factory=DepthImportConfig)
+    depth_source: str = "classical"
+    """"classical" or a folder / file of depth maps to import."""
+    tracks_source: str = "classical"
+    """"classical" or a CoTracker-layout file (.npy/.npz/.pt) to import."""
+    flow_source: str = "classical"
+    """"classical" or a folder of flow files named <i>_<j>.flo / .npy."""
+    masks_source: str | None = None
+    """None (EPI masks from flow) or a folder of dynamic masks, one per frame, replacing the EPI masks."""
+
+
+def config_dict(cfg) -> dict:
+    """Plain JSON-able dict of a settings dataclass (tuples become lists)."""
+    return asdict(cfg)

@@ -1,0 +1,337 @@
+"""Readers for priors computed elsewhere (the networks the paper uses), with validation.
+
+- Depth: a folder with one file per frame (sorted by name) or one file holding ``[T, H, W]``; ``.npy``,
+  ``.npz`` (key ``depth``/``disparity``/the only array) or 16-bit PNG (value / ``png_scale``). Depth or
+  disparity; maps of another size but the same aspect ratio are resized. Optional per-frame scale/shift fit to
+  the classical depth.
+- Tracks: CoTracker's layout, positions ``[T, N, 2]`` (pixels) + visibility ``[T, N]`` (bool or probability,
+  > 0.5 visible); a leading batch axis of 1 is accepted. ``.npz``/``.pt`` with keys ``tracks`` + ``visibility``
+  (or ``pred_tracks`` + ``pred_visibility``); ``.npy`` holding ``[T, N, 3]`` (x, y, visibility) or ``[T, N, 2]``
+  (all visible).
+- Flow: a folder of ``<i>_<j>.flo`` (Middlebury) or ``<i>_<j>.npy`` ``[H, W, 2]``, flow from frame i to j.
+- Masks: a folder of one mask image per frame (sorted by name), white = dynamic.
+
+Every problem raises :class:`worldtree.errors.UserError` naming the file and the fix.
+"""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from worldtree.errors import UserError
+from worldtree.imageio import read_mask
+from worldtree.priors.config import DepthImportConfig
+
+DEPTH_SUFFIXES = (".npy", ".npz", ".png")
+FLO_MAGIC = 202021.25
+
+
+# ------------------------------------------------------------------------------------------------ depth
+def _load_array(path: Path, keys: tuple[str, ...]) -> np.ndarray:
+    try:
+        if path.suffix == ".npy":
+            return np.load(path, allow_pickle=False)
+        if path.suffix == ".npz":
+            with np.load(path, allow_pickle=False) as z:
+                names = list(z.keys())
+                for k in keys:
+                    if k in names:
+                        return z[k]
+                if len(names) == 1:
+                    return z[names[0]]
+                raise UserError(f"{path}: holds arrays {names}; name the wanted one one of {list(keys)}")
+    except (ValueError, OSError, EOFError) as e:
+        raise UserError(f"{path}: cannot read ({e}); re-export it with numpy.save / numpy.savez") from e
+    raise UserError(f"{path}: unsupported suffix {path.suffix!r}; use .npy or .npz")
+
+
+def _read_depth_file(path: Path, png_scale: float) -> np.ndarray:
+    if path.suffix.lower() == ".png":
+        data = np.fromfile(str(path), dtype=np.uint8)
+        img = cv2.imdecode(data, cv2.IMREAD_UNCHANGED) if data.size else None
+        if img is None:
+            raise UserError(f"{path}: cannot decode PNG; replace the file")
+        if img.dtype != np.uint16 or img.ndim != 2:
+            raise UserError(f"{path}: depth PNG must be single-channel 16-bit, got {img.dtype} {img.shape}")
+        return img.astype(np.float32) / float(png_scale)
+    return np.asarray(_load_array(path, ("depth", "disparity", "disp", "pred")), dtype=np.float32)
+
+
+def _fit_size(arr: np.ndarray, H: int, W: int, path: Path) -> np.ndarray:
+    h, w = arr.shape
+    if (h, w) == (H, W):
+        return arr
+    if abs(w / h - W / H) > 0.01 * (W / H):
+        raise UserError(f"{path}: map is {w}x{h}, frames are {W}x{H} (other aspect ratio); export at {W}x{H}")
+    return cv2.resize(arr, (W, H), interpolation=cv2.INTER_LINEAR if h < H else cv2.INTER_AREA)
+
+
+def read_depth(
+    source: str | Path, num_frames: int, height: int, width: int, cfg: DepthImportConfig
+) -> np.ndarray:
+    """Imported maps as ``[T, H, W]`` float32, still in the file's space (depth or disparity), validated."""
+    src = Path(source)
+    if src.is_dir():
+        files = sorted(p for p in src.iterdir() if p.is_file() and p.suffix.lower() in DEPTH_SUFFIXES)
+        if len(files) != num_frames:
+            raise UserError(
+                f"{src}: {len(files)} depth files (.npy/.npz/.png), the scene has {num_frames} frames; "
+                "provide one file per training frame"
+            )
+        maps = []
+        for p in files:
+            a = np.squeeze(_read_depth_file(p, cfg.png_scale))
+            if a.ndim != 2:
+                raise UserError(f"{p}: depth map has shape {a.shape}; expected [H, W]")
+            maps.append(_fit_size(a, height, width, p))
+        arr = np.stack(maps)
+    elif src.is_file():
+        arr = np.squeeze(_read_depth_file(src, cfg.png_scale))
+        if arr.ndim == 2 and num_frames == 1:
+            arr = arr[None]
+        if arr.ndim != 3 or arr.shape[0] != num_frames:
+            raise UserError(f"{src}: shape {arr.shape}; expected [T={num_frames}, H, W]")
+        arr = np.stack([_fit_size(a, height, width, src) for a in arr])
+    else:
+        raise UserError(f"--depth {src}: no such file or folder; pass 'classical' or an existing path")
+    if not np.all(np.isfinite(arr)):
+        raise UserError(f"{src}: depth maps contain NaN or Inf; clean them before import")
+    if (arr < 0).any():
+        raise UserError(f"{src}: negative {cfg.kind} values; export non-negative {cfg.kind}")
+    if not (arr > 0).any():
+        raise UserError(f"{src}: every {cfg.kind} value is 0; the files look empty")
+    return arr.astype(np.float32)
+
+
+def fit_scale_shift(pred: np.ndarray, target: np.ndarray, weight: np.ndarray) -> tuple[float, float]:
+    """Weighted least-squares ``a, b`` minimising ``sum w (a pred + b - target)^2``; (1, 0) if degenerate."""
+    w = weight.astype(np.float64).ravel()
+    x = pred.astype(np.float64).ravel()
+    y = target.astype(np.float64).ravel()
+    sw = w.sum()
+    if sw <= 0:
+        return 1.0, 0.0
+    mx, my = (w * x).sum() / sw, (w * y).sum() / sw
+    vx = (w * (x - mx) ** 2).sum()
+    if vx < 1e-12 * max(sw, 1.0):
+        return 1.0, 0.0
+    a = (w * (x - mx) * (y - my)).sum() / vx
+    return float(a), float(my - a * mx)
+
+
+def imported_to_depth(
+    raw: np.ndarray,
+    cfg: DepthImportConfig,
+    ref_depth: np.ndarray | None = None,
+    ref_conf: np.ndarray | None = None,
+    min_depth: float = 1e-3,
+) -> np.ndarray:
+    """Turn imported maps ``[T,H,W]`` into depth ``[T,H,W]``.
+
+    With ``fit_scale_shift`` each frame is fitted to ``ref_depth`` (weights ``ref_conf``) in the file's own
+    space (disparity against 1/ref_depth, depth against ref_depth) before any inversion. Disparity 0 means
+    infinitely far and is clamped to the largest finite depth of the frame.
+    """
+    out = np.empty_like(raw, dtype=np.float32)
+    for t in range(raw.shape[0]):
+        x = raw[t].astype(np.float64)
+        if cfg.fit_scale_shift:
+            if ref_depth is None:
+                raise ValueError("fit_scale_shift needs the classical depth")
+            target = 1.0 / np.maximum(ref_depth[t], 1e-9) if cfg.kind == "disparity" else ref_depth[t]
+            w = (ref_conf[t] if ref_conf is not None else np.ones_like(x)) * (x > 0)
+            a, b = fit_scale_shift(x, target, w)
+            x = a * x + b
+        if cfg.kind == "disparity":
+            pos = x > 1e-9
+            d = np.where(pos, 1.0 / np.where(pos, x, 1.0), np.nan)
+            far = np.nanmax(d) if pos.any() else 1.0 / min_depth
+            x = np.where(pos, d, far)
+        out[t] = np.maximum(x, min_depth)
+    return out
+
+
+# ------------------------------------------------------------------------------------------------ tracks
+def _load_tracks_obj(path: Path):
+    suffix = path.suffix.lower()
+    if suffix == ".pt":
+        import torch
+
+        try:
+            obj = torch.load(path, map_location="cpu", weights_only=True)
+        except Exception as e:  # torch raises many types for a corrupt or unsafe file
+            raise UserError(
+                f"{path}: cannot load with torch.load(weights_only=True) ({e}); save plain tensors"
+            ) from e
+        if isinstance(obj, (tuple, list)) and len(obj) == 2:
+            obj = {"tracks": obj[0], "visibility": obj[1]}
+        if isinstance(obj, dict):
+            return {
+                k: np.asarray(v.detach().cpu().numpy() if hasattr(v, "detach") else v) for k, v in obj.items()
+            }
+        return np.asarray(obj.detach().cpu().numpy() if hasattr(obj, "detach") else obj)
+    if suffix == ".npz":
+        try:
+            with np.load(path, allow_pickle=False) as z:
+                return {k: z[k] for k in z.keys()}
+        except (ValueError, OSError, EOFError) as e:
+            raise UserError(f"{path}: cannot read ({e}); re-export it with numpy.savez") from e
+    if suffix == ".npy":
+        try:
+            return np.load(path, allow_pickle=False)
+        except (ValueError, OSError, EOFError) as e:
+            raise UserError(f"{path}: cannot read ({e}); re-export it with numpy.save") from e
+    raise UserError(f"--tracks {path}: unsupported suffix {path.suffix!r}; use .npy, .npz or .pt")
+
+
+def read_tracks(
+    source: str | Path, num_frames: int, height: int, width: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """CoTracker-layout tracks: (``xy`` [T,N,2] float32 pixels, ``visible`` [T,N] bool), validated.
+
+    Points outside the image (CoTracker predicts them) are marked not visible.
+    """
+    path = Path(source)
+    if not path.is_file():
+        raise UserError(f"--tracks {path}: no such file; pass 'classical' or an existing .npy/.npz/.pt file")
+    obj = _load_tracks_obj(path)
+    if isinstance(obj, dict):
+        tk = next((k for k in ("tracks", "pred_tracks") if k in obj), None)
+        vk = next((k for k in ("visibility", "pred_visibility", "visibles") if k in obj), None)
+        if tk is None or vk is None:
+            raise UserError(
+                f"{path}: keys {sorted(obj)}; expected 'tracks' and 'visibility' (or pred_tracks/pred_visibility)"
+            )
+        xy, vis = np.asarray(obj[tk]), np.asarray(obj[vk])
+    else:
+        arr = np.asarray(obj)
+        if arr.ndim == 4 and arr.shape[0] == 1:
+            arr = arr[0]
+        if arr.ndim != 3 or arr.shape[-1] not in (2, 3):
+            raise UserError(
+                f"{path}: array shape {arr.shape}; expected [T, N, 2] or [T, N, 3] (x, y, visibility)"
+            )
+        xy = arr[..., :2]
+        vis = arr[..., 2] if arr.shape[-1] == 3 else np.ones(arr.shape[:2])
+    if xy.ndim == 4 and xy.shape[0] == 1:
+        xy = xy[0]
+    if vis.ndim == 3 and vis.shape[0] == 1:
+        vis = vis[0]
+    if vis.ndim == 3 and vis.shape[-1] == 1:
+        vis = vis[..., 0]
+    if xy.ndim != 3 or xy.shape[-1] != 2:
+        raise UserError(f"{path}: track positions have shape {xy.shape}; expected [T, N, 2]")
+    if vis.shape != xy.shape[:2]:
+        raise UserError(
+            f"{path}: visibility shape {vis.shape} does not match positions {xy.shape[:2]} ([T, N])"
+        )
+    if xy.shape[0] != num_frames:
+        raise UserError(
+            f"{path}: tracks span {xy.shape[0]} frames, the scene has {num_frames}; track the same video"
+        )
+    xy = xy.astype(np.float32)
+    if not np.all(np.isfinite(xy)):
+        raise UserError(f"{path}: track positions contain NaN or Inf; clean them before import")
+    if vis.dtype == bool:
+        visible = vis.copy()
+    else:
+        v = vis.astype(np.float64)
+        if not np.all(np.isfinite(v)) or v.min() < 0 or v.max() > 1:
+            raise UserError(f"{path}: visibility must be bool or probabilities in [0, 1]")
+        visible = v > 0.5
+    span = max(height, width)
+    if np.abs(xy).max(initial=0.0) > 10 * span:
+        raise UserError(
+            f"{path}: positions reach {np.abs(xy).max():.0f} px for {width}x{height} frames; "
+            "are they normalised or for another resolution? export pixel coordinates of these frames"
+        )
+    inside = (
+        (xy[..., 0] >= -0.5)
+        & (xy[..., 0] <= width - 0.5)
+        & (xy[..., 1] >= -0.5)
+        & (xy[..., 1] <= height - 0.5)
+    )
+    return xy, visible & inside
+
+
+# ------------------------------------------------------------------------------------------------ flow
+def read_flo(path: str | Path) -> np.ndarray:
+    """Read a Middlebury ``.flo`` file: ``[H, W, 2]`` float32."""
+    path = Path(path)
+    raw = path.read_bytes()
+    if len(raw) < 12 or np.frombuffer(raw[:4], "<f4")[0] != FLO_MAGIC:
+        raise UserError(f"{path}: not a .flo file (bad magic number); write Middlebury .flo or .npy")
+    w, h = (int(v) for v in np.frombuffer(raw[4:12], "<i4"))
+    if w <= 0 or h <= 0 or len(raw) != 12 + 8 * w * h:
+        raise UserError(
+            f"{path}: header says {w}x{h} but the file holds {len(raw) - 12} data bytes; re-export it"
+        )
+    return np.frombuffer(raw[12:], "<f4").reshape(h, w, 2).copy()
+
+
+def write_flo(path: str | Path, flow: np.ndarray) -> None:
+    """Write ``[H, W, 2]`` flow as Middlebury ``.flo`` (used by tests and exports)."""
+    from worldtree.atomic import atomic_write_bytes
+
+    h, w = flow.shape[:2]
+    head = np.array([FLO_MAGIC], "<f4").tobytes() + np.array([w, h], "<i4").tobytes()
+    atomic_write_bytes(path, head + np.ascontiguousarray(flow, "<f4").tobytes())
+
+
+_PAIR = re.compile(r"^(\d+)[_-](\d+)$")
+
+
+def read_flows(
+    source: str | Path, num_frames: int, height: int, width: int
+) -> dict[tuple[int, int], np.ndarray]:
+    """Flow fields ``{(i, j): [H, W, 2]}`` from a folder of ``<i>_<j>.flo`` / ``<i>_<j>.npy``, validated."""
+    src = Path(source)
+    if not src.is_dir():
+        raise UserError(f"--flow {src}: not a folder; pass 'classical' or a folder of <i>_<j>.flo/.npy files")
+    out: dict[tuple[int, int], np.ndarray] = {}
+    for p in sorted(src.iterdir()):
+        if p.suffix.lower() not in (".flo", ".npy"):
+            continue
+        m = _PAIR.match(p.stem)
+        if not m:
+            raise UserError(f"{p}: flow files must be named <i>_<j>{p.suffix} (frame indices); rename it")
+        i, j = int(m.group(1)), int(m.group(2))
+        if not (0 <= i < num_frames and 0 <= j < num_frames) or i == j:
+            raise UserError(f"{p}: frame pair ({i}, {j}) is outside 0..{num_frames - 1} or repeats a frame")
+        f = read_flo(p) if p.suffix.lower() == ".flo" else np.asarray(_load_array(p, ("flow",)), np.float32)
+        if f.ndim == 3 and f.shape[0] == 2 and f.shape[-1] != 2:
+            f = np.moveaxis(f, 0, -1)  # [2, H, W] as written by torch code
+        if f.shape != (height, width, 2):
+            raise UserError(f"{p}: flow shape {f.shape}; expected [{height}, {width}, 2] for these frames")
+        if not np.all(np.isfinite(f)):
+            raise UserError(f"{p}: flow contains NaN or Inf; clean it before import")
+        out[(i, j)] = f.astype(np.float32)
+    if not out:
+        raise UserError(f"--flow {src}: no <i>_<j>.flo/.npy files found")
+    return out
+
+
+# ------------------------------------------------------------------------------------------------ masks
+def read_masks(source: str | Path, num_frames: int, height: int, width: int) -> np.ndarray:
+    """Dynamic masks ``[T, H, W]`` bool from a folder of one image per frame (sorted by name)."""
+    src = Path(source)
+    if not src.is_dir():
+        raise UserError(f"--masks {src}: not a folder; pass a folder with one mask image per training frame")
+    files = sorted(p for p in src.iterdir() if p.is_file() and p.suffix.lower() in (".png", ".jpg", ".jpeg"))
+    if len(files) != num_frames:
+        raise UserError(
+            f"{src}: {len(files)} mask images, the scene has {num_frames} frames; one mask per frame"
+        )
+    masks = []
+    for p in files:
+        m = read_mask(p)
+        if m.shape != (height, width):
+            if abs(m.shape[1] / m.shape[0] - width / height) > 0.01 * width / height:
+                raise UserError(f"{p}: mask is {m.shape[1]}x{m.shape[0]}, frames are {width}x{height}")
+            m = cv2.resize(m.astype(np.uint8) * 255, (width, height), interpolation=cv2.INTER_NEAREST) > 127
+        masks.append(m)
+    return np.stack(masks)

@@ -1,0 +1,152 @@
+"""Long-term 2D point tracks through a video: pyramidal Lucas-Kanade chained frame to frame.
+
+Seeds are a regular grid plus Shi-Tomasi corners at the first frame. Each step t -> t+1 tracks every live point
+forward, tracks the result back, and keeps it when it comes home within ``fb_max_px`` (and stays inside the
+image); a point that fails is finished for good (no re-identification). Every ``reseed_every`` frames, uncovered
+areas (farther than ``min_distance`` from any live point) get new grid and corner seeds, until ``max_tracks``.
+With ``bidirectional`` the points seeded after the first frame are also tracked backwards in time, so a track
+can start before its seed frame.
+
+Output follows CoTracker's layout: positions ``[T, N, 2]`` (x, y pixels) and visibility ``[T, N]``. Where a
+track is not visible its position holds the nearest visible one (a placeholder, not a prediction).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from worldtree.priors.config import TrackConfig
+from worldtree.priors.flow import to_gray_u8
+
+
+@dataclass
+class Tracks:
+    """Point tracks: ``xy`` [T,N,2] float32 pixels, ``visible`` [T,N] bool, ``seed_frame`` [N] int."""
+
+    xy: np.ndarray
+    visible: np.ndarray
+    seed_frame: np.ndarray
+
+    @property
+    def num_tracks(self) -> int:
+        return int(self.visible.shape[1])
+
+
+def _lk_step(
+    g0: np.ndarray, g1: np.ndarray, p0: np.ndarray, cfg: TrackConfig
+) -> tuple[np.ndarray, np.ndarray]:
+    """Track p0 [N,2] from g0 to g1 with a forward-backward check: (p1 [N,2], ok [N])."""
+    if len(p0) == 0:
+        return p0.copy(), np.zeros(0, bool)
+    params = {
+        "winSize": (cfg.win_size, cfg.win_size),
+        "maxLevel": cfg.levels,
+        "criteria": (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01),
+        "minEigThreshold": cfg.min_eigen,
+    }
+    pts0 = p0.reshape(-1, 1, 2).astype(np.float32)
+    p1, st1, _ = cv2.calcOpticalFlowPyrLK(g0, g1, pts0, None, **params)
+    p0b, st2, _ = cv2.calcOpticalFlowPyrLK(g1, g0, p1, None, **params)
+    p1, p0b = p1.reshape(-1, 2), p0b.reshape(-1, 2)
+    H, W = g0.shape
+    ok = (st1.ravel() == 1) & (st2.ravel() == 1)
+    ok &= np.all(np.isfinite(p1), 1) & np.all(np.isfinite(p0b), 1)
+    ok &= np.linalg.norm(np.nan_to_num(p0b - p0, nan=1e9), axis=1) < cfg.fb_max_px
+    ok &= (p1[:, 0] >= 0) & (p1[:, 0] <= W - 1) & (p1[:, 1] >= 0) & (p1[:, 1] <= H - 1)
+    return p1, ok
+
+
+def seed_points(
+    gray: np.ndarray, live: np.ndarray, cfg: TrackConfig, budget: int, corners: int
+) -> np.ndarray:
+    """New seeds [M,2] (M <= budget) on a grid and on corners, away from ``live`` points [N,2]."""
+    if budget <= 0:
+        return np.zeros((0, 2), np.float32)
+    H, W = gray.shape
+    free = np.full((H, W), 255, np.uint8)
+    r = max(1, cfg.min_distance)
+    for x, y in np.round(live).astype(int):
+        cv2.circle(free, (int(x), int(y)), r, 0, -1)
+    margin = max(2, cfg.win_size // 4)
+    s = max(2, cfg.grid_step)
+    gy, gx = np.mgrid[margin + s // 2 : H - margin : s, margin + s // 2 : W - margin : s]
+    grid = np.stack([gx.ravel(), gy.ravel()], -1).astype(np.float32)
+    grid = grid[free[grid[:, 1].astype(int), grid[:, 0].astype(int)] > 0] if len(grid) else grid
+    for x, y in np.round(grid).astype(int):
+        cv2.circle(free, (int(x), int(y)), r, 0, -1)
+    free[:margin], free[H - margin :], free[:, :margin], free[:, W - margin :] = 0, 0, 0, 0
+    pts = [grid]
+    if corners > 0:
+        c = cv2.goodFeaturesToTrack(gray, corners, cfg.corner_quality, cfg.min_distance, mask=free)
+        if c is not None:
+            pts.append(c.reshape(-1, 2).astype(np.float32))
+    out = np.concatenate(pts, 0)
+    return out[:budget]
+
+
+def track_video(
+    images: np.ndarray, cfg: TrackConfig, on_frame: Callable[[int], None] | None = None
+) -> Tracks:
+    """Track points through ``images`` [T,H,W,3] (float in [0,1] or uint8); see the module doc."""
+    grays = [to_gray_u8(im) for im in images]
+    T = len(grays)
+    cap = cfg.max_tracks
+    xy = np.zeros((T, cap, 2), np.float32)
+    vis = np.zeros((T, cap), bool)
+    seed = np.zeros(cap, np.int64)
+    n = 0
+
+    def add(t: int, pts: np.ndarray) -> np.ndarray:
+        nonlocal n
+        m = min(len(pts), cap - n)
+        idx = np.arange(n, n + m)
+        xy[t, idx] = pts[:m]
+        vis[t, idx] = True
+        seed[idx] = t
+        n += m
+        return idx
+
+    active = add(0, seed_points(grays[0], np.zeros((0, 2)), cfg, cap, cfg.max_corners))
+    if on_frame is not None:
+        on_frame(0)
+    for t in range(T - 1):
+        p1, ok = _lk_step(grays[t], grays[t + 1], xy[t, active], cfg)
+        active = active[ok]
+        xy[t + 1, active] = p1[ok]
+        vis[t + 1, active] = True
+        if (t + 1) % max(1, cfg.reseed_every) == 0 and n < cap:
+            new = seed_points(grays[t + 1], xy[t + 1, active], cfg, cap - n, cfg.max_corners // 4)
+            active = np.concatenate([active, add(t + 1, new)])
+        if on_frame is not None:
+            on_frame(t + 1)
+
+    if cfg.bidirectional:
+        back = np.zeros(0, np.int64)
+        for t in range(T - 1, 0, -1):
+            back = np.concatenate([back, np.flatnonzero(seed[:n] == t)])
+            p0, ok = _lk_step(grays[t], grays[t - 1], xy[t, back], cfg)
+            back = back[ok]
+            xy[t - 1, back] = p0[ok]
+            vis[t - 1, back] = True
+
+    xy, vis, seed = xy[:, :n], vis[:, :n], seed[:n]
+    keep = vis.sum(0) >= cfg.min_length
+    xy, vis, seed = xy[:, keep], vis[:, keep], seed[keep]
+    return Tracks(hold_invisible(xy, vis), vis, seed)
+
+
+def hold_invisible(xy: np.ndarray, vis: np.ndarray) -> np.ndarray:
+    """Fill positions [T,N,2] where not visible with the nearest visible position in time (earlier wins ties)."""
+    T, N = vis.shape
+    if N == 0 or T == 0:
+        return xy.copy()
+    t_idx = np.arange(T)[:, None]
+    last = np.maximum.accumulate(np.where(vis, t_idx, -1), axis=0)  # latest visible frame <= t
+    nxt = np.flip(np.minimum.accumulate(np.flip(np.where(vis, t_idx, T), 0), axis=0), 0)  # earliest >= t
+    use_last = (last >= 0) & ((nxt >= T) | (t_idx - last <= nxt - t_idx))
+    src = np.where(use_last, last, np.where(nxt < T, nxt, 0))
+    return np.take_along_axis(xy, np.repeat(src[..., None], 2, -1), 0)

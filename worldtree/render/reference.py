@@ -1,0 +1,135 @@
+"""Readable pure-PyTorch tile rasterizer: the oracle for the compiled kernel and the portable fallback.
+
+Gradients come from autograd. Work is vectorised over chunks of tiles: every tile of a chunk gets its depth-
+sorted Gaussian list padded to the chunk's longest list, and all pixels x Gaussians of the chunk are evaluated
+at once.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from worldtree.render.projection import TILE, tile_rect
+
+ALPHA_MAX = 0.99  # cap on a single Gaussian's alpha
+ALPHA_MIN = 1.0 / 255.0  # alphas below this are skipped
+T_MIN = 1e-4  # compositing stops before transmittance would drop below this
+CHUNK_ELEMENTS = 1 << 22  # pixels x Gaussians evaluated per chunk (bounds the memory of one step)
+
+
+def bin_gaussians(means2d: Tensor, depths: Tensor, radii: Tensor, width: int, height: int):
+    """Tile lists: (gauss_ids [M] int64, tile_start [n_tiles] int64, tile_count [n_tiles] int64).
+
+    ``gauss_ids[tile_start[t] : tile_start[t] + tile_count[t]]`` are the Gaussians whose bounding square
+    touches tile t (row-major tile order), front to back (ties by index). Only radii > 0 are binned.
+    """
+    tw = (width + TILE - 1) // TILE
+    th = (height + TILE - 1) // TILE
+    dev = means2d.device
+    ids = torch.nonzero(radii > 0).squeeze(1)
+    ids = ids[torch.argsort(depths.detach()[ids], stable=True)]
+    x0, x1, y0, y1 = tile_rect(means2d.detach()[ids], radii[ids], width, height)
+    span_x = x1 - x0
+    counts = span_x * (y1 - y0)
+    total = int(counts.sum())
+    which = torch.repeat_interleave(torch.arange(len(ids), device=dev), counts)
+    local = torch.arange(total, device=dev) - (torch.cumsum(counts, 0) - counts)[which]
+    tile = (y0[which] + local // span_x[which]) * tw + x0[which] + local % span_x[which]
+    perm = torch.argsort(tile, stable=True)  # stable: keeps front-to-back order within a tile
+    tile_count = torch.bincount(tile[perm], minlength=tw * th)
+    tile_start = torch.cumsum(tile_count, 0) - tile_count
+    return ids[which[perm]], tile_start, tile_count
+
+
+def rasterize_reference(
+    means2d: Tensor,
+    conics: Tensor,
+    opacities: Tensor,
+    colors: Tensor,
+    depths: Tensor,
+    radii: Tensor,
+    background: Tensor,
+    width: int,
+    height: int,
+) -> tuple[Tensor, Tensor, Tensor]:
+    """Composite screen-space Gaussians front to back; returns rgb [H, W, 3], alpha [H, W], depth [H, W].
+
+    means2d [N, 2] px, conics [N, 3] (a, b, c) of the inverse covariance, opacities [N], colors [N, 3],
+    depths [N] camera z, radii [N] int (0 = skip), background [3]. Per pixel, in depth order:
+    alpha = min(0.99, o exp(-q/2)) with q the conic's quadratic form; skipped when the exponent is positive or
+    alpha < 1/255; compositing stops before T would fall below 1e-4. rgb = sum w c + T bg, alpha = 1 - T,
+    depth = sum w z with w = alpha T.
+    """
+    tw = (width + TILE - 1) // TILE
+    th = (height + TILE - 1) // TILE
+    n_tiles = tw * th
+    dev, dt = means2d.device, means2d.dtype
+    gids, tile_start, tile_count = bin_gaussians(means2d, depths, radii, width, height)
+
+    # Row N is padding: zero opacity, so its alpha is 0 and it is always skipped.
+    pad = torch.zeros(1, 1, dtype=dt, device=dev)
+    mu = torch.cat([means2d, pad.expand(1, 2)])
+    con = torch.cat([conics, pad.expand(1, 3)])
+    opa = torch.cat([opacities, pad[0]])
+    # Channels composited together: r, g, b, z.
+    feat = torch.cat([torch.cat([colors, depths[:, None]], 1), pad.expand(1, 4)])
+    n = means2d.shape[0]
+
+    # Pixel centres of one tile, offsets 0..15 (OpenCV convention: centre of pixel (i, j) is (j, i)).
+    off = torch.arange(TILE, device=dev, dtype=dt)
+    oy, ox = torch.meshgrid(off, off, indexing="ij")
+    ox, oy = ox.reshape(-1), oy.reshape(-1)
+
+    out_chunks = []
+    t0 = 0
+    counts = tile_count.tolist()
+    while t0 < n_tiles:
+        t1, kmax = t0, 1
+        while t1 < n_tiles and (t1 - t0 + 1) * max(kmax, counts[t1]) * TILE * TILE <= CHUNK_ELEMENTS:
+            kmax = max(kmax, counts[t1])
+            t1 += 1
+        if t1 == t0:  # a single tile larger than the budget still has to be drawn
+            kmax = max(1, counts[t0])
+            t1 = t0 + 1
+        out_chunks.append(
+            _rasterize_tiles(t0, t1, kmax, tw, tile_start, tile_count, gids, n, mu, con, opa, feat, ox, oy)
+        )
+        t0 = t1
+
+    out = torch.cat(out_chunks)  # [n_tiles, 256, 5]: r, g, b, z, T
+    out = out.reshape(th, tw, TILE, TILE, 5).permute(0, 2, 1, 3, 4).reshape(th * TILE, tw * TILE, 5)
+    out = out[:height, :width]
+    T = out[..., 4]
+    rgb = out[..., :3] + T[..., None] * background
+    return rgb, 1.0 - T, out[..., 3]
+
+
+def _rasterize_tiles(t0, t1, kmax, tw, tile_start, tile_count, gids, n, mu, con, opa, feat, ox, oy):
+    """Tiles t0..t1-1 -> [t1 - t0, 256, 5] (accumulated r, g, b, z and final transmittance)."""
+    dev = mu.device
+    tiles = torch.arange(t0, t1, device=dev)
+    slot = torch.arange(kmax, device=dev)
+    # idx[t, k]: k-th Gaussian of tile t, or the padding row n past the end of its list.
+    idx = tile_start[tiles, None] + slot
+    idx = torch.where(slot < tile_count[tiles, None], gids[torch.clamp(idx, max=max(len(gids) - 1, 0))], n)
+    if len(gids) == 0:
+        idx = torch.full_like(idx, n)
+    px = ((tiles % tw) * TILE).to(mu.dtype)[:, None] + ox  # [nt, 256]
+    py = ((tiles // tw) * TILE).to(mu.dtype)[:, None] + oy
+    m = mu[idx]  # [nt, K, 2]
+    cn = con[idx]  # [nt, K, 3]
+    dx = px[:, :, None] - m[:, None, :, 0]  # [nt, 256, K]
+    dy = py[:, :, None] - m[:, None, :, 1]
+    power = -0.5 * (cn[:, None, :, 0] * dx * dx + cn[:, None, :, 2] * dy * dy) - cn[:, None, :, 1] * dx * dy
+    alpha = torch.clamp(opa[idx][:, None, :] * torch.exp(power), max=ALPHA_MAX)
+    alpha = torch.where((power <= 0) & (alpha >= ALPHA_MIN), alpha, torch.zeros_like(alpha))
+    with torch.no_grad():
+        # Gaussian k is composited iff T after it stays >= T_MIN (T only decreases, so this is a prefix).
+        used = torch.cumprod(1.0 - alpha, -1) >= T_MIN
+    alpha = alpha * used
+    trans = torch.cumprod(1.0 - alpha, -1)  # T after each Gaussian
+    t_before = torch.cat([torch.ones_like(trans[..., :1]), trans[..., :-1]], -1)
+    w = alpha * t_before
+    acc = w @ feat[idx]  # [nt, 256, 4]
+    return torch.cat([acc, trans[..., -1:]], -1)

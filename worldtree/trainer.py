@@ -1,0 +1,300 @@
+"""A generic, seeded, resumable training loop; a method plugs in through the small :class:`Trainable` interface.
+
+The loop owns what every method shares: step counting (1-based), backward, the finite-loss guard, periodic
+atomic checkpoints (:mod:`worldtree.checkpoint`) with the RNG states, resuming from the newest checkpoint, a
+progress display (step, loss, iterations/s, ETA) and optional TensorBoard scalars. The method owns its model,
+optimisers, density control and loss::
+
+    class MyMethod:                       # satisfies Trainable
+        def training_step(self, step) -> StepOutput: ...   # forward + loss (no backward)
+        def optimizer_step(self, step, out) -> dict: ...   # after backward: optimiser, densification
+        def state_dict(self) -> dict: ...                    # everything needed to resume
+        def load_state_dict(self, state) -> None: ...
+
+    Trainer(TrainerConfig(steps=1000), MyMethod(...), checkpoint_dir=run / "checkpoints").fit()
+
+Methods with several stages run one Trainer per stage, each with its own checkpoint folder.
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Protocol
+
+import torch
+
+import worldtree
+from worldtree.checkpoint import (
+    capture_rng_state,
+    latest_checkpoint,
+    load_checkpoint,
+    restore_rng_state,
+    save_checkpoint,
+)
+from worldtree.errors import UserError
+
+
+@dataclass
+class StepOutput:
+    """What a method's forward pass returns to the loop."""
+
+    loss: torch.Tensor
+    """Scalar loss to back-propagate."""
+    scalars: dict[str, float] = field(default_factory=dict)
+    """Extra numbers to log (loss parts, Gaussian count, ...)."""
+    info: Any = None
+    """Anything the method needs again in ``optimizer_step`` (e.g. the render output)."""
+
+
+class Trainable(Protocol):
+    """The interface a method implements to be trained by :class:`Trainer`."""
+
+    def training_step(self, step: int) -> StepOutput: ...
+
+    def optimizer_step(self, step: int, out: StepOutput) -> dict[str, float]: ...
+
+    def state_dict(self) -> dict[str, Any]: ...
+
+    def load_state_dict(self, state: dict[str, Any]) -> None: ...
+
+
+@dataclass
+class TrainerConfig:
+    """Settings of the loop itself (the method's settings live in its own config)."""
+
+    steps: int = 30_000
+    """Total optimisation steps (1-based: the last step is ``steps``)."""
+    checkpoint_every: int = 1000
+    """Save a checkpoint every this many steps (and always at the last step); 0 = only at the end."""
+    keep_checkpoints: int = 2
+    """Newest checkpoints to keep on disk."""
+    log_every: int = 50
+    """Period of TensorBoard scalars and, when the output is not a terminal, of plain progress lines."""
+
+
+@dataclass
+class TrainContext:
+    """Where and how a method's training runs (given by the driver, e.g. ``wtbench run``)."""
+
+    checkpoint_dir: Path | None = None
+    """Folder for periodic checkpoints (a multi-stage method uses one sub-folder per stage); None = none."""
+    tensorboard_dir: Path | None = None
+    """Write TensorBoard scalars there; None = no TensorBoard."""
+    progress: bool = True
+    """Show progress."""
+    resume: bool = True
+    """Continue from the newest checkpoint in ``checkpoint_dir`` when there is one."""
+
+
+@dataclass
+class TrainSummary:
+    """What a call to :meth:`Trainer.fit` did."""
+
+    start_step: int
+    """Last step already done before this call (0 for a fresh run, the checkpoint's step when resumed)."""
+    end_step: int
+    """Last step done after this call."""
+    wall_s: float
+    """Seconds spent in this call's training steps."""
+    final_loss: float | None
+    """Loss of the last step run in this call, None when no step ran."""
+    total_wall_s: float = 0.0
+    """Training seconds of every session that led to ``end_step`` (checkpointed time plus this call's)."""
+
+    @property
+    def steps_run(self) -> int:
+        return self.end_step - self.start_step
+
+    @property
+    def it_per_s(self) -> float:
+        """Iterations per second over every session (this call alone when nothing was checkpointed)."""
+        if self.total_wall_s > 0:
+            return self.end_step / self.total_wall_s
+        return self.steps_run / self.wall_s if self.wall_s > 0 else 0.0
+
+
+class NonFiniteLossError(RuntimeError):
+    """The loss became NaN or Inf; the optimiser is not stepped with it."""
+
+
+class Trainer:
+    """Run ``task`` for ``cfg.steps`` steps with checkpoints in ``checkpoint_dir`` (None: no checkpoints).
+
+    Args:
+        cfg: loop settings.
+        task: the method being trained.
+        checkpoint_dir: folder for checkpoints; resuming reads the newest one found there.
+        generators: extra ``torch.Generator`` objects whose states the checkpoints carry (e.g. data order).
+        tensorboard_dir: write TensorBoard scalars there (needs the ``tensorboard`` package).
+        progress: show progress at all.
+        description: label of the progress display.
+    """
+
+    def __init__(
+        self,
+        cfg: TrainerConfig,
+        task: Trainable,
+        checkpoint_dir: str | Path | None = None,
+        generators: dict[str, torch.Generator] | None = None,
+        tensorboard_dir: str | Path | None = None,
+        progress: bool = True,
+        description: str = "train",
+    ):
+        if cfg.steps < 0:
+            raise UserError(f"--steps {cfg.steps}: must be >= 0")
+        self.cfg = cfg
+        self.task = task
+        self.checkpoint_dir = Path(checkpoint_dir) if checkpoint_dir is not None else None
+        self.generators = generators or {}
+        self.tensorboard_dir = tensorboard_dir
+        self.progress = progress
+        self.description = description
+        self._prior_seconds = 0.0
+
+    def resume(self) -> int:
+        """Load the newest checkpoint if any; return its step (0 when starting fresh)."""
+        if self.checkpoint_dir is None:
+            return 0
+        path = latest_checkpoint(self.checkpoint_dir)
+        if path is None:
+            return 0
+        ckpt = load_checkpoint(path)
+        self.task.load_state_dict(ckpt["task"])
+        restore_rng_state(ckpt["rng"], self.generators)
+        self._prior_seconds = float(ckpt.get("train_seconds", 0.0))
+        return int(ckpt["step"])
+
+    def save(self, step: int, seconds: float) -> None:
+        """Checkpoint the task after ``step``; ``seconds`` = training time of every session so far."""
+        if self.checkpoint_dir is None:
+            return
+        payload = {
+            "task": self.task.state_dict(),
+            "rng": capture_rng_state(self.generators),
+            "version": worldtree.__version__,
+            "train_seconds": float(seconds),
+        }
+        save_checkpoint(self.checkpoint_dir, step, payload, keep=self.cfg.keep_checkpoints)
+
+    def fit(self, resume: bool = True) -> TrainSummary:
+        """Train from the newest checkpoint (when ``resume``) or from scratch up to ``cfg.steps``."""
+        self._prior_seconds = 0.0
+        start = self.resume() if resume else 0
+        total = self.cfg.steps
+        writer = _tensorboard_writer(self.tensorboard_dir)
+        report = _Progress(self.description, start, total, self.progress, self.cfg.log_every)
+        last_loss: float | None = None
+        t0 = time.perf_counter()
+        step = start
+        try:
+            for step in range(start + 1, total + 1):
+                out = self.task.training_step(step)
+                loss_value = float(out.loss.detach())
+                if not torch.isfinite(out.loss.detach()):
+                    raise NonFiniteLossError(
+                        f"loss is {loss_value} at step {step}; the last checkpoint is untouched "
+                        "(lower the learning rates or check the inputs)"
+                    )
+                out.loss.backward()
+                extra = self.task.optimizer_step(step, out) or {}
+                last_loss = loss_value
+                scalars = {"loss": loss_value, **out.scalars, **extra}
+                report.update(step, scalars)
+                if writer is not None and (step % self.cfg.log_every == 0 or step == total):
+                    for k, v in scalars.items():
+                        writer.add_scalar(f"{self.description}/{k}", v, step)
+                every = self.cfg.checkpoint_every
+                if step == total or (every > 0 and step % every == 0):
+                    self.save(step, self._prior_seconds + time.perf_counter() - t0)
+        finally:
+            report.close()
+            if writer is not None:
+                writer.close()
+        wall = time.perf_counter() - t0
+        return TrainSummary(
+            start_step=start,
+            end_step=max(step, start),
+            wall_s=wall,
+            final_loss=last_loss,
+            total_wall_s=self._prior_seconds + wall,
+        )
+
+
+def _tensorboard_writer(log_dir: str | Path | None):
+    if log_dir is None:
+        return None
+    try:
+        from torch.utils.tensorboard import SummaryWriter
+    except ImportError as e:
+        raise UserError(
+            "--tensorboard needs the tensorboard package; install it with "
+            "`pip install 'worldtree-bench[tensorboard]'` or drop the option"
+        ) from e
+    return SummaryWriter(log_dir=str(log_dir))
+
+
+class _Progress:
+    """Rich progress bar on a terminal; plain lines every ``log_every`` steps otherwise; nothing if disabled."""
+
+    def __init__(self, description: str, start: int, total: int, enabled: bool, log_every: int):
+        self.enabled = enabled
+        self.total = total
+        self.start = start
+        self.log_every = max(log_every, 1)
+        self.t0 = time.perf_counter()
+        self.bar = None
+        if not enabled:
+            return
+        from rich.console import Console
+
+        console = Console(stderr=True)
+        if console.is_terminal:
+            from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
+
+            self.bar = Progress(
+                TextColumn("[bold]{task.description}"),
+                BarColumn(),
+                TextColumn("step {task.completed:.0f}/{task.total:.0f}"),
+                TextColumn("loss {task.fields[loss]}"),
+                TextColumn("{task.fields[rate]} it/s"),
+                TextColumn("ETA"),
+                TimeRemainingColumn(),
+                TextColumn("{task.fields[extra]}"),
+                console=console,
+            )
+            self.bar.start()
+            self.task_id = self.bar.add_task(
+                description, total=total, completed=start, loss="-", rate="-", extra=""
+            )
+        elif start > 0:
+            print(f"{description}: resuming after step {start}/{total}", file=sys.stderr)
+
+    def update(self, step: int, scalars: dict[str, float]) -> None:
+        if not self.enabled:
+            return
+        elapsed = time.perf_counter() - self.t0
+        rate = (step - self.start) / elapsed if elapsed > 0 else 0.0
+        loss = f"{scalars['loss']:.4f}"
+        extra = " ".join(f"{k} {_fmt(v)}" for k, v in scalars.items() if k != "loss")
+        if self.bar is not None:
+            self.bar.update(self.task_id, completed=step, loss=loss, rate=f"{rate:.1f}", extra=extra)
+        elif step % self.log_every == 0 or step == self.total:
+            eta = (self.total - step) / rate if rate > 0 else float("nan")
+            print(
+                f"step {step}/{self.total}  loss {loss}  {rate:.1f} it/s  ETA {eta:.0f} s  {extra}",
+                file=sys.stderr,
+                flush=True,
+            )
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.stop()
+
+
+def _fmt(v: float) -> str:
+    if isinstance(v, int) or float(v).is_integer():
+        return str(int(v))
+    return f"{v:.4g}"
