@@ -15,6 +15,7 @@ __all__ = [
     "apply_points",
     "apply_rotations",
     "blend",
+    "blend_dual",
     "conjugate",
     "dual_conjugate",
     "from_quat_trans",
@@ -123,6 +124,23 @@ def blend(
         on the sign of any input ``q_k``. Gradients are finite everywhere, including the guarded cases.
     """
     real, dual = from_quat_trans(q, t)  # [..., K, 4] each
+    return blend_dual(real, dual, weights, mix_identity, align, eps, degenerate_tol)
+
+
+def blend_dual(
+    real: torch.Tensor,
+    dual: torch.Tensor,
+    weights: torch.Tensor,
+    mix_identity: bool = True,
+    align: bool = True,
+    eps: float = 1e-12,
+    degenerate_tol: float = 1e-6,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """:func:`blend` for transforms already given as unit dual quaternions ``real, dual`` [..., K, 4].
+
+    Lets a caller convert each scaffold node once and gather the results per Gaussian, instead of converting
+    every (Gaussian, neighbour) pair. Same arguments, guarantees and return value as :func:`blend`.
+    """
     k = real.shape[-2]
     if k == 0:
         ident = quat.identity(real.shape[:-2], real.dtype, real.device)

@@ -139,8 +139,14 @@ def deform_neighbours(
     Returns:
         ``(points_t [..., 3], quats_t [..., 4])``.
     """
+    real, dual = dualquat.from_quat_trans(nb_q_rel, nb_t_rel)
+    return _deform_dual(points, quats, nb_pos_ref, nb_sigma, real, dual, valid, correction, mix_identity)
+
+
+def _deform_dual(points, quats, nb_pos_ref, nb_sigma, nb_real, nb_dual, valid, correction, mix_identity):
+    """Shared tail of the two deform functions, with neighbour transforms as dual quaternions [..., K, 4]."""
     w = skinning_weights(points, nb_pos_ref, nb_sigma, valid, correction)
-    q_b, t_b = dualquat.blend(nb_q_rel, nb_t_rel, w, mix_identity=mix_identity)
+    q_b, t_b = dualquat.blend_dual(nb_real, nb_dual, w, mix_identity=mix_identity)
     return dualquat.apply_points(q_b, t_b, points), dualquat.apply_rotations(q_b, quats)
 
 
@@ -172,15 +178,16 @@ def deform(
     Returns:
         ``(points_t [..., 3], quats_t [..., 4])``. With K = 0 (no nodes) the inputs come back unchanged.
     """
-    q_rel, t_rel = se3.relative(node_quat_t, node_pos_t, node_quat_ref, node_pos_ref)  # [M, 4], [M, 3]
-    return deform_neighbours(
+    # Convert once per node, then gather per (Gaussian, neighbour): M conversions instead of N * K.
+    real, dual = dualquat.from_quat_trans(*se3.relative(node_quat_t, node_pos_t, node_quat_ref, node_pos_ref))
+    return _deform_dual(
         points,
         quats,
         node_pos_ref[knn_idx],
         sigma[knn_idx],
-        q_rel[knn_idx],
-        t_rel[knn_idx],
-        valid=valid,
-        correction=correction,
-        mix_identity=mix_identity,
+        real[knn_idx],
+        dual[knn_idx],
+        valid,
+        correction,
+        mix_identity,
     )

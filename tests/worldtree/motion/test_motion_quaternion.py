@@ -263,3 +263,24 @@ def test_6d_round_trip_and_degenerate_inputs():
     np.testing.assert_allclose(torch.linalg.det(M).detach().numpy(), 1.0, atol=1e-12)
     M.sum().backward()
     assert torch.isfinite(d6.grad).all()
+
+
+def test_gradients_finite_at_exact_singular_points():
+    """Exact zeros and 180-degree turns, where an unguarded torch.where branch would poison the gradient."""
+    # log at exactly 180 degrees (w = 0) and at the identity
+    q = torch.tensor(
+        [[0.0, 0.0, 0.0, 1.0], [0.0, 0.6, 0.8, 0.0], [1.0, 0, 0, 0]], dtype=f64, requires_grad=True
+    )
+    Q.log(q).sum().backward()
+    assert torch.isfinite(q.grad).all()
+    # slerp at the endpoints t = 0 and t = 1 (sinc of an exact 0)
+    a = Q.exp(torch.tensor([0.1, 0.2, 0.3], dtype=f64)).requires_grad_(True)
+    b = Q.exp(torch.tensor([-0.4, 0.9, 0.1], dtype=f64)).requires_grad_(True)
+    t = torch.tensor([0.0, 1.0], dtype=f64, requires_grad=True)
+    Q.slerp(a, b, t).sum().backward()
+    for g in (a.grad, b.grad, t.grad):
+        assert torch.isfinite(g).all()
+    # angle and from_axis_angle with a zero axis
+    axis = torch.zeros(3, dtype=f64, requires_grad=True)
+    Q.angle(Q.from_axis_angle(axis, 1.0)).backward()
+    assert torch.isfinite(axis.grad).all()

@@ -274,17 +274,21 @@ def test_deform_gradcheck(sigma_val):
     assert torch.autograd.gradcheck(_deform_flat, (*args, corr, idx))
 
 
-def test_deform_gradients_finite_at_edges():
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_deform_gradients_finite_at_edges(dtype):
     pts, quats, pos_ref, rot_ref, pos_t, rot_t, sigma = scene(n=8, m=6, seed=10)
     pts[0] = pos_ref[0]  # exactly on a node
     pts[1] += 1e3  # far: kernels underflow
     rot_t = Rotation.from_rotvec(np.tile([0, 0, math.pi], (6, 1))) * rot_ref  # 180-degree node turns
     sigma[1] = 0.0  # zero radius
-    args = [a.requires_grad_(True) for a in as_torch(pts, quats, pos_ref, rot_ref, pos_t, rot_t, sigma)]
+    args = [
+        a.requires_grad_(True)
+        for a in as_torch(pts, quats, pos_ref, rot_ref, pos_t, rot_t, sigma, dtype=dtype)
+    ]
     idx, _ = skinning.knn(args[0].detach(), args[2].detach(), 4)
     valid = torch.ones(idx.shape, dtype=torch.bool)
     valid[2] = False  # fully masked
-    corr = torch.zeros(idx.shape, dtype=f64, requires_grad=True)
+    corr = torch.zeros(idx.shape, dtype=dtype, requires_grad=True)
     p, q = skinning.deform(*args, idx, valid=valid, correction=corr)
     assert torch.isfinite(p).all() and torch.isfinite(q).all()
     (p.square().sum() + q.sum()).backward()
