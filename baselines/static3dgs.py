@@ -2,7 +2,8 @@
 
 Trained on the monocular training video (one random training frame per step, each frame once per epoch) with
 the 3DGS loss ``0.8 L1 + 0.2 (1 - SSIM)``, Adam groups with 3DGS learning rates (position decaying
-exponentially, scaled by the scene extent) and 3DGS density control. It initialises from SfM points when the
+exponentially, scaled by the scene extent), view-dependent SH colour whose degree grows during training, and
+3DGS density control. It initialises from SfM points when the
 scene folder holds ``points3d.npy`` (``[N, 3]`` world xyz, or ``[N, 6]`` with RGB in [0, 1]) and otherwise from
 random points in the training cameras' near/far frustums. The test camera renders the same image at every
 time, which is the point of the baseline: moving content is averaged away.
@@ -55,6 +56,12 @@ class StaticConfig(CommonConfig):
     """Log-scale learning rate."""
     lr_quats: float = 1e-3
     """Quaternion learning rate."""
+    sh_degree: int = 3
+    """Highest spherical-harmonic degree of the colours (0 = view-independent; at most 3)."""
+    sh_increase_every: int = 1000
+    """The SH degree used in training rises by one every this many steps, up to ``sh_degree`` (as 3DGS)."""
+    lr_shN: float = 2.5e-3 / 20
+    """Learning rate of the higher SH coefficients."""
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
     """Background colour (RGB in [0, 1])."""
     backend: str = "auto"
@@ -68,22 +75,29 @@ class StaticConfig(CommonConfig):
 
 
 def paper_config() -> StaticConfig:
-    """3DGS schedule: 30k steps, densify every 100 steps from 500 to 15k, opacity reset every 3k."""
+    """3DGS schedule: 30k steps, densify every 100 steps from 500 to 15k, opacity reset every 3k, SH degree 3."""
     return StaticConfig()
 
 
 def quick_config() -> StaticConfig:
-    """CPU-friendly: 1500 steps at half resolution, densify every 100 steps from 200 to 1000, no reset."""
+    """CPU-friendly: 1500 steps at half resolution, densify every 100 steps from 200 to 1000, no opacity reset,
+    view-independent colour."""
     return StaticConfig(
         steps=1500,
         downscale=2,
-        init_num_points=10_000,
+        init_num_points=5_000,
+        sh_degree=0,
         strategy=DensifyStrategy(
-            refine_start=200, refine_stop=1000, refine_every=100, reset_every=0, max_gaussians=50_000
+            refine_start=200, refine_stop=1000, refine_every=100, reset_every=0, max_gaussians=30_000
         ),
         checkpoint_every=500,
         log_every=50,
     )
+
+
+def camera_centres(w2cs: torch.Tensor) -> torch.Tensor:
+    """``[T, 3]`` camera centres ``-R^T t`` of world-to-camera poses ``[T, 4, 4]``."""
+    return -torch.einsum("tji,tj->ti", w2cs[:, :3, :3], w2cs[:, :3, 3])
 
 
 def scene_extent(w2cs: torch.Tensor, near: float, far: float) -> float:
@@ -93,7 +107,7 @@ def scene_extent(w2cs: torch.Tensor, near: float, far: float) -> float:
     scene depth ``(near + far) / 2``; the extent scales the position learning rate and the size thresholds.
     """
     w = w2cs.detach().double().cpu()
-    centres = -torch.einsum("tji,tj->ti", w[:, :3, :3], w[:, :3, 3])  # -R^T t
+    centres = camera_centres(w)
     radius = float((centres - centres.mean(0)).norm(dim=-1).max()) if len(centres) else 0.0
     return 1.1 * max(radius, 0.1 * 0.5 * (near + far))
 
@@ -120,6 +134,8 @@ class StaticGaussians:
     def __init__(self, cfg: StaticConfig, scene: Scene, device: torch.device):
         if cfg.init not in ("auto", "sfm", "random"):
             raise UserError(f"init={cfg.init!r}: choose auto, sfm or random")
+        if not 0 <= cfg.sh_degree <= 3:
+            raise UserError(f"sh_degree={cfg.sh_degree}: choose 0, 1, 2 or 3")
         self.cfg = cfg
         self.device = device
         self.scene = scene.to(device)
@@ -129,6 +145,8 @@ class StaticGaussians:
         self.queue: list[int] = []
         self.init_source = ""
         self.gaussians = self._initial_gaussians(scene)
+        self.gaussians.add_sh(cfg.sh_degree)
+        self.centres = camera_centres(self.scene.w2cs)
         self.optimizer = self._make_optimizer()
         cfg.strategy.check_sanity(self.gaussians, self.optimizer)
         self.strategy_state = cfg.strategy.initialize_state(self.extent)
@@ -170,6 +188,8 @@ class StaticGaussians:
             "opacity_logits": ConstantLR(c.lr_opacity),
             "sh0": ConstantLR(c.lr_sh0),
         }
+        if "shN" in self.gaussians.params:
+            schedules["shN"] = ConstantLR(c.lr_shN)
         return GroupedAdam(dict(self.gaussians.params.items()), schedules)
 
     # ------------------------------------------------------------------ Trainable
@@ -178,10 +198,16 @@ class StaticGaussians:
             self.queue = torch.randperm(self.scene.num_frames, generator=self.order).tolist()
         return self.queue.pop()
 
-    def _render(self, K, w2c, width, height):
+    def _sh_degree_at(self, step: int | None) -> int:
+        if step is None or self.cfg.sh_increase_every <= 0:
+            return self.cfg.sh_degree
+        return min(self.cfg.sh_degree, step // self.cfg.sh_increase_every)
+
+    def _render(self, K, w2c, width, height, centre, step=None):
         gs = self.gaussians
+        colors = gs.view_colors(centre, self._sh_degree_at(step))
         out = rasterize(
-            gs.means, gs.quats, gs.log_scales, gs.opacities, gs.colors, K, w2c, width, height,
+            gs.means, gs.quats, gs.log_scales, gs.opacities, colors, K, w2c, width, height,
             background=self.background, backend=self.cfg.backend,
         )  # fmt: skip
         self.backend = out.backend
@@ -191,7 +217,7 @@ class StaticGaussians:
         self.optimizer.set_step(step)
         i = self._next_frame()
         s = self.scene
-        out = self._render(s.Ks[i], s.w2cs[i], s.width, s.height)
+        out = self._render(s.Ks[i], s.w2cs[i], s.width, s.height, self.centres[i], step)
         loss, parts = photometric_loss(out.rgb, s.images[i], self.cfg.lambda_dssim)
         self.cfg.strategy.step_pre_backward(self.gaussians, self.optimizer, self.strategy_state, step, out)
         return StepOutput(loss=loss, scalars=parts, info=out)
@@ -253,7 +279,7 @@ class StaticGaussians:
             return self._render_cache[1]
         K = K.to(self.device, torch.float32)
         w2c = w2c.to(self.device, torch.float32)
-        img = self._render(K, w2c, width, height).rgb.clamp(0.0, 1.0)
+        img = self._render(K, w2c, width, height, camera_centres(w2c[None])[0]).rgb.clamp(0.0, 1.0)
         self._render_cache = (key, img)
         return img
 
@@ -268,6 +294,7 @@ class StaticGaussians:
                 "num_gaussians": len(self.gaussians),
                 "scene_extent": self.extent,
                 "background": list(self.cfg.background),
+                "sh_degree": self.gaussians.sh_degree,
                 "files": {"gaussians.pt": "GaussianSet.load", "gaussians.ply": "3DGS viewer PLY"},
             },
         )

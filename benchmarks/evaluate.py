@@ -35,6 +35,8 @@ COLUMNS = ("frame", "psnr", "ssim", "lpips", "avge", "mpsnr", "mssim", "mlpips",
 #: Pixels (H * W) scored together in one batch; bounds memory (about 40 bytes per pixel per frame).
 BATCH_PIXELS = 2_000_000
 MAX_BATCH = 16
+#: CPU worker threads at most (each holds one frame's LPIPS activations, ~50 MB at 480x270).
+MAX_CPU_WORKERS = 16
 
 
 class EvalWarning(UserWarning):
@@ -79,6 +81,8 @@ def _natural_key(name: str) -> list:
 def _by_stem(folder: Path, what: str) -> dict[str, Path]:
     from worldtree.imageio import list_images
 
+    if not folder.is_dir():
+        raise UserError(f"{what} {folder}: not a folder; give the folder holding the frames")
     files = list_images(folder)
     if not files:
         raise UserError(
@@ -189,12 +193,14 @@ _LPIPS_CACHE: dict[tuple, tuple] = {}
 
 
 def _lpips_model(lpips_weights, device, warn_list: list[str]):
-    """-> (model on device or None, record dict). ``lpips_weights``: folder, LPIPS instance, or None."""
+    """-> (model on device or None, record dict). ``lpips_weights``: folder, LPIPS instance, None or False."""
     import torch
 
     from benchmarks import lpips_weights as lw
     from benchmarks.lpips import LPIPS
 
+    if lpips_weights is False:
+        return None, {"net": "alex", "version": "0.1", "available": False, "reason": "disabled by the caller"}
     if isinstance(lpips_weights, LPIPS):
         rec = {
             "net": "alex",
@@ -218,29 +224,31 @@ def _lpips_model(lpips_weights, device, warn_list: list[str]):
     return model.to(device), {**info.record(), "available": True}
 
 
+def _allowed_cpus() -> int:
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # not on Linux
+        return os.cpu_count() or 1
+
+
 @contextlib.contextmanager
-def _cpu_threads() -> Iterator[int]:
-    """Cap torch's intra-op threads at the CPUs this process may use (containers often allow fewer)."""
+def _torch_threads(n: int) -> Iterator[None]:
+    """Set torch's intra-op threads for the block (restored after)."""
     import torch
 
-    try:
-        allowed = len(os.sched_getaffinity(0))
-    except AttributeError:  # not on Linux
-        allowed = os.cpu_count() or 1
     before = torch.get_num_threads()
-    if before > allowed:
-        torch.set_num_threads(allowed)
+    torch.set_num_threads(n)
     try:
-        yield min(before, allowed)
+        yield
     finally:
         torch.set_num_threads(before)
 
 
-def _batches(shapes: Sequence[tuple[int, ...]]) -> list[list[int]]:
-    """Consecutive frame indices grouped into batches of one shape and bounded size."""
+def _batches(shapes: Sequence[tuple[int, ...]], limit_pixels: int) -> list[list[int]]:
+    """Consecutive indices grouped into runs of one shape, each of at most ``limit_pixels`` pixels."""
     out: list[list[int]] = []
     for i, s in enumerate(shapes):
-        limit = max(1, min(MAX_BATCH, BATCH_PIXELS // max(1, s[0] * s[1])))
+        limit = max(1, min(MAX_BATCH, limit_pixels // max(1, s[0] * s[1])))
         if out and shapes[out[-1][0]] == s and len(out[-1]) < limit:
             out[-1].append(i)
         else:
@@ -251,40 +259,57 @@ def _batches(shapes: Sequence[tuple[int, ...]]) -> list[list[int]]:
 def _score_all(
     n: int,
     load: Callable[[int], Frame],
-    shapes: Sequence[tuple[int, ...]] | None,
     has_masks: bool,
     protocol,
     lpips,
     device,
     progress: Callable[[int], None] | None,
 ) -> dict[str, np.ndarray]:
-    """Per-frame metrics for frames ``0..n-1`` read by ``load`` (in threads, one batch ahead)."""
+    """Per-frame metrics for frames ``0..n-1`` read by ``load``.
+
+    On the CPU each worker thread reads and scores one frame at a time with ONE intra-op thread, one
+    worker per usable CPU (at most :data:`MAX_CPU_WORKERS`): frames are independent, and this avoids
+    OpenMP threads spinning against each other on a busy machine. On CUDA, batches of frames (up to :data:`MAX_BATCH`, :data:`BATCH_PIXELS`)
+    go to the device, with two batches in flight so that reading overlaps computing.
+    """
     import torch
 
     results = {k: np.full(n, np.nan) for k in ("psnr", "ssim", "lpips", "mpsnr", "mssim", "mlpips")}
-    with _cpu_threads() as threads, ThreadPoolExecutor(max_workers=max(2, min(8, threads * 2))) as pool:
-        if shapes is None:
-            # Files: shapes are known only after reading; read in fixed chunks and split by shape.
-            chunks = [list(range(i, min(n, i + MAX_BATCH))) for i in range(0, n, MAX_BATCH)]
-        else:
-            chunks = _batches(shapes)
-        pending = [pool.submit(load, i) for i in chunks[0]] if chunks else []
-        for ci, chunk in enumerate(chunks):
-            frames = [f.result() for f in pending]
-            if ci + 1 < len(chunks):
-                pending = [pool.submit(load, i) for i in chunks[ci + 1]]
-            for sub in _batches([fr[0].shape for fr in frames]):
-                idx = [chunk[j] for j in sub]
-                pred = torch.from_numpy(np.stack([frames[j][0] for j in sub])).to(device)
-                gt = torch.from_numpy(np.stack([frames[j][1] for j in sub])).to(device)
-                mask = (
-                    torch.from_numpy(np.stack([frames[j][2] for j in sub])).to(device) if has_masks else None
-                )
-                out = protocol.score(pred, gt, mask, lpips)
-                for k, v in out.items():
-                    results[k][idx] = v.numpy()
-                if progress:
-                    progress(len(idx))
+    cpu = device.type == "cpu"
+    workers = min(MAX_CPU_WORKERS, _allowed_cpus()) if cpu else 2
+    chunk = 1 if cpu else MAX_BATCH
+
+    def task(idx: list[int], reader: ThreadPoolExecutor | None) -> tuple[list[int], dict[str, np.ndarray]]:
+        if cpu:
+            torch.set_num_threads(1)  # per thread: OpenMP's thread count is a per-thread setting
+        frames = list(reader.map(load, idx)) if reader else [load(i) for i in idx]
+        got: dict[str, np.ndarray] = {k: np.full(len(idx), np.nan) for k in results}
+        for sub in _batches([fr[1].shape for fr in frames], BATCH_PIXELS):
+            pred = torch.from_numpy(np.stack([frames[j][0] for j in sub])).to(device)
+            gt = torch.from_numpy(np.stack([frames[j][1] for j in sub])).to(device)
+            mask = torch.from_numpy(np.stack([frames[j][2] for j in sub])).to(device) if has_masks else None
+            for k, v in protocol.score(pred, gt, mask, lpips).items():
+                got[k][sub] = v.numpy()
+        return idx, got
+
+    chunks = [list(range(i, min(n, i + chunk))) for i in range(0, n, chunk)]
+    with (
+        _torch_threads(1 if cpu else torch.get_num_threads()),
+        ThreadPoolExecutor(max_workers=workers) as pool,
+        ThreadPoolExecutor(max_workers=4) if not cpu else contextlib.nullcontext() as reader,
+    ):
+        # Bounded look-ahead keeps at most 2 * workers chunks of images in memory.
+        pending = [pool.submit(task, c, reader) for c in chunks[: 2 * workers]]
+        next_chunk = len(pending)
+        while pending:
+            idx, got = pending.pop(0).result()
+            for k, v in got.items():
+                results[k][idx] = v
+            if next_chunk < len(chunks):
+                pending.append(pool.submit(task, chunks[next_chunk], reader))
+                next_chunk += 1
+            if progress:
+                progress(len(idx))
     return results
 
 
@@ -302,15 +327,19 @@ def _build_table(names: Sequence[str], m: dict[str, np.ndarray], warn_list: list
     df["avge"] = avge(df["psnr"], df["ssim"], df["lpips"])
     df["mavge"] = avge(df["mpsnr"], df["mssim"], df["lpips"])
     mean: dict[str, Any] = {"frame": "mean"}
+    infinite = []
     for k in ("psnr", "mpsnr"):
         v = df[k].to_numpy()
-        if np.isposinf(v).any() and np.isfinite(v).any():
-            warn_list.append(
-                f"{k}: {int(np.isposinf(v).sum())} frame(s) identical to the ground truth ({k} = inf: "
-                f"{_listing([n for n, x in zip(names, v, strict=True) if x == np.inf])}); the mean {k} "
-                "averages the other frames"
-            )
+        if np.isposinf(v).any():
+            names_inf = [n for n, x in zip(names, v, strict=True) if x == np.inf]
+            infinite.append(f"{k} = inf for {len(names_inf)} frame(s) ({_listing(names_inf)})")
         mean[k] = _finite_mean(v)
+    if infinite:
+        warn_list.append(
+            "prediction identical to the ground truth: "
+            + "; ".join(infinite)
+            + "; the mean row averages the finite values (inf only if none is finite)"
+        )
     for k in ("ssim", "lpips", "mssim", "mlpips"):
         v = df[k].to_numpy()
         mean[k] = float(np.nanmean(v)) if np.isfinite(v).any() else float("nan")
@@ -341,7 +370,6 @@ def _mask_warnings(names, counts: np.ndarray | None, protocol, warn_list: list[s
 def _evaluate(
     names: Sequence[str],
     load: Callable[[int], Frame],
-    shapes,
     has_masks: bool,
     protocol: str,
     lpips_weights,
@@ -353,21 +381,29 @@ def _evaluate(
 
     import worldtree
     from benchmarks.metrics import get_protocol
+    from benchmarks.metrics.protocols import LPIPS_MIN_SIDE
     from worldtree.device import pick_device
 
     proto = get_protocol(protocol)
     dev = pick_device(device if not isinstance(device, torch.device) else str(device))
     warn_list: list[str] = []
     model, lpips_rec = _lpips_model(lpips_weights, dev, warn_list)
-    mask_counts: list[int] = []
+    mask_counts: list[tuple[int, int]] = []  # (frame index, masked pixels), appended by reader threads
+    min_side = max(proto.min_side, LPIPS_MIN_SIDE if model is not None else 0)
 
     def counting_load(i: int) -> Frame:
         fr = load(i)
+        h, w = fr[1].shape[:2]
+        if min(h, w) < min_side:
+            raise UserError(
+                f"frame {names[i]} is {w}x{h}; the {proto.name} protocol needs at least {min_side} pixels per "
+                f"side ({proto.min_side} for SSIM, {LPIPS_MIN_SIDE} for LPIPS)"
+            )
         if fr[2] is not None:
             mask_counts.append((i, int(fr[2].sum())))
         return fr
 
-    m = _score_all(len(names), counting_load, shapes, has_masks, proto, model, dev, progress)
+    m = _score_all(len(names), counting_load, has_masks, proto, model, dev, progress)
     counts = None
     if has_masks:
         counts = np.zeros(len(names), dtype=np.int64)
@@ -421,9 +457,9 @@ def evaluate_folder(
     """Score the images of ``pred_dir`` against those of ``gt_dir`` (and masks of ``mask_dir``).
 
     Frames are paired by file stem (:func:`pair_files`). ``protocol``: "worldtree" or "dycheck".
-    ``lpips_weights``: a weights folder, an :class:`benchmarks.lpips.LPIPS` instance, or None (then
+    ``lpips_weights``: a weights folder, an :class:`benchmarks.lpips.LPIPS` instance, None (then
     ``$WTBENCH_LPIPS_WEIGHTS`` or the user cache; without weights the LPIPS columns stay empty and an
-    :class:`EvalWarning` says how to install them). ``device``: "auto"/None, "cpu", "cuda", ... .
+    :class:`EvalWarning` says how to install them), or False (no LPIPS, no warning). ``device``: "auto"/None, "cpu", "cuda", ... .
     ``out_csv``: when given, the table is written there and the record beside it (``.json``), atomically.
     ``progress``: called with the number of frames finished after each batch.
     Bad inputs raise :class:`UserError` naming the files.
@@ -443,7 +479,6 @@ def evaluate_folder(
     res = _evaluate(
         [f.name for f in frames],
         lambda i: _read_frame(frames[i]),
-        None,
         mask_dir is not None,
         protocol,
         lpips_weights,
@@ -503,7 +538,6 @@ def evaluate_arrays(
     return _evaluate(
         names,
         lambda i: (p[i], g[i], None if mk is None else mk[i]),
-        [a.shape for a in g],
         mk is not None,
         protocol,
         lpips_weights,

@@ -98,6 +98,9 @@ class LPIPS(nn.Module):
         self.register_buffer("scale", torch.tensor(_SCALE).view(1, 3, 1, 1), persistent=False)
         for p in self.parameters():
             p.requires_grad_(False)
+        # oneDNN convolutions are markedly faster on the CPU in channels-last layout; loading copies
+        # values into these tensors and .to(device) keeps the layout.
+        self.to(memory_format=torch.channels_last)
         self.eval()
 
     @classmethod
@@ -125,8 +128,9 @@ class LPIPS(nn.Module):
 
     def _layer_diffs(self, x0: torch.Tensor, x1: torch.Tensor) -> list[torch.Tensor]:
         """Per layer, the head applied to squared differences of unit-normalised features: [B, 1, H_l, W_l]."""
-        f0 = self.net((x0 - self.shift) / self.scale)
-        f1 = self.net((x1 - self.shift) / self.scale)
+        cl = torch.channels_last
+        f0 = self.net(((x0 - self.shift) / self.scale).contiguous(memory_format=cl))
+        f1 = self.net(((x1 - self.shift) / self.scale).contiguous(memory_format=cl))
         out = []
         for lin, a, b in zip(self.lins, f0, f1, strict=True):
             a = a / (a.square().sum(1, keepdim=True).sqrt() + _NORM_EPS)
@@ -148,3 +152,22 @@ class LPIPS(nn.Module):
             for d in self._layer_diffs(x0, x1)
         ]
         return sum(maps)[:, 0]
+
+
+def random_state_dicts(seed: int = 0) -> tuple[dict[str, torch.Tensor], dict[str, torch.Tensor]]:
+    """Random weights in the two real file formats, for tests and timings without the real files.
+
+    Returns (torchvision-style AlexNet state dict with ``features.*`` and a stand-in ``classifier.*`` entry,
+    LPIPS ``alex.pth``-style dict of non-negative heads). He-scaled convolutions keep activations alive.
+    """
+    g = torch.Generator().manual_seed(seed)
+    alex: dict[str, torch.Tensor] = {}
+    for i, (ci, co, k, _, _) in ALEXNET_CONVS.items():
+        alex[f"features.{i}.weight"] = torch.randn(co, ci, k, k, generator=g) * (2.0 / (ci * k * k)) ** 0.5
+        alex[f"features.{i}.bias"] = torch.randn(co, generator=g) * 0.1
+    alex["classifier.1.weight"] = torch.randn(8, 4, generator=g)
+    alex["classifier.1.bias"] = torch.randn(8, generator=g)
+    lin = {
+        f"lin{i}.model.1.weight": torch.rand(1, c, 1, 1, generator=g) for i, c in enumerate(LPIPS_CHANNELS)
+    }
+    return alex, lin

@@ -223,9 +223,11 @@ def execute(req: RunRequest) -> RunResult:
     from worldtree.checkpoint import seed_everything
     from worldtree.device import pick_device
     from worldtree.scene import load_scene
-    from worldtree.trainer import TrainContext
+    from worldtree.trainer import TrainContext, check_tensorboard
 
     spec = get_method(req.method)
+    if req.tensorboard:
+        check_tensorboard()
     root = Path(req.scene)
     if not root.is_dir():
         raise UserError(f"--scene {root}: no such folder; give a scene folder written by `nvls build`")
@@ -240,14 +242,14 @@ def execute(req: RunRequest) -> RunResult:
     tag = req.tag or run_tag(req.preset, req.overrides)
     folder = RunFolder(Path(req.runs_dir) / root.name / spec.name / tag)
 
-    if folder.is_done() and not req.force:
-        print(f"already finished: {folder.root} (use --force to run it again)", file=sys.stderr)
-        return RunResult(folder, skipped=True, mean=_read_mean(folder))
+    record = _config_record(spec, cfg, req)
     if req.force and folder.root.exists():
         shutil.rmtree(folder.root)
-    record = _config_record(spec, cfg, req)
     if folder.config_json.is_file():
         _check_same_config(folder, record)
+        if folder.is_done():
+            print(f"already finished: {folder.root} (use --force to run it again)", file=sys.stderr)
+            return RunResult(folder, skipped=True, mean=_read_mean(folder))
         print(f"resuming: {folder.root}", file=sys.stderr)
     folder.root.mkdir(parents=True, exist_ok=True)
     atomic_write_json(folder.config_json, record)
@@ -312,7 +314,7 @@ def _render_test(method, view: TestView, folder: RunFolder) -> None:
     kept, so an interrupted rendering stage resumes)."""
     folder.renders.mkdir(parents=True, exist_ok=True)
     for t, name in zip(view.times, view.files, strict=True):
-        out = folder.renders / name
+        out = folder.renders / (Path(name).stem + ".png")  # lossless, whatever the ground truth's format
         if out.is_file():
             continue
         img = method.render(view.K, view.w2c, view.width, view.height, t)

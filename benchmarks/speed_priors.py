@@ -33,7 +33,7 @@ from worldtree.priors.depth import abs_rel, frame_depth
 from worldtree.priors.epipolar import epi_masks, epipolar_error_maps, label_dynamic_tracks
 from worldtree.priors.flow import compute_flows
 from worldtree.priors.synthetic import ping_pong
-from worldtree.priors.tracks import track_video
+from worldtree.priors.tracks import depth_predictor, track_video
 
 
 @dataclass
@@ -84,11 +84,12 @@ class GroundTruth:
         return (uv - pts).reshape(H, W, 2), vis.reshape(H, W)
 
 
-def nvls_video(frames: int, width: int, height: int, seed: int) -> GroundTruth:
-    """Render the ``nvidia_ls.synth`` rig (12 cameras, training cameras 2..12 in ping-pong order)."""
+def nvls_video(frames: int, width: int, height: int, seed: int, steps: int | None = None) -> GroundTruth:
+    """Render the first ``frames`` time steps of the ``nvidia_ls.synth`` rig (12 cameras, ``steps`` time steps
+    for one motion cycle, default ``frames``); training cameras 2..12 in ping-pong order."""
     from nvidia_ls import synth
 
-    cfg = synth.SynthConfig(cameras=12, steps=frames, width=width, height=height, seed=seed)
+    cfg = synth.SynthConfig(cameras=12, steps=steps or frames, width=width, height=height, seed=seed)
     sc = synth.make_scene(cfg)
     renderers: dict = {}
     imgs, depth, oid, Ks, w2cs = [], [], [], [], []
@@ -112,7 +113,7 @@ def nvls_video(frames: int, width: int, height: int, seed: int) -> GroundTruth:
     )  # fmt: skip
 
 
-def planar_video(frames: int, width: int, height: int, seed: int) -> GroundTruth:
+def planar_video(frames: int, width: int, height: int, seed: int, steps: int | None = None) -> GroundTruth:
     """Render the closed-form planar scene of :mod:`worldtree.priors.synthetic`."""
     from worldtree.priors.synthetic import PlanarScene, PlanarSceneConfig
 
@@ -143,8 +144,19 @@ def run(gt: GroundTruth, cfg: PriorsConfig) -> dict[str, float]:
     out: dict[str, float] = {}
     dyn_gt = gt.object_id > 0
 
+    # Same order as compute_priors: depth first, then flow and tracks guided by depth and poses.
     t0 = time.perf_counter()
-    flows = compute_flows(gt.images, cfg.flow)
+    res = [frame_depth(t, gt.images, gt.Ks, gt.w2cs, gt.near, gt.far, cfg.depth) for t in range(T)]
+    out["depth s/frame"] = (time.perf_counter() - t0) / T
+    depth = np.stack([r.depth for r in res])
+    conf = np.stack([r.conf for r in res])
+    static = ~dyn_gt & np.isfinite(gt.depth)
+    out["depth AbsRel static"] = abs_rel(depth, gt.depth, static)
+    out["depth AbsRel static confident"] = abs_rel(depth, gt.depth, static & (conf > 0))
+    out["depth confident fraction"] = float((conf > 0).mean())
+
+    t0 = time.perf_counter()
+    flows = compute_flows(gt.images, cfg.flow, depth=depth, Ks=gt.Ks, w2cs=gt.w2cs)
     out["flow s/frame"] = (time.perf_counter() - t0) / T
     e_all, e_st, e_dy, e_fb = [], [], [], []
     for i in range(T - 1):
@@ -160,7 +172,8 @@ def run(gt: GroundTruth, cfg: PriorsConfig) -> dict[str, float]:
         out[f"flow EPE {name} px"] = float(cat.mean()) if cat.size else float("nan")
 
     t0 = time.perf_counter()
-    tr = track_video(gt.images, cfg.tracks)
+    predict = depth_predictor(depth, gt.Ks, gt.w2cs) if cfg.tracks.init_from_depth else None
+    tr = track_video(gt.images, cfg.tracks, predict=predict)
     out["tracks s/frame"] = (time.perf_counter() - t0) / T
     te = track_errors(gt, tr.xy, tr.visible, tr.seed_frame)
     out["tracks N"] = tr.num_tracks
@@ -168,16 +181,6 @@ def run(gt: GroundTruth, cfg: PriorsConfig) -> dict[str, float]:
     out["tracks mean err px"] = float(te.mean()) if te.size else float("nan")
     out["tracks visible in all frames"] = float(tr.visible.all(0).mean()) if tr.num_tracks else 0.0
     out["tracks visible per frame"] = float(tr.visible.sum(1).mean())
-
-    t0 = time.perf_counter()
-    res = [frame_depth(t, gt.images, gt.Ks, gt.w2cs, gt.near, gt.far, cfg.depth) for t in range(T)]
-    out["depth s/frame"] = (time.perf_counter() - t0) / T
-    depth = np.stack([r.depth for r in res])
-    conf = np.stack([r.conf for r in res])
-    static = ~dyn_gt & np.isfinite(gt.depth)
-    out["depth AbsRel static"] = abs_rel(depth, gt.depth, static)
-    out["depth AbsRel static confident"] = abs_rel(depth, gt.depth, static & (conf > 0))
-    out["depth confident fraction"] = float((conf > 0).mean())
 
     t0 = time.perf_counter()
     err = epipolar_error_maps(flows, T, gt.Ks, gt.w2cs, cfg.epi)
@@ -207,12 +210,15 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--width", type=int, default=480)
     ap.add_argument("--height", type=int, default=270)
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument(
+        "--steps", type=int, default=None, help="nvls: time steps of one motion cycle (default: frames)"
+    )
     args = ap.parse_args(argv)
     # Every random choice in the priors uses a seeded numpy Generator; the seed here picks the scene.
     cv2_threads = cv2.getNumThreads()
     t0 = time.perf_counter()
     make = nvls_video if args.scene == "nvls" else planar_video
-    gt = make(args.frames, args.width, args.height, args.seed)
+    gt = make(args.frames, args.width, args.height, args.seed, args.steps)
     print(
         f"worldtree {worldtree.__version__}  scene={args.scene} frames={args.frames} size={args.width}x{args.height} "
         f"seed={args.seed}  render {time.perf_counter() - t0:.1f}s  cv2 threads={cv2_threads} "

@@ -19,17 +19,16 @@ import numpy as np
 
 from nvidia_ls import llff
 from nvidia_ls.layouts import RawCapture, open_raw
-from nvidia_ls.manifest import write_manifest
+from nvidia_ls.manifest import hash_files, write_manifest
 from nvidia_ls.masks import MaskConfig, background_masks, import_masks
 from nvidia_ls.preview import contact_sheet
 from nvidia_ls.sampling import pingpong, sample_times, training_cameras
 from nvidia_ls.sfm import CAMERA_MODELS, run_sfm, sfm_candidates
 from nvidia_ls.undistort import Undistorter
-from nvidia_ls.writer import cameras_document, frame_file, mask_file, test_file
+from nvidia_ls.writer import cameras_document, frame_file, mask_file, save_image, test_file
 from worldtree import __version__
 from worldtree.atomic import atomic_dir, atomic_write_bytes, atomic_write_json
 from worldtree.errors import UserError
-from worldtree.imageio import write_image
 
 NORMALIZE = ("auto", "rig", "none")
 
@@ -52,8 +51,8 @@ class BuildConfig:
     """SfM intrinsics: "shared" (one SIMPLE_RADIAL for all cameras) or "per-camera"."""
     sfm_tries: int = 8
     """Number of time steps tried for SfM (the first, then spread over the sequence)."""
-    sfm_threads: int = 2
-    """CPU threads given to pycolmap."""
+    sfm_threads: int = 1
+    """CPU threads given to pycolmap; 1 makes SfM bit-reproducible (2 is faster but varies run to run)."""
     normalize: str = "auto"
     """World frame: "rig" (axes of the mean camera, origin at the mean camera centre, median SfM point depth 1),
     "none" (keep the SfM / --poses frame), "auto" (rig for SfM, none for --poses)."""
@@ -276,10 +275,10 @@ def build_scene(
                     if cid == cfg.test_camera:
                         test_frames[ti] = img
                         with timer("write"):
-                            write_image(tmp / test_file(ti), img)
+                            save_image(tmp / test_file(ti), img)
                     else:
                         with timer("write"):
-                            write_image(tmp / frame_file(ti), img)
+                            save_image(tmp / frame_file(ti), img)
                         if ti in thumbs_idx:
                             thumbs[ti] = img
                 tick("frames", k + 1, n)
@@ -294,7 +293,7 @@ def build_scene(
                     mask_info = {"method": "background-median", **asdict(cfg.mask)}
             with timer("write"):
                 for ti in range(T):
-                    write_image(tmp / mask_file(ti), masks[ti])
+                    save_image(tmp / mask_file(ti), masks[ti])
                 pb = llff.opencv_to_llff(w2cs, K_out, out_wh[1], out_wh[0], bounds)
                 buf = io.BytesIO()
                 np.save(buf, pb)
@@ -319,40 +318,42 @@ def build_scene(
                     [(f"t{i} cam{frame_cams[i]:02d}", thumbs[i]) for i in sorted(thumbs)],
                     [(f"test t{i}", test_frames[i], masks[i]) for i in sorted(thumbs)],
                 )
-                write_image(tmp / "preview.png", sheet)
+                save_image(tmp / "preview.png", sheet)
             with timer("hash"):
-                cfg_record = asdict(cfg)
-                for key in ("masks", "poses"):
-                    cfg_record[key] = None if cfg_record[key] is None else str(cfg_record[key])
-                write_manifest(
-                    tmp,
-                    {
-                        "tool": "nvls build",
-                        "tool_version": __version__,
-                        "created_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
-                        "source": {
-                            "path": str(raw_dir.resolve()),
-                            "layout": raw.layout,
-                            "root": str(raw.root),
-                            "cameras": raw.cameras,
-                            "time_steps": len(raw.times),
-                            "width": raw.width,
-                            "height": raw.height,
-                        },
-                        "source_times": kept,
-                        "image_size": list(out_wh),
-                        "test_camera": cfg.test_camera,
-                        "train_cameras": train,
-                        "camera_order": frame_cams,
-                        "counts": {"frames": T, "test_frames": T, "masks": T, "cameras": n},
-                        "poses": pose_info,
-                        "masks": mask_info,
-                        "world_transform": world,
-                        "config": cfg_record,
-                        "timings_s": {k: round(v, 4) for k, v in timer.seconds.items()},
-                        "warnings": warnings,
+                files = hash_files(tmp)
+            cfg_record = asdict(cfg)
+            for key in ("masks", "poses"):
+                cfg_record[key] = None if cfg_record[key] is None else str(cfg_record[key])
+            write_manifest(
+                tmp,
+                {
+                    "tool": "nvls build",
+                    "tool_version": __version__,
+                    "created_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+                    "source": {
+                        "path": str(raw_dir.resolve()),
+                        "layout": raw.layout,
+                        "root": str(raw.root),
+                        "cameras": raw.cameras,
+                        "time_steps": len(raw.times),
+                        "width": raw.width,
+                        "height": raw.height,
                     },
-                )
+                    "source_times": kept,
+                    "image_size": list(out_wh),
+                    "test_camera": cfg.test_camera,
+                    "train_cameras": train,
+                    "camera_order": frame_cams,
+                    "counts": {"frames": T, "test_frames": T, "masks": T, "cameras": n},
+                    "poses": pose_info,
+                    "masks": mask_info,
+                    "world_transform": world,
+                    "config": cfg_record,
+                    "timings_s": {k: round(v, 4) for k, v in timer.seconds.items()},
+                    "warnings": warnings,
+                },
+                files,
+            )
     except FileExistsError:
         raise UserError(f"{final}: appeared while building; pass --force to replace it") from None
     return final

@@ -1,10 +1,16 @@
-"""`nvls`: build, check and describe NVIDIA-LS scenes; generate synthetic raw rigs."""
+"""`nvls`: build, check and describe NVIDIA-LS scenes; generate synthetic raw rigs.
+
+A thin layer over the library: :func:`nvidia_ls.build.build_scene`, :func:`nvidia_ls.synth.write_raw_scene`,
+:func:`nvidia_ls.manifest.verify_scene`, :func:`nvidia_ls.info.describe_scene`.
+"""
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import typer
 
-from worldtree.errors import UserError, run_cli
+from worldtree.errors import run_cli
 
 app = typer.Typer(
     name="nvls",
@@ -15,28 +21,139 @@ app = typer.Typer(
 )
 
 
-def _todo(name: str) -> None:
-    raise UserError(f"`nvls {name}` is not available yet in this version (tracked as issue 3)")
+def _console():
+    from rich.console import Console
+
+    return Console(stderr=True)
 
 
-@app.command(help="Turn one raw scene into an NVIDIA-LS scene folder.")
-def build() -> None:
-    _todo("build")
+@app.command(help="Turn one raw scene into an NVIDIA-LS scene folder OUT_DIR/<Scene>/.")
+def build(
+    raw_dir: Path = typer.Argument(
+        ..., help="Raw scene: mv_images/%05d/cam%02d.*, camNN/%05d.* or camNN.mp4."
+    ),
+    out_dir: Path = typer.Option(
+        Path("scenes"), "-o", "--out-dir", help="Parent folder of the scene folder."
+    ),
+    frames: int = typer.Option(160, help="Keep at most this many time steps (uniform sampling)."),
+    test_camera: int = typer.Option(1, help="Rig camera held out as the test view."),
+    masks: Path | None = typer.Option(None, help="Folder of test-camera masks by source time (%05d.png)."),
+    poses: Path | None = typer.Option(None, help="LLFF poses_bounds.npy of the rig cameras; skips SfM."),
+    size: str | None = typer.Option(None, help="Output size WxH (same aspect as the raw images)."),
+    camera_model: str = typer.Option("shared", help="SfM intrinsics: shared | per-camera."),
+    sfm_tries: int = typer.Option(8, help="Time steps tried for SfM (the first, then spread)."),
+    normalize: str = typer.Option("auto", help="World frame: auto | rig | none (see docs/nvidia_ls.md)."),
+    num_cameras: int | None = typer.Option(None, help="Expected rig size (default: highest camera number)."),
+    name: str | None = typer.Option(None, help="Scene folder name (default: the raw folder's name)."),
+    mask_threshold: float = typer.Option(30.0, help="Background-model colour difference threshold (0..255)."),
+    seed: int = typer.Option(0, help="SfM mapper seed."),
+    sfm_threads: int = typer.Option(1, help="pycolmap threads (1 = bit-reproducible SfM)."),
+    force: bool = typer.Option(False, "--force", help="Replace an existing scene folder."),
+) -> None:
+    from rich.progress import Progress
+
+    from nvidia_ls.build import BuildConfig, build_scene, parse_size
+    from nvidia_ls.masks import MaskConfig
+
+    cfg = BuildConfig(
+        frames=frames,
+        test_camera=test_camera,
+        masks=masks,
+        poses=poses,
+        size=parse_size(size),
+        camera_model=camera_model,
+        sfm_tries=sfm_tries,
+        normalize=normalize,
+        num_cameras=num_cameras,
+        name=name,
+        force=force,
+        seed=seed,
+        mask=MaskConfig(threshold=mask_threshold),
+    )
+    console = _console()
+
+    def log(msg: str) -> None:
+        console.print(f"[yellow]{msg}[/yellow]" if msg.startswith("warning") else msg, highlight=False)
+
+    with Progress(console=console, transient=True) as prog:
+        task = prog.add_task("cameras", total=None)
+
+        def progress(stage: str, done: int, total: int) -> None:
+            prog.update(task, description=stage, completed=done, total=total)
+
+        path = build_scene(raw_dir, out_dir, cfg, log=log, progress=progress)
+    console.print(f"wrote {path}", highlight=False)
 
 
-@app.command(help="Write a synthetic raw 12-camera scene with ground-truth poses and masks.")
-def synth() -> None:
-    _todo("synth")
+@app.command(
+    help="Write a synthetic raw rig scene with ground-truth poses, masks (and depth) under OUT_DIR/gt."
+)
+def synth(
+    out_dir: Path = typer.Argument(..., help="Scene folder to create."),
+    cameras: int = typer.Option(12, help="Rig cameras (two rows)."),
+    steps: int = typer.Option(30, help="Time steps."),
+    width: int = typer.Option(320, help="Image width."),
+    height: int = typer.Option(180, help="Image height."),
+    seed: int = typer.Option(0, help="Texture and aiming seed."),
+    motion: str = typer.Option("constant", help="Motion profile: constant | slow_fast."),
+    objects: int = typer.Option(2, help="Moving objects: 0, 1 or 2."),
+    depth: bool = typer.Option(False, "--depth", help="Also write gt/depth/%05d/cam%02d.npy (float32)."),
+    layout: str = typer.Option("multiview", help="Raw layout: multiview | camera_folders | videos."),
+    image_ext: str = typer.Option("png", help="Raw image format: png | jpg."),
+    supersample: int = typer.Option(2, help="Anti-aliasing rays per pixel along each axis."),
+    force: bool = typer.Option(False, "--force", help="Replace an existing folder."),
+) -> None:
+    from nvidia_ls.synth import SynthConfig, write_raw_scene
+
+    cfg = SynthConfig(
+        cameras=cameras,
+        steps=steps,
+        width=width,
+        height=height,
+        seed=seed,
+        motion=motion,
+        objects=objects,
+        depth=depth,
+        layout=layout,
+        image_ext=image_ext,
+        supersample=supersample,
+    )
+    console = _console()
+    with console.status("rendering") as status:
+        path = write_raw_scene(
+            out_dir, cfg, force=force, progress=lambda d, n: status.update(f"rendering camera {d}/{n}")
+        )
+    console.print(f"wrote {path}", highlight=False)
 
 
-@app.command(help="Re-check a built scene against its manifest; exit non-zero listing problems.")
-def verify() -> None:
-    _todo("verify")
+@app.command(help="Re-check a built scene against its manifest; exit 1 listing problems.")
+def verify(
+    scene: Path = typer.Argument(..., help="Scene folder written by `nvls build`."),
+    no_hash: bool = typer.Option(False, "--no-hash", help="Skip the sha256 checks (faster)."),
+) -> None:
+    from nvidia_ls.manifest import verify_scene
+    from worldtree.errors import UserError
+
+    if not scene.is_dir():
+        raise UserError(f"{scene}: not a folder; give a scene folder written by `nvls build`")
+    problems = verify_scene(scene, check_hashes=not no_hash)
+    console = _console()
+    if problems:
+        console.print(f"[red]{scene}: {len(problems)} problem(s)[/red]", highlight=False)
+        for p in problems:
+            console.print(f"  - {p}", highlight=False, markup=False)
+        # Not typer.Exit: with standalone_mode=False click returns its code instead of exiting.
+        raise SystemExit(1)
+    console.print(f"[green]{scene}: ok[/green]", highlight=False)
 
 
 @app.command(help="Print a summary of a built scene.")
-def info() -> None:
-    _todo("info")
+def info(scene: Path = typer.Argument(..., help="Scene folder written by `nvls build`.")) -> None:
+    from rich.console import Console
+
+    from nvidia_ls.info import describe_scene
+
+    Console().print(describe_scene(scene))
 
 
 def main() -> None:

@@ -152,6 +152,19 @@ def _image_files(folder: Path) -> list[Path]:
     return sorted(p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES)
 
 
+def _with_size(cap: RawCapture) -> RawCapture:
+    """Take the size from the first camera's first frame and check every camera's first frame against it.
+
+    Every frame the build reads is checked again, so a single odd frame is caught when it is used.
+    """
+    first = read_frame_file(cap.files[(cap.times[0], cap.cameras[0])])
+    cap.height, cap.width = first.shape[:2]
+    for c in cap.cameras[1:]:
+        path = cap.files[(cap.times[0], c)]
+        cap._check_size(read_frame_file(path), str(path))
+    return cap
+
+
 def _open_multiview(mv: Path, num_cameras: int | None) -> RawCapture:
     files: dict[tuple[int, int], Path] = {}
     per_cam: dict[int, set[int]] = {}

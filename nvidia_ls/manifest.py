@@ -23,12 +23,18 @@ def scene_files(scene: Path) -> list[str]:
     )
 
 
-def write_manifest(scene: str | Path, record: dict) -> dict:
-    """Add ``files`` (relative path -> sha256) to ``record`` and write it as ``manifest.json``."""
+def hash_files(scene: str | Path) -> dict[str, str]:
+    """``{relative path: sha256}`` of every file of the scene except the manifest."""
+    scene = Path(scene)
+    return {rel: sha256_file(scene / rel) for rel in scene_files(scene)}
+
+
+def write_manifest(scene: str | Path, record: dict, files: dict[str, str] | None = None) -> dict:
+    """Add ``files`` (relative path -> sha256; computed when not given) to ``record``; write ``manifest.json``."""
     scene = Path(scene)
     record = dict(record)
     record["schema"] = MANIFEST_SCHEMA
-    record["files"] = {rel: sha256_file(scene / rel) for rel in scene_files(scene)}
+    record["files"] = hash_files(scene) if files is None else files
     atomic_write_json(scene / MANIFEST, record)
     return record
 

@@ -2,7 +2,7 @@
 
 Background model (the test camera is static): the per-pixel temporal median of the frames is the
 background; a pixel is dynamic where the frame differs from it by more than ``threshold`` (max over
-colour channels of the absolute difference of lightly blurred images, 0..255). The mask is then cleaned:
+colour channels of the absolute difference, 0..255, optionally after a light blur). The mask is then cleaned:
 opening removes specks, closing joins fragments, holes are filled and components smaller than
 ``min_area`` (fraction of the image) are dropped.
 
@@ -29,8 +29,9 @@ class MaskConfig:
 
     threshold: float = 30.0
     """Colour difference (0..255, max over channels) above which a pixel differs from the background."""
-    blur: int = 3
-    """Gaussian blur kernel (odd pixels, 0 = none) applied before differencing, against noise."""
+    blur: int = 0
+    """Gaussian blur kernel (odd pixels, 0 = none) before differencing; helps against sensor/JPEG noise but
+    widens masks by about half the kernel at sharp edges (measured: IoU 0.93 -> 0.92 on the synthetic rig)."""
     open_px: int = 3
     """Opening kernel size in pixels (removes isolated specks)."""
     close_px: int = 7

@@ -26,10 +26,10 @@ import numpy as np
 
 from nvidia_ls import llff
 from nvidia_ls.raycast import Primitive, cast
+from nvidia_ls.writer import save_image
 from worldtree import __version__
 from worldtree.atomic import atomic_dir, atomic_write_json
 from worldtree.errors import UserError
-from worldtree.imageio import write_image
 
 FLOOR_Y = 1.0
 MOTIONS = ("constant", "slow_fast")
@@ -294,7 +294,7 @@ def _rays(K: np.ndarray, w2c: np.ndarray, width: int, height: int, ss: int):
     dc = dc / norm
     R = w2c[:3, :3]
     origin = -R.T @ w2c[:3, 3]
-    return origin, dc @ R, dc[..., 2]
+    return origin, (dc @ R).astype(np.float32), dc[..., 2].astype(np.float32)
 
 
 def _trace(prims, poses, origin, dirs, zfac):
@@ -394,14 +394,57 @@ def render_view(
     ).render(time)
 
 
+def gt_flow(
+    scene: SynthScene,
+    K0: np.ndarray,
+    w2c0: np.ndarray,
+    t0: float,
+    K1: np.ndarray,
+    w2c1: np.ndarray,
+    t1: float,
+    width: int,
+    height: int,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Ground-truth 2D motion of every pixel of view 0 (camera ``K0, w2c0`` at time ``t0``) into view 1.
+
+    Each pixel centre is lifted with its exact depth, moved with its object's rigid motion
+    ``T_k(t1) T_k(t0)^-1`` (static points stay), and projected into camera ``K1, w2c1``. Occlusion at view 1
+    is not tested: compare with ``render_view(...).depth`` of view 1 to find occluded pixels.
+
+    Returns:
+        flow ``[H, W, 2]`` float32 (pixels, x then y; NaN where nothing is hit or the point is behind view 1),
+        and the object id map of view 0 ``[H, W]``.
+    """
+    view = render_view(scene, K0, w2c0, width, height, t0)
+    u, v = np.meshgrid(np.arange(width, dtype=np.float64), np.arange(height, dtype=np.float64))
+    pix = np.stack([u, v, np.ones_like(u)], axis=-1)
+    cam = (pix @ np.linalg.inv(K0).T) * view.depth[..., None].astype(np.float64)
+    world = (cam - w2c0[:3, 3]) @ w2c0[:3, :3]  # R^T (x_cam - t)
+    for i in range(len(scene.objects)):
+        sel = view.object_id == i + 1
+        if sel.any():
+            M = scene.object_pose(i, t1) @ np.linalg.inv(scene.object_pose(i, t0))
+            world[sel] = world[sel] @ M[:3, :3].T + M[:3, 3]
+    cam1 = world @ w2c1[:3, :3].T + w2c1[:3, 3]
+    proj = cam1 @ np.asarray(K1, np.float64).T
+    with np.errstate(divide="ignore", invalid="ignore"):
+        uv1 = proj[..., :2] / proj[..., 2:3]
+    flow = (uv1 - pix[..., :2]).astype(np.float32)
+    flow[(view.object_id < 0) | ~(cam1[..., 2] > 1e-9)] = np.nan
+    return flow, view.object_id
+
+
+def _near_far(depth: np.ndarray) -> list[float]:
+    d = depth[np.isfinite(depth)]
+    return [0.9 * float(np.percentile(d, 1)), 1.1 * float(np.percentile(d, 99))]
+
+
 def gt_near_far(scene: SynthScene) -> np.ndarray:
     """``[N, 2]`` near/far per camera: 1st/99th depth percentile of the static set, widened by 10%."""
     out = []
     for K, w2c in zip(scene.Ks, scene.w2cs, strict=True):
         origin, dirs, zfac = _rays(K, w2c, scene.width, scene.height, 1)
-        depth, _, _ = _trace(scene.static, [None] * len(scene.static), origin, dirs, zfac)
-        d = depth[np.isfinite(depth)]
-        out.append([0.9 * np.percentile(d, 1), 1.1 * np.percentile(d, 99)])
+        out.append(_near_far(_trace(scene.static, [None] * len(scene.static), origin, dirs, zfac)[0]))
     return np.asarray(out)
 
 
@@ -437,11 +480,13 @@ def write_raw_scene(
     n, steps = cfg.cameras, cfg.steps
     with atomic_dir(out_dir, force=True) as tmp:
         gt = tmp / "gt"
+        bounds = []
         for ci in range(n):
             cam = ci + 1
             renderer = _CameraRenderer(
                 scene, scene.Ks[ci], scene.w2cs[ci], cfg.width, cfg.height, cfg.supersample
             )
+            bounds.append(_near_far(renderer.static[0][0]))
             writer = None
             if cfg.layout == "videos":
                 writer = cv2.VideoWriter(
@@ -455,12 +500,12 @@ def write_raw_scene(
             for t in range(steps):
                 view = renderer.render(float(t))
                 if cfg.layout == "multiview":
-                    write_image(tmp / "mv_images" / f"{t:05d}" / f"cam{cam:02d}.{cfg.image_ext}", view.rgb)
+                    save_image(tmp / "mv_images" / f"{t:05d}" / f"cam{cam:02d}.{cfg.image_ext}", view.rgb)
                 elif cfg.layout == "camera_folders":
-                    write_image(tmp / f"cam{cam:02d}" / f"{t:05d}.{cfg.image_ext}", view.rgb)
+                    save_image(tmp / f"cam{cam:02d}" / f"{t:05d}.{cfg.image_ext}", view.rgb)
                 else:
                     writer.write(cv2.cvtColor(view.rgb, cv2.COLOR_RGB2BGR))
-                write_image(gt / "masks" / f"{t:05d}" / f"cam{cam:02d}.png", view.dynamic_mask)
+                save_image(gt / "masks" / f"{t:05d}" / f"cam{cam:02d}.png", view.dynamic_mask)
                 if cfg.depth:
                     (gt / "depth" / f"{t:05d}").mkdir(parents=True, exist_ok=True)
                     np.save(gt / "depth" / f"{t:05d}" / f"cam{cam:02d}.npy", view.depth)
@@ -468,7 +513,7 @@ def write_raw_scene(
                 writer.release()
             if progress is not None:
                 progress(ci + 1, n)
-        bounds = gt_near_far(scene)
+        bounds = np.asarray(bounds)
         gt.mkdir(parents=True, exist_ok=True)
         np.save(
             gt / "poses_bounds.npy", llff.opencv_to_llff(scene.w2cs, scene.Ks, cfg.height, cfg.width, bounds)

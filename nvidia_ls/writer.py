@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
+import cv2
 import numpy as np
 
 SCHEMA = 1
@@ -89,3 +92,22 @@ def cameras_document(
         "far": float(bounds[:, 1].max()),
         "world_transform": world_transform,
     }
+
+
+def save_image(path: str | Path, image: np.ndarray) -> None:
+    """Write RGB uint8 ``[H, W, 3]`` or a bool/uint8 mask ``[H, W]`` (0/255) as PNG/JPG, without fsync.
+
+    Only for files inside a folder made by :func:`worldtree.atomic.atomic_dir`: the folder rename is what
+    makes the output atomic, and skipping a per-file fsync makes writing thousands of frames much faster.
+    """
+    path = Path(path)
+    arr = np.asarray(image)
+    if arr.dtype == bool:
+        arr = arr.astype(np.uint8) * 255
+    if arr.ndim == 3:
+        arr = cv2.cvtColor(arr, cv2.COLOR_RGB2BGR)
+    ok, buf = cv2.imencode(path.suffix, arr)
+    if not ok:
+        raise ValueError(f"cannot encode {path.suffix} image")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_bytes(buf.tobytes())

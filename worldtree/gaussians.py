@@ -7,6 +7,7 @@ Parameters are stored raw (unconstrained) and activated when read, as in 3D Gaus
     log_scales     [N, 3]  log per-axis standard deviation      (exp -> world units)
     opacity_logits [N]     opacity before the sigmoid           (sigmoid -> [0, 1])
     sh0            [N, 3]  degree-0 spherical-harmonic colour   (rgb = SH_C0 * sh0 + 0.5, clamped at 0)
+    shN            [N, K, 3] optional higher SH coefficients, K = (degree + 1)^2 - 1 (view-dependent colour)
 
 Every tensor in :attr:`GaussianSet.params` has the Gaussian index as its first dimension, so the density
 control in :mod:`worldtree.strategy` can grow and shrink all of them together; methods with more per-Gaussian
@@ -107,8 +108,37 @@ class GaussianSet(nn.Module):
 
     @property
     def colors(self) -> torch.Tensor:
-        """``[N, 3]`` RGB from the degree-0 SH coefficient, clamped at 0 (3DGS keeps values above 1)."""
+        """``[N, 3]`` view-independent RGB from the degree-0 SH coefficient, clamped at 0 (3DGS keeps values
+        above 1)."""
         return (SH_C0 * self.params["sh0"] + 0.5).clamp_min(0.0)
+
+    @property
+    def sh_degree(self) -> int:
+        """Highest SH degree stored (0 without ``shN``)."""
+        if "shN" not in self.params:
+            return 0
+        return round(math.sqrt(self.params["shN"].shape[1] + 1)) - 1
+
+    def view_colors(self, cam_center: torch.Tensor, degree: int | None = None) -> torch.Tensor:
+        """``[N, 3]`` RGB seen from ``cam_center [3]`` (world), using SH degrees up to ``degree`` (default:
+        all stored); ``max(0, sum_k c_k Y_k(d) + 0.5)`` with ``d`` the unit direction camera -> Gaussian."""
+        deg = self.sh_degree if degree is None else min(degree, self.sh_degree)
+        if deg == 0:
+            return self.colors
+        d = self.params["means"] - cam_center.to(self.params["means"])
+        d = d / d.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+        basis = sh_basis(d, deg)  # [N, (deg+1)^2]
+        coeffs = torch.cat([self.params["sh0"][:, None], self.params["shN"][:, : basis.shape[1] - 1]], dim=1)
+        return ((basis[..., None] * coeffs).sum(dim=1) + 0.5).clamp_min(0.0)
+
+    def add_sh(self, degree: int) -> None:
+        """Add zero ``shN`` coefficients up to ``degree`` (1..3) if the set has none."""
+        if degree < 1 or "shN" in self.params:
+            return
+        if degree > 3:
+            raise ValueError(f"SH degree {degree}: at most 3 is supported")
+        k = (degree + 1) ** 2 - 1
+        self.params["shN"] = nn.Parameter(torch.zeros(len(self), k, 3, device=self.device))
 
     # ------------------------------------------------------------------ construction
     @classmethod
@@ -242,11 +272,12 @@ class GaussianSet(nn.Module):
     def load_params(self, state: Mapping[str, torch.Tensor]) -> None:
         """Replace every parameter by ``state``'s (shapes may differ: density control changes N)."""
         for k, v in state.items():
-            self.params[k] = nn.Parameter(v.detach().clone().to(self.device), requires_grad=True)
+            grad = self.params[k].requires_grad if k in self.params else True
+            self.params[k] = nn.Parameter(v.detach().clone().to(self.device), requires_grad=grad)
 
     def write_ply(self, path: str | Path) -> None:
         """Export in the PLY layout read by common 3DGS viewers (binary little-endian, float32 fields
-        x y z nx ny nz f_dc_0..2 opacity scale_0..2 rot_0..3, raw values)."""
+        x y z nx ny nz f_dc_0..2 [f_rest_*] opacity scale_0..2 rot_0..3, raw values)."""
         p = {k: v.detach().cpu().float().numpy() for k, v in self.params.items()}
         n = len(self)
         cols = [
@@ -257,8 +288,13 @@ class GaussianSet(nn.Module):
             p["log_scales"],
             p["quats"],
         ]
-        names = ["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2", "opacity"]
-        names += ["scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]
+        names = ["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"]
+        if "shN" in p:
+            # Channel-major like the 3DGS files: all red coefficients, then green, then blue.
+            rest = p["shN"].transpose(0, 2, 1).reshape(n, -1)
+            cols.insert(3, rest)
+            names += [f"f_rest_{i}" for i in range(rest.shape[1])]
+        names += ["opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]
         data = np.ascontiguousarray(np.concatenate(cols, axis=1).astype("<f4"))
         header = "ply\nformat binary_little_endian 1.0\n" + f"element vertex {n}\n"
         header += "".join(f"property float {name}\n" for name in names) + "end_header\n"
@@ -303,3 +339,48 @@ def quat_to_rotmat(q: torch.Tensor) -> torch.Tensor:
         2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
     ]  # fmt: skip
     return torch.stack(rows, -1).reshape(*q.shape[:-1], 3, 3)
+
+
+# Real spherical-harmonic constants (the convention of the 3DGS PLY files).
+_SH_C1 = 0.4886025119029199
+_SH_C2 = (
+    1.0925484305920792,
+    -1.0925484305920792,
+    0.31539156525252005,
+    -1.0925484305920792,
+    0.5462742152960396,
+)
+_SH_C3 = (
+    -0.5900435899266435, 2.890611442640554, -0.4570457994644658, 0.3731763325901154,
+    -0.4570457994644658, 1.445305721320277, -0.5900435899266435,
+)  # fmt: skip
+
+
+def sh_basis(dirs: torch.Tensor, degree: int) -> torch.Tensor:
+    """Real SH basis ``[..., (degree + 1)^2]`` at unit directions ``dirs [..., 3]``, degree 0..3."""
+    x, y, z = dirs.unbind(-1)
+    out = [torch.full_like(x, SH_C0)]
+    if degree >= 1:
+        out += [-_SH_C1 * y, _SH_C1 * z, -_SH_C1 * x]
+    if degree >= 2:
+        xx, yy, zz = x * x, y * y, z * z
+        out += [
+            _SH_C2[0] * x * y,
+            _SH_C2[1] * y * z,
+            _SH_C2[2] * (2 * zz - xx - yy),
+            _SH_C2[3] * x * z,
+            _SH_C2[4] * (xx - yy),
+        ]
+    if degree >= 3:
+        out += [
+            _SH_C3[0] * y * (3 * xx - yy),
+            _SH_C3[1] * x * y * z,
+            _SH_C3[2] * y * (4 * zz - xx - yy),
+            _SH_C3[3] * z * (2 * zz - 3 * xx - 3 * yy),
+            _SH_C3[4] * x * (4 * zz - xx - yy),
+            _SH_C3[5] * z * (xx - yy),
+            _SH_C3[6] * x * (xx - 3 * yy),
+        ]
+    if degree > 3:
+        raise ValueError(f"SH degree {degree}: at most 3 is supported")
+    return torch.stack(out, dim=-1)

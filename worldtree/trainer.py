@@ -223,16 +223,23 @@ class Trainer:
         )
 
 
-def _tensorboard_writer(log_dir: str | Path | None):
-    if log_dir is None:
-        return None
+def check_tensorboard() -> None:
+    """Raise :class:`UserError` unless TensorBoard logging can work (the ``tensorboard`` package imports)."""
     try:
-        from torch.utils.tensorboard import SummaryWriter
+        from torch.utils.tensorboard import SummaryWriter  # noqa: F401
     except ImportError as e:
         raise UserError(
             "--tensorboard needs the tensorboard package; install it with "
             "`pip install 'worldtree-bench[tensorboard]'` or drop the option"
         ) from e
+
+
+def _tensorboard_writer(log_dir: str | Path | None):
+    if log_dir is None:
+        return None
+    check_tensorboard()
+    from torch.utils.tensorboard import SummaryWriter
+
     return SummaryWriter(log_dir=str(log_dir))
 
 
@@ -252,23 +259,16 @@ class _Progress:
 
         console = Console(stderr=True)
         if console.is_terminal:
-            from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
+            from rich.progress import BarColumn, Progress, TextColumn
 
             self.bar = Progress(
                 TextColumn("[bold]{task.description}"),
-                BarColumn(),
-                TextColumn("step {task.completed:.0f}/{task.total:.0f}"),
-                TextColumn("loss {task.fields[loss]}"),
-                TextColumn("{task.fields[rate]} it/s"),
-                TextColumn("ETA"),
-                TimeRemainingColumn(),
-                TextColumn("{task.fields[extra]}"),
+                BarColumn(bar_width=20),
+                TextColumn("{task.fields[text]}"),
                 console=console,
             )
             self.bar.start()
-            self.task_id = self.bar.add_task(
-                description, total=total, completed=start, loss="-", rate="-", extra=""
-            )
+            self.task_id = self.bar.add_task(description, total=total, completed=start, text="")
         elif start > 0:
             print(f"{description}: resuming after step {start}/{total}", file=sys.stderr)
 
@@ -277,21 +277,22 @@ class _Progress:
             return
         elapsed = time.perf_counter() - self.t0
         rate = (step - self.start) / elapsed if elapsed > 0 else 0.0
-        loss = f"{scalars['loss']:.4f}"
+        eta = _clock((self.total - step) / rate) if rate > 0 else "?"
         extra = " ".join(f"{k} {_fmt(v)}" for k, v in scalars.items() if k != "loss")
+        text = f"step {step}/{self.total}  loss {scalars['loss']:.4f}  {rate:.1f} it/s  ETA {eta}  {extra}"
         if self.bar is not None:
-            self.bar.update(self.task_id, completed=step, loss=loss, rate=f"{rate:.1f}", extra=extra)
+            self.bar.update(self.task_id, completed=step, text=text)
         elif step % self.log_every == 0 or step == self.total:
-            eta = (self.total - step) / rate if rate > 0 else float("nan")
-            print(
-                f"step {step}/{self.total}  loss {loss}  {rate:.1f} it/s  ETA {eta:.0f} s  {extra}",
-                file=sys.stderr,
-                flush=True,
-            )
+            print(text, file=sys.stderr, flush=True)
 
     def close(self) -> None:
         if self.bar is not None:
             self.bar.stop()
+
+
+def _clock(seconds: float) -> str:
+    s = int(round(seconds))
+    return f"{s // 3600}:{s // 60 % 60:02d}:{s % 60:02d}"
 
 
 def _fmt(v: float) -> str:

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import shlex
-import sys
 from pathlib import Path
 
 import typer
@@ -64,12 +63,30 @@ def register(app: typer.Typer) -> None:
             tensorboard=tensorboard,
             force=force,
             tag=tag,
-            command=shlex.join(["wtbench", *sys.argv[1:]]),
+            command=_command_line(
+                method, scene, runs_dir, preset, device, overrides, lpips_weights, tensorboard, tag
+            ),
         )
         result = execute(req)
         if not result.skipped:
             scores = "  ".join(f"{k} {v:.4f}" for k, v in result.mean.items())
             print(f"done: {result.folder.root}  {scores}")
+
+
+def _command_line(method, scene, runs_dir, preset, device, overrides, lpips_weights, tensorboard, tag) -> str:
+    """The command in canonical form (every resolved option), so that it can be pasted to repeat the run
+    however it was invoked (shell, script, or in-process)."""
+    parts = ["wtbench", "run", "--method", method, "--scene", str(scene), "-o", str(runs_dir)]
+    parts += ["--preset", preset, "--device", device]
+    for k, v in overrides.items():
+        parts += [f"--{k}", str(v)]
+    if lpips_weights is not None:
+        parts += ["--lpips-weights", str(lpips_weights)]
+    if tensorboard:
+        parts.append("--tensorboard")
+    if tag is not None:
+        parts += ["--tag", tag]
+    return shlex.join(parts)
 
 
 def _print_methods() -> None:

@@ -30,6 +30,8 @@ class DycheckProtocol(Protocol):
         "mask; LPIPS-alex v0.1 map of black-masked images averaged over the mask"
     )
 
+    min_side = 11
+
     def settings(self) -> dict[str, Any]:
         return {
             "quantisation": "uint8, then /255",

@@ -27,6 +27,7 @@ class WorldTreeProtocol(Protocol):
     )
     # scikit-image needs >= 7 samples for its 7-sample window: 3 pixels x 3 channels.
     min_mask_pixels = 3
+    min_side = 7
 
     def settings(self) -> dict[str, Any]:
         return {

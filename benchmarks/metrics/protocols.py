@@ -25,6 +25,7 @@ class Protocol(ABC):
     version: ClassVar[str]  #: bumped whenever a number it produces can change
     summary: ClassVar[str]  #: one line for --help and the record
     min_mask_pixels: ClassVar[int] = 1  #: masked SSIM needs at least this many masked pixels (else NaN)
+    min_side: ClassVar[int]  #: smallest image side the SSIM window fits in
 
     @abstractmethod
     def settings(self) -> dict[str, Any]:
@@ -72,6 +73,10 @@ class Protocol(ABC):
             "summary": self.summary,
             "settings": self.settings(),
         }
+
+
+#: Smallest image side AlexNet (and so LPIPS) accepts: conv 11/4 then two 3/2 max-pools.
+LPIPS_MIN_SIDE = 31
 
 
 def lpips_input(img: torch.Tensor) -> torch.Tensor:

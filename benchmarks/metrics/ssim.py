@@ -19,22 +19,52 @@ K2 = 0.03
 
 
 def _window_sums(x: torch.Tensor, k: int, dim: int) -> torch.Tensor:
-    """Sums over every complete length-``k`` window along ``dim`` ('valid': size shrinks by k - 1)."""
-    c = torch.cumsum(x, dim)
-    zero = torch.zeros_like(c.narrow(dim, 0, 1))
-    c = torch.cat([zero, c], dim)
+    """Sums over every complete length-``k`` window along ``dim`` ('valid': size shrinks by k - 1).
+
+    Shifted adds rather than a cumulative sum: partial sums never exceed the window total, so sums of
+    integer values below 2^24 stay exact in float32.
+    """
     n = x.shape[dim] - k + 1
-    return c.narrow(dim, k, n) - c.narrow(dim, 0, n)
+    acc = x.narrow(dim, 0, n).clone()
+    for i in range(1, k):
+        acc += x.narrow(dim, i, n)
+    return acc
 
 
-def _ssim_from_moments(ux, uy, uxx, uyy, uxy, cov_norm: float, data_range: float) -> torch.Tensor:
-    # scikit-image's formula, term for term.
-    vx = cov_norm * (uxx - ux * ux)
-    vy = cov_norm * (uyy - uy * uy)
-    vxy = cov_norm * (uxy - ux * uy)
-    c1 = (K1 * data_range) ** 2
-    c2 = (K2 * data_range) ** 2
-    return ((2 * ux * uy + c1) * (2 * vxy + c2)) / ((ux * ux + uy * uy + c1) * (vx + vy + c2))
+def _ssim_from_sums(sx, sy, sxx, syy, sxy, n: int, data_range: float) -> torch.Tensor:
+    """scikit-image's SSIM map (sample covariance) from window sums over ``n`` samples.
+
+    Written as ``(2 P + C1 n^2)(2 (n Sxy - P) + C2 n (n-1)) / ((Q + C1 n^2)(n (Sxx + Syy) - Q + C2 n (n-1)))``
+    with ``P = Sx Sy``, ``Q = Sx^2 + Sy^2``: scikit-image's ``(2 ux uy + C1)(2 vxy + C2) / ...`` with both
+    factors multiplied by ``n^2`` and ``n (n - 1)``. Integer sums (from uint8 images) keep every difference
+    exact in integers, so the float32 products that follow err by a few 1e-8 relative per position;
+    float sums are combined in float64.
+    """
+    c1 = (K1 * data_range) ** 2 * n * n
+    c2 = (K2 * data_range) ** 2 * n * (n - 1)
+    p = sx * sy
+    q = sx * sx + sy * sy
+    dxy = n * sxy - p
+    dsum = n * (sxx + syy) - q
+    if not sx.dtype.is_floating_point:
+        p, q, dxy, dsum = (t.to(torch.float32) for t in (p, q, dxy, dsum))
+    return ((2 * p + c1) * (2 * dxy + c2)) / ((q + c1) * (dsum + c2))
+
+
+def _moment_sums(x: torch.Tensor, y: torch.Tensor, n: int, sums) -> list[torch.Tensor]:
+    """Window sums (over ``n`` samples) of x, y, x^2, y^2, xy.
+
+    uint8 inputs: summed in float32, exact because every partial sum is an integer below 2^24, then
+    turned into int32 (int64 if ``n`` is large enough for ``2 n^2 255^2`` to overflow int32). Other
+    inputs: float64.
+    """
+    exact = x.dtype == torch.uint8 and y.dtype == torch.uint8 and n * 255**2 < 2**24
+    work = torch.float32 if exact else torch.float64
+    xf, yf = x.to(work), y.to(work)
+    s = sums(torch.stack([xf, yf, xf * xf, yf * yf, xf * yf]))
+    if exact:
+        s = s.round().to(torch.int32 if 2 * n * n * 255**2 < 2**31 else torch.int64)
+    return list(s)
 
 
 def ssim_box(x: torch.Tensor, y: torch.Tensor, data_range: float = 255.0, win: int = 7) -> torch.Tensor:
@@ -43,19 +73,13 @@ def ssim_box(x: torch.Tensor, y: torch.Tensor, data_range: float = 255.0, win: i
     Equals ``structural_similarity(a, b, channel_axis=-1, data_range=data_range)`` for each pair: box
     window ``win`` x ``win``, covariances scaled by ``N / (N - 1)`` with ``N = win^2``, the map averaged
     over the positions whose window lies inside the image (scikit-image's crop of ``(win - 1) // 2``), then
-    averaged over channels. Window sums use cumulative sums, exact for integer-valued inputs.
+    averaged over channels. uint8 inputs are summed exactly (integers); float inputs in float64.
     """
     if min(x.shape[-2:]) < win:
         raise ValueError(f"image {tuple(x.shape[-2:])} is smaller than the {win}x{win} SSIM window")
-    x = x.to(torch.float64)
-    y = y.to(torch.float64)
     n = win * win
-
-    def mean(z: torch.Tensor) -> torch.Tensor:
-        return _window_sums(_window_sums(z, win, -1), win, -2) / n
-
-    s = _ssim_from_moments(mean(x), mean(y), mean(x * x), mean(y * y), mean(x * y), n / (n - 1), data_range)
-    return s.mean(dim=(2, 3)).mean(1)
+    s = _moment_sums(x, y, n, lambda z: _window_sums(_window_sums(z, win, -1), win, -2))
+    return _ssim_from_sums(*s, n, data_range).mean(dim=(2, 3), dtype=torch.float64).mean(1)
 
 
 def ssim_box_1d(
@@ -68,21 +92,18 @@ def ssim_box_1d(
     ``length - win + 1`` complete windows of scikit-image's SSIM map (``N = win`` samples, sample
     covariance). A pair shorter than ``win`` gives NaN (scikit-image refuses it).
     """
-    v = values.to(torch.float64)
     lengths = lengths.to(torch.long).cpu()
     out = torch.full((len(lengths),), float("nan"), dtype=torch.float64)
     total = int(lengths.sum())
     if total < win:
         return out
-    x, y = v[0], v[1]
-    s = _ssim_from_moments(
-        *(_window_sums(z, win, 0) / win for z in (x, y, x * x, y * y, x * y)), win / (win - 1), data_range
-    ).cpu()
+    s = _moment_sums(values[0], values[1], win, lambda z: _window_sums(z, win, -1))
+    smap = _ssim_from_sums(*s, win, data_range).to(torch.float64).cpu()
     # Keep windows that start and end in the same pair; average them per pair.
     seg = torch.repeat_interleave(torch.arange(len(lengths)), lengths)
     start_seg, end_seg = seg[: total - win + 1], seg[win - 1 :]
     keep = start_seg == end_seg
-    sums = torch.zeros(len(lengths), dtype=torch.float64).index_add_(0, start_seg[keep], s[keep])
+    sums = torch.zeros(len(lengths), dtype=torch.float64).index_add_(0, start_seg[keep], smap[keep])
     counts = (lengths - win + 1).clamp_min(0)
     ok = counts > 0
     out[ok] = sums[ok] / counts[ok]
@@ -100,9 +121,9 @@ def gaussian_taps(size: int = 11, sigma: float = 1.5) -> list[float]:
 def _weighted_window_sums(z: torch.Tensor, taps: list[float], dim: int) -> torch.Tensor:
     """``sum_i taps[i] * z[j + i]`` along ``dim`` for every complete window ('valid' convolution)."""
     n = z.shape[dim] - len(taps) + 1
-    acc = taps[0] * z.narrow(dim, 0, n)
+    acc = z.narrow(dim, 0, n) * taps[0]
     for i in range(1, len(taps)):
-        acc = acc + taps[i] * z.narrow(dim, i, n)
+        acc.add_(z.narrow(dim, i, n), alpha=taps[i])
     return acc
 
 
@@ -152,10 +173,10 @@ def ssim_gaussian_masked(
     m = torch.ones_like(x[:, :1]) if mask is None else mask.to(torch.float64)[:, None]
     blur = _PartialBlur(m, gaussian_taps(size, sigma))
 
-    mu0, mu1 = blur(x), blur(y)
-    s00 = (blur(x * x) - mu0 * mu0).clamp_min(0.0)
-    s11 = (blur(y * y) - mu1 * mu1).clamp_min(0.0)
-    s01 = blur(x * y) - mu0 * mu1
+    mu0, mu1, e00, e11, e01 = blur(torch.stack([x, y, x * x, y * y, x * y]))
+    s00 = (e00 - mu0 * mu0).clamp_min(0.0)
+    s11 = (e11 - mu1 * mu1).clamp_min(0.0)
+    s01 = e01 - mu0 * mu1
     s01 = torch.sign(s01) * torch.minimum(torch.sqrt(s00 * s11), s01.abs())
     c1 = (K1 * data_range) ** 2
     c2 = (K2 * data_range) ** 2

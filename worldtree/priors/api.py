@@ -83,22 +83,23 @@ def _tick(progress: ProgressFn | None, stage: str, done: int, total: int) -> Non
 
 
 # ------------------------------------------------------------------------------------------------ stages
-def _flows(imgs, cfg: PriorsConfig, cache: PriorCache, fp: str, progress) -> tuple[dict, str, str]:
+def _flows(imgs, cfg: PriorsConfig, cache: PriorCache, fp: str, progress, init=None) -> tuple[dict, str, str]:
+    """Flow pairs; ``init`` = (depth [T,H,W], Ks, w2cs, depth_key) starts DIS from the rigid flow."""
     T, H, W = imgs.shape[:3]
     if cfg.flow_source != "classical":
         fields = imported.read_flows(cfg.flow_source, T, H, W)
         out = {}
         for (i, j), f in fields.items():
-            # The FB check needs the reverse field; without it every in-image correspondence is kept.
-            if (j, i) in fields:
-                valid = flow.fb_consistency(f, fields[(j, i)], cfg.flow.fb_alpha, cfg.flow.fb_beta)
-            else:
-                valid = flow.lands_inside(f)
-            out[(i, j)] = flow.FlowPair(f, valid)
-        key = hash_key("flow-imported", _path_digest(cfg.flow_source))
+            # The FB check needs the reverse field; without it only landing inside and colour are checked.
+            gi, gj = flow.to_gray_u8(imgs[i]), flow.to_gray_u8(imgs[j])
+            out[(i, j)] = flow.FlowPair(f, flow.pair_validity(gi, gj, f, fields.get((j, i)), cfg.flow))
+        key = hash_key("flow-imported", _path_digest(cfg.flow_source), fp, cfg.flow)
         return out, key, f"imported:{cfg.flow_source}"
-    key = hash_key("flow", fp, cfg.flow)
-    entry = cache.entry("flow", key, {"inputs": fp, "settings": config_dict(cfg.flow)})
+    if not cfg.flow.init_from_depth:
+        init = None
+    key = hash_key("flow", fp, cfg.flow, None if init is None else init[3])
+    meta = {"inputs": fp, "settings": config_dict(cfg.flow), "init_depth": None if init is None else init[3]}
+    entry = cache.entry("flow", key, meta)
     grays = [flow.to_gray_u8(im) for im in imgs]
     pairs = [(i, j) for i, j in flow.flow_pairs(T, cfg.flow.offsets) if i < j]
     out: dict[tuple[int, int], flow.FlowPair] = {}
@@ -106,14 +107,20 @@ def _flows(imgs, cfg: PriorsConfig, cache: PriorCache, fp: str, progress) -> tup
         item = f"{i:05d}_{j:05d}"
         got = entry.load(item) if entry is not None else None
         if got is None:
-            fw, bw = flow.compute_pair(grays[i], grays[j], cfg.flow)
+            init_ij = init_ji = None
+            if init is not None:
+                dep, Ks, w2cs, _ = init
+                init_ij = flow.rigid_flow(dep[i], Ks[i], w2cs[i], Ks[j], w2cs[j])
+                init_ji = flow.rigid_flow(dep[j], Ks[j], w2cs[j], Ks[i], w2cs[i])
+            fw, bw = flow.compute_pair(grays[i], grays[j], cfg.flow, init_ij, init_ji)
+            # Stored as float16 (half the cache; step < 0.02 px under 32 px, < 0.07 px under 128 px); the
+            # fresh result is rounded the same way so a cached rerun returns identical values.
+            got = {"fwd": fw.flow.astype(np.float16), "fwd_valid": fw.valid,
+                   "bwd": bw.flow.astype(np.float16), "bwd_valid": bw.valid}  # fmt: skip
             if entry is not None:
-                # float16 halves the cache; its step is below 0.02 px for flows under 32 px.
-                entry.save(item, fwd=fw.flow.astype(np.float16), fwd_valid=fw.valid,
-                           bwd=bw.flow.astype(np.float16), bwd_valid=bw.valid)  # fmt: skip
-        else:
-            fw = flow.FlowPair(got["fwd"].astype(np.float32), got["fwd_valid"])
-            bw = flow.FlowPair(got["bwd"].astype(np.float32), got["bwd_valid"])
+                entry.save(item, **got)
+        fw = flow.FlowPair(got["fwd"].astype(np.float32), got["fwd_valid"])
+        bw = flow.FlowPair(got["bwd"].astype(np.float32), got["bwd_valid"])
         out[(i, j)], out[(j, i)] = fw, bw
         _tick(progress, "flow", n + 1, len(pairs))
     if entry is not None:
@@ -144,38 +151,52 @@ def _classical_depth(imgs, Ks, w2cs, near, far, cfg: PriorsConfig, cache: PriorC
         _tick(progress, "depth", t + 1, T)
     if entry is not None:
         entry.mark_complete()
-    return depth, conf
+    return depth, conf, key
 
 
-def _depth(
-    imgs, Ks, w2cs, scene, cfg: PriorsConfig, cache, fp, progress
-) -> tuple[np.ndarray, np.ndarray, str]:
+def _depth(imgs, Ks, w2cs, scene, cfg: PriorsConfig, cache, fp, progress):
+    """(depth [T,H,W], conf [T,H,W], source, key of the metric depth or None when it is not metric)."""
     T, H, W = imgs.shape[:3]
     if cfg.depth_source == "classical":
-        d, c = _classical_depth(imgs, Ks, w2cs, scene.near, scene.far, cfg, cache, fp, progress)
-        return d, c, "classical"
+        d, c, key = _classical_depth(imgs, Ks, w2cs, scene.near, scene.far, cfg, cache, fp, progress)
+        return d, c, "classical", key
     raw = imported.read_depth(cfg.depth_source, T, H, W, cfg.depth_import)
     ref = ref_conf = None
+    key = None
     if cfg.depth_import.fit_scale_shift:
-        ref, ref_conf = _classical_depth(imgs, Ks, w2cs, scene.near, scene.far, cfg, cache, fp, progress)
+        ref, ref_conf, ref_key = _classical_depth(
+            imgs, Ks, w2cs, scene.near, scene.far, cfg, cache, fp, progress
+        )
+        key = hash_key("depth-imported", _path_digest(cfg.depth_source), cfg.depth_import, ref_key)
     d = imported.imported_to_depth(raw, cfg.depth_import, ref, ref_conf)
     fit = ", scale/shift fitted to classical" if cfg.depth_import.fit_scale_shift else ""
     # Network depth carries no confidence of its own: trust it everywhere.
-    return d, np.ones_like(d), f"imported:{cfg.depth_source} ({cfg.depth_import.kind}{fit})"
+    return d, np.ones_like(d), f"imported:{cfg.depth_source} ({cfg.depth_import.kind}{fit})", key
 
 
 def _tracks(
-    imgs, cfg: PriorsConfig, cache: PriorCache, fp: str, progress
+    imgs, cfg: PriorsConfig, cache: PriorCache, fp: str, progress, init=None
 ) -> tuple[np.ndarray, np.ndarray, str]:
+    """Classical tracks; ``init`` = (depth [T,H,W], Ks, w2cs, depth_key) seeds Lucas-Kanade's search."""
     T = imgs.shape[0]
-    key = hash_key("tracks", fp, cfg.tracks)
-    entry = cache.entry("tracks", key, {"inputs": fp, "settings": config_dict(cfg.tracks)})
+    if not cfg.tracks.init_from_depth:
+        init = None
+    key = hash_key("tracks", fp, cfg.tracks, None if init is None else init[3])
+    meta = {
+        "inputs": fp,
+        "settings": config_dict(cfg.tracks),
+        "init_depth": None if init is None else init[3],
+    }
+    entry = cache.entry("tracks", key, meta)
     got = entry.load("all") if entry is not None and entry.complete else None
     if got is not None:
         _tick(progress, "tracks", T, T)
         return got["xy"], got["visible"], "classical"
     # Tracking carries state from frame to frame, so it restarts from frame 0 when interrupted (it is fast).
-    tr = tracks.track_video(imgs, cfg.tracks, on_frame=lambda t: _tick(progress, "tracks", t + 1, T))
+    predict = tracks.depth_predictor(*init[:3]) if init is not None else None
+    tr = tracks.track_video(
+        imgs, cfg.tracks, on_frame=lambda t: _tick(progress, "tracks", t + 1, T), predict=predict
+    )
     if entry is not None:
         entry.save("all", xy=tr.xy, visible=tr.visible, seed_frame=tr.seed_frame)
         entry.mark_complete()
@@ -196,6 +217,8 @@ def _epi_errors(flows, Ks, w2cs, T, cfg: PriorsConfig, cache, flow_key: str, pro
         flows, T, Ks if use else None, w2cs if use else None, cfg.epi,
         on_frame=lambda t: _tick(progress, "epipolar", t + 1, T),
     )  # fmt: skip
+    # Stored as float16; the fresh result is rounded the same way so that a cached rerun is identical.
+    err = err.astype(np.float16).astype(np.float32)
     if entry is not None:
         entry.save("all", error=err.astype(np.float16))
         entry.mark_complete()
@@ -255,13 +278,15 @@ def compute_priors(
     mask = None
     if cfg.masks_source is not None:
         mask = imported.read_masks(cfg.masks_source, T, H, W)
-    flows, flow_key, flow_src = _flows(imgs, cfg, cache, fp, progress)
-    depth, depth_conf, depth_src = _depth(imgs, Ks, w2cs, scene, cfg, cache, fp, progress)
+    # Depth first: metric depth and the poses predict where static pixels go, which guides flow and tracks.
+    depth, depth_conf, depth_src, depth_key = _depth(imgs, Ks, w2cs, scene, cfg, cache, fp, progress)
+    init = (depth, Ks, w2cs, depth_key) if depth_key is not None else None
+    flows, flow_key, flow_src = _flows(imgs, cfg, cache, fp, progress, init)
     if imported_tracks is not None:
         xy, vis = imported_tracks
         tracks_src = f"imported:{cfg.tracks_source}"
     else:
-        xy, vis, tracks_src = _tracks(imgs, cfg, cache, fp, progress)
+        xy, vis, tracks_src = _tracks(imgs, cfg, cache, fp, progress, init)
     err = _epi_errors(flows, Ks, w2cs, T, cfg, cache, flow_key, progress)
     if mask is not None:
         mask_src = f"imported:{cfg.masks_source}"

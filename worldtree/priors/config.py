@@ -22,13 +22,19 @@ class FlowConfig:
     """Forward-backward check: valid where |f + b(x+f)| < fb_alpha (|f| + |b(x+f)|) + fb_beta."""
     fb_beta: float = 0.5
     """Constant slack of the forward-backward check, in pixels."""
+    photo_max: float | None = 0.25
+    """Valid flow also needs |I_i(x) - I_j(x+f)| below this, on grey images blurred (sigma 1 px) and normalised
+    to zero mean and unit std per frame; None disables the photometric check."""
+    init_from_depth: bool = True
+    """Start DIS from the rigid flow given by the metric depth prior and the poses (robust to wide camera
+    jumps; used only when metric depth is available: classical, or imported with a scale/shift fit)."""
 
 
 @dataclass(frozen=True)
 class TrackConfig:
     """Long-term point tracks: pyramidal Lucas-Kanade chained frame to frame with forward-backward checks."""
 
-    grid_step: int = 12
+    grid_step: int = 8
     """Spacing in pixels of the seed grid (also the spacing of re-seeding in uncovered areas)."""
     max_corners: int = 1500
     """Shi-Tomasi corners added to the grid at the first frame (fewer at re-seeding, see below)."""
@@ -52,6 +58,8 @@ class TrackConfig:
     """Also track re-seeded points backwards in time, so they cover frames before their seed frame."""
     min_length: int = 3
     """Tracks visible in fewer frames than this are dropped."""
+    init_from_depth: bool = True
+    """Start each Lucas-Kanade step from the static-scene prediction given by depth and poses (when available)."""
 
 
 @dataclass(frozen=True)
@@ -98,6 +106,10 @@ class EpiConfig:
     """Flow correspondences sampled per pair for the LMedS estimate."""
     min_baseline: float = 1e-6
     """Below this camera-centre distance (scene units) a pair is treated as a pure rotation."""
+    max_pair_median_px: float = 0.75
+    """A flow pair whose median error over consistent pixels exceeds this failed as a whole and is skipped."""
+    min_area_frac: float = 0.002
+    """Connected mask regions smaller than this fraction of the frame are dropped (flow noise, not motion)."""
     open_px: int = 1
     """Radius of the morphological opening that removes isolated mask pixels (0 = none)."""
 

@@ -12,7 +12,7 @@ pixels to the epipolar geometry:
     d = |x2^T F x1| / sqrt((F x1)_0^2 + (F x1)_1^2 + (F^T x2)_0^2 + (F^T x2)_1^2).
 
 The error map of frame i is the maximum of d over its flow pairs (pixels failing the flow consistency check
-contribute 0). When a pair's cameras share a centre (zero baseline, e.g. the same rig camera twice), a static
+contribute 0); a pair whose median error exceeds ``max_pair_median_px`` is skipped as failed. When a pair's cameras share a centre (zero baseline, e.g. the same rig camera twice), a static
 point must follow the rotation homography ``H = K_j R K_i^-1`` and the error is ``|x2 - H x1|``. A pixel is
 dynamic when its error exceeds ``EpiConfig.threshold_px``. Motion along the epipolar line is invisible to this
 test (a limit of every epipolar mask).
@@ -165,6 +165,11 @@ def epipolar_error_maps(
                 cfg,
                 rng,
             )
+            v = flows[(i, j)].valid
+            # A pair whose typical (median) error is large failed as a whole (flow lost across a wide
+            # camera jump): it says nothing about which pixels move, so it is skipped.
+            if v.any() and float(np.median(e[v])) > cfg.max_pair_median_px:
+                continue
             np.maximum(out[i], e, out=out[i])
         if on_frame is not None:
             on_frame(i)
@@ -172,7 +177,8 @@ def epipolar_error_maps(
 
 
 def epi_masks(errors: np.ndarray, cfg: EpiConfig) -> np.ndarray:
-    """Dynamic masks ``[T, H, W]`` bool: error above ``cfg.threshold_px``, isolated pixels removed.
+    """Dynamic masks ``[T, H, W]`` bool: error above ``cfg.threshold_px``, isolated pixels and regions smaller
+    than ``cfg.min_area_frac`` of the frame removed.
 
     An all-static scene simply gives all-false masks.
     """
@@ -180,6 +186,16 @@ def epi_masks(errors: np.ndarray, cfg: EpiConfig) -> np.ndarray:
     if cfg.open_px > 0:
         k = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * cfg.open_px + 1, 2 * cfg.open_px + 1))
         masks = np.stack([cv2.morphologyEx(m.astype(np.uint8), cv2.MORPH_OPEN, k) > 0 for m in masks])
+    if cfg.min_area_frac > 0 and masks.size:
+        min_area = cfg.min_area_frac * masks.shape[1] * masks.shape[2]
+        for t in range(len(masks)):
+            if not masks[t].any():
+                continue
+            _, lab, stats, _ = cv2.connectedComponentsWithStats(masks[t].astype(np.uint8), connectivity=8)
+            small = np.flatnonzero(stats[:, cv2.CC_STAT_AREA] < min_area)
+            small = small[small > 0]  # label 0 is the background
+            if small.size:
+                masks[t] &= ~np.isin(lab, small)
     return masks
 
 

@@ -218,11 +218,13 @@ def read_tracks(
         xy = arr[..., :2]
         vis = arr[..., 2] if arr.shape[-1] == 3 else np.ones(arr.shape[:2])
     if xy.ndim == 4 and xy.shape[0] == 1:
-        xy = xy[0]
-    if vis.ndim == 3 and vis.shape[0] == 1:
+        xy = xy[0]  # CoTracker's batch axis
+    if vis.ndim == 4 and vis.shape[0] == 1:
         vis = vis[0]
     if vis.ndim == 3 and vis.shape[-1] == 1:
         vis = vis[..., 0]
+    if vis.ndim == 3 and vis.shape[0] == 1:
+        vis = vis[0]
     if xy.ndim != 3 or xy.shape[-1] != 2:
         raise UserError(f"{path}: track positions have shape {xy.shape}; expected [T, N, 2]")
     if vis.shape != xy.shape[:2]:

@@ -20,7 +20,7 @@ import cv2
 import numpy as np
 
 from worldtree.priors.config import TrackConfig
-from worldtree.priors.flow import to_gray_u8
+from worldtree.priors.flow import rigid_transfer, to_gray_u8
 
 
 @dataclass
@@ -36,24 +36,45 @@ class Tracks:
         return int(self.visible.shape[1])
 
 
-def _lk_step(
-    g0: np.ndarray, g1: np.ndarray, p0: np.ndarray, cfg: TrackConfig
-) -> tuple[np.ndarray, np.ndarray]:
-    """Track p0 [N,2] from g0 to g1 with a forward-backward check: (p1 [N,2], ok [N])."""
-    if len(p0) == 0:
-        return p0.copy(), np.zeros(0, bool)
-    params = {
+Predictor = Callable[[int, int, np.ndarray], np.ndarray]
+"""``predict(src, dst, pts [N,2]) -> [N,2]``: a guess of where points of frame src are in frame dst."""
+
+
+def _lk(g0: np.ndarray, g1: np.ndarray, p0: np.ndarray, guess: np.ndarray | None, cfg: TrackConfig):
+    pts0 = p0.reshape(-1, 1, 2).astype(np.float32)
+    kw = {
         "winSize": (cfg.win_size, cfg.win_size),
         "maxLevel": cfg.levels,
         "criteria": (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01),
         "minEigThreshold": cfg.min_eigen,
     }
-    pts0 = p0.reshape(-1, 1, 2).astype(np.float32)
-    p1, st1, _ = cv2.calcOpticalFlowPyrLK(g0, g1, pts0, None, **params)
-    p0b, st2, _ = cv2.calcOpticalFlowPyrLK(g1, g0, p1, None, **params)
-    p1, p0b = p1.reshape(-1, 2), p0b.reshape(-1, 2)
+    if guess is None:
+        p1, st, _ = cv2.calcOpticalFlowPyrLK(g0, g1, pts0, None, **kw)
+    else:
+        start = np.ascontiguousarray(guess.reshape(-1, 1, 2), dtype=np.float32).copy()
+        p1, st, _ = cv2.calcOpticalFlowPyrLK(g0, g1, pts0, start, flags=cv2.OPTFLOW_USE_INITIAL_FLOW, **kw)
+    return p1.reshape(-1, 2), st.ravel() == 1
+
+
+def _lk_step(
+    g0: np.ndarray,
+    g1: np.ndarray,
+    p0: np.ndarray,
+    cfg: TrackConfig,
+    guess_fwd: Callable[[np.ndarray], np.ndarray] | None = None,
+    guess_bwd: Callable[[np.ndarray], np.ndarray] | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Track p0 [N,2] from g0 to g1 with a forward-backward check: (p1 [N,2], ok [N]).
+
+    ``guess_fwd(p0)`` / ``guess_bwd(p1)`` give optional starting positions for each direction (the backward
+    guess never sees p0, so the check stays honest).
+    """
+    if len(p0) == 0:
+        return p0.copy(), np.zeros(0, bool)
+    p1, st1 = _lk(g0, g1, p0, None if guess_fwd is None else guess_fwd(p0), cfg)
+    p0b, st2 = _lk(g1, g0, np.nan_to_num(p1, nan=-1e6), None if guess_bwd is None else guess_bwd(p1), cfg)
     H, W = g0.shape
-    ok = (st1.ravel() == 1) & (st2.ravel() == 1)
+    ok = st1 & st2
     ok &= np.all(np.isfinite(p1), 1) & np.all(np.isfinite(p0b), 1)
     ok &= np.linalg.norm(np.nan_to_num(p0b - p0, nan=1e9), axis=1) < cfg.fb_max_px
     ok &= (p1[:, 0] >= 0) & (p1[:, 0] <= W - 1) & (p1[:, 1] >= 0) & (p1[:, 1] <= H - 1)
@@ -76,8 +97,9 @@ def seed_points(
     gy, gx = np.mgrid[margin + s // 2 : H - margin : s, margin + s // 2 : W - margin : s]
     grid = np.stack([gx.ravel(), gy.ravel()], -1).astype(np.float32)
     grid = grid[free[grid[:, 1].astype(int), grid[:, 0].astype(int)] > 0] if len(grid) else grid
+    # Corners may sit between grid seeds (only exact duplicates are avoided); near live points they may not.
     for x, y in np.round(grid).astype(int):
-        cv2.circle(free, (int(x), int(y)), r, 0, -1)
+        cv2.circle(free, (int(x), int(y)), max(1, r // 3), 0, -1)
     free[:margin], free[H - margin :], free[:, :margin], free[:, W - margin :] = 0, 0, 0, 0
     pts = [grid]
     if corners > 0:
@@ -89,9 +111,21 @@ def seed_points(
 
 
 def track_video(
-    images: np.ndarray, cfg: TrackConfig, on_frame: Callable[[int], None] | None = None
+    images: np.ndarray,
+    cfg: TrackConfig,
+    on_frame: Callable[[int], None] | None = None,
+    predict: Predictor | None = None,
 ) -> Tracks:
-    """Track points through ``images`` [T,H,W,3] (float in [0,1] or uint8); see the module doc."""
+    """Track points through ``images`` [T,H,W,3] (float in [0,1] or uint8); see the module doc.
+
+    ``predict`` (e.g. the static-scene transfer by depth and poses) gives Lucas-Kanade its starting positions.
+    """
+
+    def guesses(a: int, b: int) -> tuple:
+        if predict is None:
+            return None, None
+        return (lambda p: predict(a, b, p)), (lambda p: predict(b, a, p))
+
     grays = [to_gray_u8(im) for im in images]
     T = len(grays)
     cap = cfg.max_tracks
@@ -114,7 +148,7 @@ def track_video(
     if on_frame is not None:
         on_frame(0)
     for t in range(T - 1):
-        p1, ok = _lk_step(grays[t], grays[t + 1], xy[t, active], cfg)
+        p1, ok = _lk_step(grays[t], grays[t + 1], xy[t, active], cfg, *guesses(t, t + 1))
         active = active[ok]
         xy[t + 1, active] = p1[ok]
         vis[t + 1, active] = True
@@ -128,7 +162,7 @@ def track_video(
         back = np.zeros(0, np.int64)
         for t in range(T - 1, 0, -1):
             back = np.concatenate([back, np.flatnonzero(seed[:n] == t)])
-            p0, ok = _lk_step(grays[t], grays[t - 1], xy[t, back], cfg)
+            p0, ok = _lk_step(grays[t], grays[t - 1], xy[t, back], cfg, *guesses(t, t - 1))
             back = back[ok]
             xy[t - 1, back] = p0[ok]
             vis[t - 1, back] = True
@@ -150,3 +184,12 @@ def hold_invisible(xy: np.ndarray, vis: np.ndarray) -> np.ndarray:
     use_last = (last >= 0) & ((nxt >= T) | (t_idx - last <= nxt - t_idx))
     src = np.where(use_last, last, np.where(nxt < T, nxt, 0))
     return np.take_along_axis(xy, np.repeat(src[..., None], 2, -1), 0)
+
+
+def depth_predictor(depth: np.ndarray, Ks: np.ndarray, w2cs: np.ndarray) -> Predictor:
+    """A :data:`Predictor` moving points as static surfaces: depth ``[T,H,W]``, ``Ks`` [T,3,3], ``w2cs`` [T,4,4]."""
+
+    def predict(src: int, dst: int, pts: np.ndarray) -> np.ndarray:
+        return rigid_transfer(depth[src], Ks[src], w2cs[src], Ks[dst], w2cs[dst], pts)
+
+    return predict

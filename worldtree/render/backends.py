@@ -23,10 +23,10 @@ def gsplat_available() -> bool:
     return True
 
 
-def resolve_backend(backend: str, device: torch.device) -> str:
+def resolve_backend(backend: str, device: torch.device, dtype: torch.dtype = torch.float32) -> str:
     """Map the requested backend name to the one that will run on ``device``: "cpu", "reference" or "gsplat".
 
-    "auto": CUDA -> gsplat when importable, else reference; CPU -> the compiled kernel, else (no compiler,
+    "auto": CUDA -> gsplat when importable and the dtype is float32, else reference; CPU -> the compiled kernel, else (no compiler,
     failed build) the reference with one logged warning. A forced backend that cannot run raises UserError.
     """
     from worldtree.render import cpu_kernel
@@ -35,7 +35,7 @@ def resolve_backend(backend: str, device: torch.device) -> str:
         raise UserError(f"rasterizer backend {backend!r} is unknown; use one of {', '.join(BACKENDS)}")
     if backend == "auto":
         if device.type == "cuda":
-            chosen = "gsplat" if gsplat_available() else "reference"
+            chosen = "gsplat" if dtype == torch.float32 and gsplat_available() else "reference"
         elif device.type == "cpu":
             chosen = "cpu" if cpu_kernel.available() else "reference"
         else:
@@ -52,9 +52,11 @@ def resolve_backend(backend: str, device: torch.device) -> str:
                     f"rasterizer backend 'cpu': the C++ kernel did not build ({cpu_kernel.build_error()}); "
                     "install a C++ compiler and ninja, or use backend='reference'"
                 )
-        elif backend == "gsplat" and (device.type != "cuda" or not gsplat_available()):
+        elif backend == "gsplat" and (
+            device.type != "cuda" or dtype != torch.float32 or not gsplat_available()
+        ):
             raise UserError(
-                "rasterizer backend 'gsplat' needs CUDA tensors and the gsplat package "
+                "rasterizer backend 'gsplat' needs float32 CUDA tensors and the gsplat package "
                 "(pip install 'worldtree-bench[cuda]'); use backend='auto'"
             )
     key = (device.type, chosen)

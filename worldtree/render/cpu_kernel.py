@@ -86,20 +86,39 @@ class _RasterizeCPU(torch.autograd.Function):
         rgb, alpha, depth, final_T, last, ids, tstart, tcount = mod.forward(
             means2d, conics, opacities, colors, depths, radii, background, width, height, threads
         )
-        ctx.save_for_backward(means2d, conics, opacities, colors, depths, background, ids, tstart, tcount, final_T, last)
+        ctx.save_for_backward(
+            means2d, conics, opacities, colors, depths, background, ids, tstart, tcount, final_T, last
+        )
         ctx.size = (width, height)
         return rgb, alpha, depth
 
     @staticmethod
     def backward(ctx, g_rgb, g_alpha, g_depth):
-        means2d, conics, opacities, colors, depths, background, ids, tstart, tcount, final_T, last = ctx.saved_tensors
+        means2d, conics, opacities, colors, depths, background, ids, tstart, tcount, final_T, last = (
+            ctx.saved_tensors
+        )
         width, height = ctx.size
         g_rgb = torch.zeros_like(final_T)[..., None].expand(-1, -1, 3) if g_rgb is None else g_rgb
         g_alpha = torch.zeros_like(final_T) if g_alpha is None else g_alpha
         g_depth = torch.zeros_like(final_T) if g_depth is None else g_depth
         g_m, g_con, g_o, g_col, g_z = _load().backward(
-            means2d, conics, opacities, colors, depths, background, ids, tstart, tcount, final_T, last,
-            g_rgb.contiguous(), g_alpha.contiguous(), g_depth.contiguous(), width, height, torch.get_num_threads(),
+            means2d,
+            conics,
+            opacities,
+            colors,
+            depths,
+            background,
+            ids,
+            tstart,
+            tcount,
+            final_T,
+            last,
+            g_rgb.contiguous(),
+            g_alpha.contiguous(),
+            g_depth.contiguous(),
+            width,
+            height,
+            torch.get_num_threads(),
         )
         g_bg = (g_rgb * final_T[..., None]).sum((0, 1))
         return g_m, g_con, g_o, g_col, g_z, g_bg, None, None, None

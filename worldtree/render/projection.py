@@ -132,24 +132,22 @@ def project_gaussians(
         ok &= (x1 > x0) & (y1 > y0)
         radii = torch.where(ok, r, torch.zeros_like(r)).to(torch.int32)
 
-    # Pass 2, differentiable: culled rows see benign stand-in values, so their (unused) gradients are 0.
-    m1, q1, s1 = _sanitise(means, quats, log_scales, ok)
+    # Pass 2, differentiable, on the survivors only: culled rows are never touched, so their gradients are
+    # exactly zero, and survivors have finite, positive-determinant covariances by construction.
+    idx = torch.nonzero(ok).squeeze(1)
     R = w2c[:3, :3]
-    p = m1 @ R.T + w2c[:3, 3]
-    p = torch.where(ok[:, None], p, _safe_point(p))
-    mu, cov, z = _project_cam(p, q1, s1, K, R, width, height, eps2d)
+    p = means[idx] @ R.T + w2c[:3, 3]
+    mu, cov, z = _project_cam(p, quats[idx], log_scales[idx], K, R, width, height, eps2d)
     a, b, c = cov.unbind(-1)
     det = a * c - b * b
-    det = torch.where(ok, det, torch.ones_like(det))
     conics = torch.stack([c / det, -b / det, a / det], -1)
-    zeros2 = torch.zeros(n, 2, dtype=means.dtype, device=means.device)
-    zeros3 = torch.zeros(n, 3, dtype=means.dtype, device=means.device)
-    return Projection(
-        means2d=torch.where(ok[:, None], mu, zeros2),
-        conics=torch.where(ok[:, None], conics, zeros3),
-        depths=torch.where(ok, z, torch.zeros_like(z)),
-        radii=radii,
-    )
+
+    def scatter(values: Tensor, cols: int) -> Tensor:
+        shape = (n, cols) if cols else (n,)
+        out = torch.zeros(shape, dtype=values.dtype, device=values.device)
+        return out.index_put((idx,), values)
+
+    return Projection(means2d=scatter(mu, 2), conics=scatter(conics, 3), depths=scatter(z, 0), radii=radii)
 
 
 def _safe_point(p: Tensor) -> Tensor:

@@ -46,33 +46,36 @@ def rasterize(
     K [3, 3], w2c [4, 4] OpenCV world-to-camera, width/height in pixels, background [3] (None = black).
     All tensors must share one device; K, w2c and background are cast to the dtype of ``means``.
     """
-    n = means.shape[0]
     _check_shapes(means, quats, log_scales, opacities, colors, K, w2c, width, height, background)
     dev, dt = means.device, means.dtype
     K = K.to(device=dev, dtype=dt)
     w2c = w2c.to(device=dev, dtype=dt)
     bg = torch.zeros(3, device=dev, dtype=dt) if background is None else background.to(device=dev, dtype=dt)
-    chosen = resolve_backend(backend, dev)
+    chosen = resolve_backend(backend, dev, dt)
 
     # Non-finite opacity or colour culls the Gaussian; the stand-in zeros keep its gradients zero and finite.
     keep = torch.isfinite(opacities) & torch.isfinite(colors).all(-1)
     opac = torch.where(keep, opacities, torch.zeros_like(opacities))
     cols = torch.where(keep[:, None], colors, torch.zeros_like(colors))
+    if chosen == "gsplat":
+        from worldtree.render.gsplat_backend import rasterize_gsplat
+
+        rgb, alpha, depth, means2d, radii = rasterize_gsplat(
+            means, quats, log_scales, opac, cols, K, w2c, width, height, bg, keep, near, eps2d
+        )
+        return RenderOutput(rgb, alpha, depth, means2d, radii, radii > 0, chosen)
+
     proj = project_gaussians(
         means, quats, log_scales, K, w2c, width, height, near=near, eps2d=eps2d, keep=keep
     )
     means2d = proj.means2d
     if means2d.requires_grad:
         means2d.retain_grad()
-
     if chosen == "cpu":
         from worldtree.render.cpu_kernel import rasterize_cpu as raster
-    elif chosen == "gsplat":
-        from worldtree.render.gsplat_backend import rasterize_gsplat as raster
     else:
         from worldtree.render.reference import rasterize_reference as raster
     rgb, alpha, depth = raster(means2d, proj.conics, opac, cols, proj.depths, proj.radii, bg, width, height)
-    assert n == proj.radii.shape[0]
     return RenderOutput(
         rgb=rgb,
         alpha=alpha,

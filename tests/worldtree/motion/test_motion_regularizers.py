@@ -1,0 +1,169 @@
+"""Motion regularisers: hand computations, zero on rigid/constant motion, positive otherwise, safe gradients."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+from scipy.spatial.transform import Rotation
+
+from worldtree.motion import quaternion as Q
+from worldtree.motion.regularizers import (
+    MotionLossConfig,
+    acceleration_losses,
+    arap_loss,
+    motion_losses,
+    velocity_losses,
+)
+from worldtree.motion.scaffold import ArapGraph
+
+f64 = torch.float64
+
+
+def full_graph(M: int) -> ArapGraph:
+    """Every node linked to every other node."""
+    idx = torch.stack([torch.tensor([j for j in range(M) if j != i]) for i in range(M)])
+    return ArapGraph(idx, torch.ones_like(idx, dtype=torch.bool))
+
+
+def pair_graph() -> ArapGraph:
+    return ArapGraph(torch.tensor([[1], [0]]), torch.ones(2, 1, dtype=torch.bool))
+
+
+def rigid_nodes(T: int, M: int, seed: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Nodes of one rigid body (random rotation + translation per frame), quats = the true rotations."""
+    g = torch.Generator().manual_seed(seed)
+    x0 = torch.randn(M, 3, generator=g, dtype=f64)
+    rots = Rotation.random(T, random_state=seed)
+    R = torch.tensor(rots.as_matrix())
+    trans = torch.randn(T, 3, generator=g, dtype=f64)
+    pos = torch.einsum("tij,mj->tmi", R, x0) + trans[:, None]
+    body = torch.tensor(rots.as_quat(scalar_first=True))  # [T, 4]
+    # Each node has its own rest orientation; the ARAP terms only see the motion, which is shared.
+    rest = Q.normalize(torch.randn(M, 4, generator=g, dtype=f64))
+    quat = Q.multiply(body[:, None], rest[None])
+    return pos, quat
+
+
+def test_hand_computed_positions_only():
+    # Node 0 still at the origin; node 1 at x = 1, 2, 2; identity rotations; shift 1 with weight 1.
+    pos = torch.zeros(3, 2, 3, dtype=f64)
+    pos[:, 1, 0] = torch.tensor([1.0, 2.0, 2.0])
+    quat = Q.identity((3, 2), dtype=f64)
+    coord, length = arap_loss(pos, quat, pair_graph(), shifts=(1,), shift_weights=(1.0,))
+    # local coords +-(1, 2, 2): per (t, i) differences [[1, 1], [0, 0]] -> mean 0.5, for both terms.
+    assert coord.item() == pytest.approx(0.5) and length.item() == pytest.approx(0.5)
+    v_xyz, v_rot = velocity_losses(pos, quat)
+    a_xyz, a_rot = acceleration_losses(pos, quat)
+    assert v_xyz.item() == pytest.approx(0.25)  # speeds [[0, 1], [0, 0]]
+    assert a_xyz.item() == pytest.approx(0.5)  # |2 - 4 + 1| = 1 for node 1, 0 for node 0
+    assert v_rot.item() < 1e-12 and a_rot.item() < 1e-12  # guarded sqrt: ~1e-154, not exactly 0
+    cfg = MotionLossConfig(arap_shifts=(1,), arap_shift_weights=(1.0,))
+    total = motion_losses(pos, quat, [pair_graph()], cfg).total
+    assert total.item() == pytest.approx(0.3 * 0.5 + 0.3 * 0.5 + 5 * 0.25 + 0.3 * 0.5)
+
+
+def test_hand_computed_rotations_only():
+    # Still positions; node 1 turns about z by 0, 0.1, 0.3 rad.
+    pos = torch.zeros(3, 2, 3, dtype=f64)
+    pos[:, 1, 0] = 1.0
+    ang = torch.tensor([0.0, 0.1, 0.3], dtype=f64)
+    quat = Q.identity((3, 2), dtype=f64)
+    quat[:, 1] = Q.from_axis_angle(torch.tensor([0.0, 0.0, 1.0], dtype=f64), ang)
+    v_xyz, v_rot = velocity_losses(pos, quat)
+    a_xyz, a_rot = acceleration_losses(pos, quat)
+    assert v_xyz.item() < 1e-12 and a_xyz.item() < 1e-12
+    assert v_rot.item() == pytest.approx((0.1 + 0.2) / 4)
+    assert a_rot.item() == pytest.approx(0.1 / 2)
+    coord, length = arap_loss(pos, quat, pair_graph(), shifts=(1,), shift_weights=(1.0,))
+    # Node 0 seen from node 1's frame turns on the unit circle: chord 2 sin(dtheta / 2).
+    assert coord.item() == pytest.approx((2 * math.sin(0.05) + 2 * math.sin(0.1)) / 4)
+    assert length.item() == pytest.approx(0.0, abs=1e-15)
+
+
+def test_zero_for_rigid_motion_and_positive_for_non_rigid():
+    T, M = 7, 6
+    pos, quat = rigid_nodes(T, M, seed=1)
+    g = full_graph(M)
+    coord, length = arap_loss(pos, quat, g)
+    assert coord.item() < 1e-12 and length.item() < 1e-12
+    assert velocity_losses(pos, quat)[0].item() > 0.1  # it does move
+    # Growing the body over time breaks rigidity: both terms become positive.
+    scale = torch.linspace(1.0, 1.5, T, dtype=f64)[:, None, None]
+    c2, l2 = arap_loss(pos * scale, quat, g)
+    assert c2.item() > 1e-3 and l2.item() > 1e-3
+    # Wrong node rotations break the coordinate term but not the length term.
+    c3, l3 = arap_loss(pos, Q.identity((T, M), dtype=f64), g)
+    assert c3.item() > 1e-3 and l3.item() < 1e-12
+
+
+def test_constant_velocity_has_no_acceleration():
+    T, M = 6, 3
+    t = torch.arange(T, dtype=f64)[:, None, None]
+    g = torch.Generator().manual_seed(4)
+    pos = torch.randn(1, M, 3, generator=g, dtype=f64) + t * torch.randn(1, M, 3, generator=g, dtype=f64)
+    axis = torch.randn(M, 3, generator=g, dtype=f64)
+    quat = Q.multiply(
+        Q.from_axis_angle(axis[None], 0.3 * t[..., 0]), Q.normalize(torch.randn(M, 4, generator=g, dtype=f64))
+    )
+    a_xyz, a_rot = acceleration_losses(pos, quat)
+    assert a_xyz.item() < 1e-12 and a_rot.item() < 1e-6
+    _, v_rot = velocity_losses(pos, quat)
+    assert v_rot.item() == pytest.approx(0.3)
+
+
+def test_sign_invariance():
+    pos, quat = rigid_nodes(6, 5, seed=2)
+    pos = pos + 0.1 * torch.randn_like(pos)
+    flip = torch.where(torch.rand(6, 5, 1) < 0.5, -1.0, 1.0).to(f64)
+    a = motion_losses(pos, quat, [full_graph(5)])
+    b = motion_losses(pos, quat * flip, [full_graph(5)])
+    for k, v in a.as_floats().items():
+        assert b.as_floats()[k] == pytest.approx(v, rel=1e-9, abs=1e-12)
+
+
+@pytest.mark.parametrize("T,M", [(1, 4), (2, 4), (5, 0), (3, 1), (6, 4)])
+def test_degenerate_inputs_finite_with_finite_gradients(T, M, device):
+    pos = torch.zeros(T, M, 3, dtype=torch.float32, device=device, requires_grad=True)  # static, coincident
+    quat = Q.identity((T, M), device=device).requires_grad_(True)
+    graph = (
+        full_graph(M)
+        if M > 1
+        else ArapGraph(torch.zeros(M, 0, dtype=torch.long), torch.zeros(M, 0, dtype=torch.bool))
+    )
+    graph = ArapGraph(graph.idx.to(device), graph.valid.to(device))
+    out = motion_losses(pos, quat, [graph, ArapGraph(graph.idx, graph.valid, 0.4, True)])
+    out.total.backward()
+    assert all(abs(v) < 1e-12 for v in out.as_floats().values())
+    for p in (pos, quat):
+        assert p.grad is not None and torch.isfinite(p.grad).all()
+
+
+def test_masked_edges_and_gradients_match_finite_differences():
+    T, M = 5, 4
+    g = torch.Generator().manual_seed(9)
+    pos = torch.randn(T, M, 3, generator=g, dtype=f64, requires_grad=True)
+    quat = torch.randn(T, M, 4, generator=g, dtype=f64, requires_grad=True)
+    graph = full_graph(M)
+    graph.valid[0] = False  # node 0 has no valid edge: contributes nothing
+    graph.valid[1, 0] = False
+    cfg = MotionLossConfig()
+
+    def f(p, q):
+        # (a detached-neighbour graph is left out: finite differences see through the detach by design)
+        return motion_losses(p, q, [graph], cfg).total
+
+    assert torch.autograd.gradcheck(f, (pos, quat), eps=1e-6, atol=1e-5)
+
+
+def test_detached_neighbours_get_no_gradient_through_the_edge():
+    pos = torch.zeros(4, 2, 3, dtype=f64)
+    pos[:, 1, 0] = torch.tensor([1.0, 1.5, 2.0, 3.0])
+    pos.requires_grad_(True)
+    quat = Q.identity((4, 2), dtype=f64)
+    g = ArapGraph(torch.tensor([[1], [0]]), torch.tensor([[True], [False]]), 1.0, True)
+    coord, _ = arap_loss(pos, quat, g, shifts=(1,), shift_weights=(1.0,))
+    coord.backward()
+    # Only node 0's row is active and its neighbour (node 1) is detached: node 1 gets no gradient.
+    assert torch.all(pos.grad[:, 1] == 0) and torch.any(pos.grad[:, 0] != 0)

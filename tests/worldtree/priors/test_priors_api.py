@@ -1,0 +1,200 @@
+"""compute_priors: one interface, recorded sources, cache reuse and invalidation, per-frame resume."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+
+import numpy as np
+import pytest
+
+from worldtree.errors import UserError
+from worldtree.priors import DepthConfig, EpiConfig, PriorsConfig, compute_priors
+from worldtree.priors import api as api_mod
+from worldtree.priors.imported import write_flo
+
+FAST = PriorsConfig(depth=DepthConfig(num_planes=32))
+
+
+@pytest.fixture(scope="module")
+def scene(planar):
+    sc, fr = planar
+    return sc.to_scene(fr)
+
+
+@pytest.fixture(scope="module")
+def static_scene(planar_static):
+    sc, fr = planar_static
+    return sc.to_scene(fr)
+
+
+@pytest.fixture(scope="module")
+def computed(scene, tmp_path_factory):
+    cache = tmp_path_factory.mktemp("cache")
+    return compute_priors(scene, FAST, cache), cache
+
+
+def test_shapes_sources_and_record(computed, scene, planar):
+    pri, cache = computed
+    T, H, W = scene.num_frames, scene.height, scene.width
+    assert pri.depth.shape == pri.depth_conf.shape == pri.epi_error.shape == pri.epi_mask.shape == (T, H, W)
+    N = pri.tracks.shape[1]
+    assert pri.tracks.shape == (T, N, 2) and pri.track_vis.shape == (T, N) and pri.track_dynamic.shape == (N,)
+    assert all(f.flow.shape == (H, W, 2) and f.valid.shape == (H, W) for f in pri.flow.values())
+    assert pri.sources["depth"] == "classical" and pri.sources["tracks"] == "classical"
+    rec = json.loads((cache / "priors.json").read_text())
+    assert rec["sources"] == pri.sources and rec["frames"] == T and rec["config"]["depth"]["num_planes"] == 32
+    tens = pri.torch()
+    assert tens["depth"].shape == (T, H, W) and tens["track_dynamic"].shape == (N,)
+    # The proof bounds of the issue on this small scene.
+    _, fr = planar
+    gt = fr["mask"]
+    assert (pri.epi_mask & gt).sum() / (pri.epi_mask | gt).sum() > 0.5
+    static = ~gt
+    assert np.mean(np.abs(pri.depth - fr["depth"])[static] / fr["depth"][static]) < 0.1
+    # Moving pixels carry no depth confidence; dynamic tracks exist and start on the moving square mostly.
+    assert not pri.depth_conf[pri.epi_mask].any()
+    assert pri.track_dynamic.sum() > 10
+
+
+def test_second_run_reuses_cache(computed, scene, monkeypatch):
+    pri, cache = computed
+
+    def boom(*a, **k):
+        raise AssertionError("recomputed although cached")
+
+    monkeypatch.setattr(api_mod.depth_mod, "frame_depth", boom)
+    monkeypatch.setattr(api_mod.flow, "compute_pair", boom)
+    monkeypatch.setattr(api_mod.tracks, "track_video", boom)
+    monkeypatch.setattr(api_mod.epipolar, "epipolar_error_maps", boom)
+    again = compute_priors(scene, FAST, cache)
+    np.testing.assert_array_equal(again.depth, pri.depth)
+    np.testing.assert_array_equal(again.tracks, pri.tracks)
+    np.testing.assert_array_equal(again.epi_error, pri.epi_error)
+    np.testing.assert_array_equal(again.flow[(0, 1)].flow, pri.flow[(0, 1)].flow)
+
+
+def test_changed_setting_recomputes_only_what_depends_on_it(computed, scene, monkeypatch):
+    pri, cache = computed
+    calls = {"depth": 0, "epi": 0}
+    real_epi = api_mod.epipolar.epipolar_error_maps
+
+    def no_depth(*a, **k):
+        calls["depth"] += 1
+        raise AssertionError("depth does not depend on the EPI settings")
+
+    def count_epi(*a, **k):
+        calls["epi"] += 1
+        return real_epi(*a, **k)
+
+    monkeypatch.setattr(api_mod.depth_mod, "frame_depth", no_depth)
+    monkeypatch.setattr(api_mod.epipolar, "epipolar_error_maps", count_epi)
+    cfg = dataclasses.replace(FAST, epi=EpiConfig(threshold_px=3.0))
+    compute_priors(scene, cfg, cache)
+    assert calls == {"depth": 0, "epi": 1}
+
+
+def test_changed_images_change_the_key(scene, tmp_path):
+    from worldtree.priors.cache import inputs_fingerprint
+
+    imgs = np.zeros((2, 4, 4, 3), np.uint8)
+    K = np.stack([np.eye(3)] * 2)
+    P = np.stack([np.eye(4)] * 2)
+    a = inputs_fingerprint(imgs, K, P)
+    imgs2 = imgs.copy()
+    imgs2[1, 2, 2, 0] = 1
+    P2 = P.copy()
+    P2[1, 0, 3] = 1e-6
+    assert len({a, inputs_fingerprint(imgs2, K, P), inputs_fingerprint(imgs, K, P2)}) == 3
+
+
+def test_interrupted_depth_resumes_per_frame(scene, tmp_path, monkeypatch):
+    real = api_mod.depth_mod.frame_depth
+    done = []
+
+    def flaky(t, *a, **k):
+        if len(done) == 3:
+            raise KeyboardInterrupt
+        done.append(t)
+        return real(t, *a, **k)
+
+    monkeypatch.setattr(api_mod.depth_mod, "frame_depth", flaky)
+    with pytest.raises(KeyboardInterrupt):
+        compute_priors(scene, FAST, tmp_path)
+    assert done == [0, 1, 2]
+    folder = next(tmp_path.glob("depth-*"))
+    assert sorted(p.name for p in folder.glob("*.npz")) == ["00000.npz", "00001.npz", "00002.npz"]
+    assert not (folder / "COMPLETE").exists()
+    assert not list(folder.glob("*.tmp"))
+    resumed = []
+
+    def count(t, *a, **k):
+        resumed.append(t)
+        return real(t, *a, **k)
+
+    monkeypatch.setattr(api_mod.depth_mod, "frame_depth", count)
+    compute_priors(scene, FAST, tmp_path)
+    assert resumed == list(range(3, scene.num_frames))
+    assert (folder / "COMPLETE").exists()
+
+
+def test_near_static_scene_has_no_dynamic_pixels_or_tracks(static_scene):
+    # The reference code crashes on an all-false EPI mask; here it is simply empty.
+    pri = compute_priors(static_scene, FAST, None)
+    assert not pri.epi_mask.any()
+    assert pri.track_dynamic.shape == (pri.tracks.shape[1],) and not pri.track_dynamic.any()
+    assert pri.tracks.shape[1] > 50
+
+
+def test_imported_sources(scene, computed, tmp_path):
+    pri, _ = computed
+    T, H, W = scene.num_frames, scene.height, scene.width
+    ddir = tmp_path / "depth"
+    ddir.mkdir()
+    for t in range(T):
+        np.save(ddir / f"{t:05d}.npy", 1.0 / pri.depth[t])  # disparity
+    mdir = tmp_path / "masks"
+    mdir.mkdir()
+    from worldtree.imageio import write_image
+
+    gt = np.zeros((T, H, W), bool)
+    gt[:, 10:30, 20:50] = True
+    for t in range(T):
+        write_image(mdir / f"{t:05d}.png", gt[t])
+    fdir = tmp_path / "flow"
+    fdir.mkdir()
+    for (i, j), fp in pri.flow.items():
+        if abs(i - j) == 1:
+            write_flo(fdir / f"{i:05d}_{j:05d}.flo", fp.flow)
+    np.savez(tmp_path / "tracks.npz", tracks=pri.tracks, visibility=pri.track_vis)
+    cfg = dataclasses.replace(
+        FAST,
+        depth_source=str(ddir),
+        depth_import=dataclasses.replace(FAST.depth_import, kind="disparity"),
+        tracks_source=str(tmp_path / "tracks.npz"),
+        flow_source=str(fdir),
+        masks_source=str(mdir),
+    )
+    got = compute_priors(scene, cfg, None)
+    assert got.sources["depth"].startswith("imported:") and "disparity" in got.sources["depth"]
+    assert got.sources["tracks"] == f"imported:{tmp_path / 'tracks.npz'}"
+    assert got.sources["flow"].startswith("imported:") and got.sources["masks"].startswith("imported:")
+    np.testing.assert_allclose(got.depth, pri.depth, rtol=1e-5)
+    np.testing.assert_array_equal(got.epi_mask, gt)
+    assert set(got.flow) == {k for k in pri.flow if abs(k[0] - k[1]) == 1}
+    np.testing.assert_array_equal(got.tracks, pri.tracks)
+    # Dynamic tracks now follow the imported masks.
+    inside = gt[0][np.clip(np.round(pri.tracks[..., 1]).astype(int), 0, H - 1),
+                   np.clip(np.round(pri.tracks[..., 0]).astype(int), 0, W - 1)]  # fmt: skip
+    assert ((inside & pri.track_vis).sum(0) >= 2).tolist() == got.track_dynamic.tolist()
+
+
+def test_bad_import_fails_before_computing(scene, tmp_path, monkeypatch):
+    def boom(*a, **k):
+        raise AssertionError("computed before validating the imports")
+
+    monkeypatch.setattr(api_mod.depth_mod, "frame_depth", boom)
+    with pytest.raises(UserError, match="no such file"):
+        compute_priors(scene, dataclasses.replace(FAST, tracks_source=str(tmp_path / "x.npz")), tmp_path)
+    with pytest.raises(UserError, match="not a folder"):
+        compute_priors(scene, dataclasses.replace(FAST, masks_source=str(tmp_path / "m")), tmp_path)

@@ -1,0 +1,79 @@
+"""Learning-rate schedules against closed forms; GroupedAdam groups, updates and state moves."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+from torch import nn
+
+from worldtree.optim import ConstantLR, CosineLR, ExponentialLR, GroupedAdam
+
+
+def test_exponential_schedule_closed_form():
+    s = ExponentialLR(init=1.6e-4, final=1.6e-6, max_steps=30_000)
+    assert math.isclose(s(0), 1.6e-4, rel_tol=1e-12)
+    assert math.isclose(s(30_000), 1.6e-6, rel_tol=1e-12)
+    assert math.isclose(s(60_000), 1.6e-6, rel_tol=1e-12)  # held after the end
+    assert math.isclose(s(15_000), math.sqrt(1.6e-4 * 1.6e-6), rel_tol=1e-12)  # geometric midpoint
+    for step in (1, 777, 12_345, 29_999):
+        expect = 1.6e-4 * (1.6e-6 / 1.6e-4) ** (step / 30_000)
+        assert math.isclose(s(step), expect, rel_tol=1e-12)
+    assert s(-1) == 0.0
+
+
+def test_exponential_schedule_with_delay():
+    s = ExponentialLR(init=1e-2, final=1e-4, max_steps=1000, delay_steps=100, delay_mult=0.01)
+    assert math.isclose(s(0), 1e-2 * 0.01, rel_tol=1e-12)
+    expect_50 = (0.01 + 0.99 * math.sin(0.25 * math.pi)) * 1e-2 * (1e-2) ** (50 / 1000)
+    assert math.isclose(s(50), expect_50, rel_tol=1e-12)
+    assert math.isclose(s(100), 1e-2 * (1e-2) ** 0.1, rel_tol=1e-12)
+    with pytest.raises(ValueError):
+        ExponentialLR(init=0.0, final=1e-4, max_steps=10)
+
+
+def test_constant_and_cosine():
+    assert ConstantLR(3e-3)(0) == ConstantLR(3e-3)(10**6) == 3e-3
+    c = CosineLR(init=1.0, final=0.1, max_steps=100)
+    assert math.isclose(c(0), 1.0) and math.isclose(c(100), 0.1) and math.isclose(c(50), 0.55)
+    assert math.isclose(c(25), 0.1 + 0.9 * 0.5 * (1 + math.cos(math.pi / 4)))
+
+
+def test_grouped_adam_sets_lrs_and_steps_like_adam():
+    a = nn.Parameter(torch.tensor([1.0, -2.0]))
+    b = nn.Parameter(torch.tensor([[0.5]]))
+    opt = GroupedAdam({"a": a, "b": b}, {"a": ExponentialLR(1e-1, 1e-3, 10), "b": ConstantLR(0.2)}, eps=1e-15)
+    assert opt.names == ["a", "b"]
+    opt.set_step(5)
+    assert math.isclose(opt.lr("a"), 1e-1 * (1e-2) ** 0.5, rel_tol=1e-12)
+    assert opt.lr("b") == 0.2
+    # First Adam step with bias correction moves each element by lr * g / |g| (eps negligible).
+    a.grad = torch.tensor([3.0, -0.5])
+    b.grad = torch.tensor([[-4.0]])
+    opt.step()
+    lr_a = 1e-1 * (1e-2) ** 0.5
+    torch.testing.assert_close(a.detach(), torch.tensor([1.0 - lr_a, -2.0 + lr_a]))
+    torch.testing.assert_close(b.detach(), torch.tensor([[0.7]]))
+    opt.zero_grad()
+    assert a.grad is None
+
+
+def test_replace_param_moves_state_rows():
+    p = nn.Parameter(torch.arange(4.0))
+    opt = GroupedAdam({"p": p}, {"p": ConstantLR(0.1)})
+    p.grad = torch.tensor([1.0, 2.0, 3.0, 4.0])
+    opt.step()
+    before = opt.optimizer.state[p]["exp_avg"].clone()
+    new = nn.Parameter(p.detach()[[3, 1]])
+    opt.replace_param("p", new, lambda _k, m: m[[3, 1]])
+    st = opt.optimizer.state[new]
+    torch.testing.assert_close(st["exp_avg"], before[[3, 1]])
+    assert p not in opt.optimizer.state
+    assert opt.group("p")["params"][0] is new
+    assert float(st["step"]) == 1.0
+
+
+def test_missing_schedule_is_an_error():
+    with pytest.raises(ValueError, match="no learning-rate schedule"):
+        GroupedAdam({"x": nn.Parameter(torch.zeros(1))}, {})

@@ -1,0 +1,188 @@
+"""Motion regularisers on scaffold node trajectories: ARAP (coordinates and lengths), velocity, acceleration.
+
+All terms take node positions ``pos`` [T, M, 3] (scene units) and rotations ``quat`` [T, M, 4] (w, x, y, z,
+any norm) and return scalars that are finite, with finite gradients, for static nodes, M = 0, T = 1 and T = 2
+(terms that need more frames than there are return 0). Formulas: ``docs/motion.md``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from worldtree.motion import quaternion as Q
+from worldtree.motion._safe import safe_norm
+from worldtree.motion.scaffold import ArapGraph
+
+__all__ = [
+    "MotionLossConfig",
+    "MotionLosses",
+    "acceleration_losses",
+    "arap_loss",
+    "local_coordinates",
+    "motion_losses",
+    "velocity_losses",
+]
+
+
+@dataclass
+class MotionLossConfig:
+    """Weights of the motion regularisers (REFERENCE section 2) and the ARAP temporal shifts."""
+
+    lambda_arap_coord: float = 0.3
+    """ARAP local-coordinate term."""
+    lambda_arap_len: float = 0.3
+    """ARAP edge-length term."""
+    lambda_vel_xyz: float = 5.0
+    """Node translation speed."""
+    lambda_vel_rot: float = 3.0
+    """Node angular speed."""
+    lambda_acc_xyz: float = 0.3
+    """Node translational acceleration."""
+    lambda_acc_rot: float = 0.3
+    """Node angular acceleration."""
+    arap_shifts: tuple[int, ...] = (2, 4)
+    """ARAP compares frame t with frame t + shift for each shift."""
+    arap_shift_weights: tuple[float, ...] = (0.5, 0.5)
+    """Weight of each shift (REFERENCE gives the shifts only; equal weights are this project's choice)."""
+
+    def __post_init__(self) -> None:
+        if len(self.arap_shifts) != len(self.arap_shift_weights):
+            raise ValueError("MotionLossConfig: arap_shifts and arap_shift_weights need equal lengths")
+        if any(int(s) < 1 for s in self.arap_shifts):
+            raise ValueError(f"MotionLossConfig: arap_shifts must be >= 1, got {self.arap_shifts}")
+        self.arap_shifts = tuple(int(s) for s in self.arap_shifts)
+        self.arap_shift_weights = tuple(float(w) for w in self.arap_shift_weights)
+
+
+@dataclass
+class MotionLosses:
+    """Unweighted terms (scalar tensors) and their weighted sum ``total``."""
+
+    arap_coord: torch.Tensor
+    arap_len: torch.Tensor
+    vel_xyz: torch.Tensor
+    vel_rot: torch.Tensor
+    acc_xyz: torch.Tensor
+    acc_rot: torch.Tensor
+    total: torch.Tensor
+
+    def as_floats(self) -> dict[str, float]:
+        """The terms as Python floats (for logs)."""
+        return {k: float(getattr(self, k).detach()) for k in self.__dataclass_fields__}
+
+
+def _mean(x: torch.Tensor) -> torch.Tensor:
+    """Mean that is 0 (still attached to the graph) for an empty tensor, instead of NaN."""
+    return x.sum() / max(x.numel(), 1)
+
+
+def local_coordinates(
+    pos: torch.Tensor, quat: torch.Tensor, nb_idx: torch.Tensor, detach_neighbours: bool = False
+) -> torch.Tensor:
+    """Each node's position in its neighbours' frames: ``R_j(t)^T (x_i(t) - x_j(t))`` -> [T, M, K, 3].
+
+    ``pos`` [T, M, 3], ``quat`` [T, M, 4], ``nb_idx`` [M, K] (node j = ``nb_idx[i, k]``). With
+    ``detach_neighbours`` the neighbours' positions and rotations carry no gradient.
+    """
+    nb_pos, nb_q = pos[:, nb_idx], quat[:, nb_idx]
+    if detach_neighbours:
+        nb_pos, nb_q = nb_pos.detach(), nb_q.detach()
+    return Q.rotate(Q.conjugate(Q.normalize(nb_q)), pos[:, :, None, :] - nb_pos)
+
+
+def arap_loss(
+    pos: torch.Tensor,
+    quat: torch.Tensor,
+    graph: ArapGraph,
+    shifts: tuple[int, ...] = (2, 4),
+    shift_weights: tuple[float, ...] = (0.5, 0.5),
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """As-rigid-as-possible terms over one graph: ``(coord, length)`` scalars (not yet multiplied by
+    ``graph.weight``).
+
+    With ``c_ik(t)`` the :func:`local_coordinates` and ``w_ik`` the edge validity normalised over each row,
+    for each shift s (skipped when T <= s):
+    ``coord += ws * mean_{t,i} sum_k w_ik |c_ik(t) - c_ik(t+s)|`` and
+    ``length += ws * mean_{t,i} sum_k w_ik | |c_ik(t)| - |c_ik(t+s)| |``. Both vanish for rigid motion of
+    each neighbourhood; the length term ignores the rotations. Norms use a guarded square root (gradient 0 at
+    0), so coincident or static nodes are harmless.
+    """
+    if len(shifts) != len(shift_weights):
+        raise ValueError("arap_loss: shifts and shift_weights need equal lengths")
+    zero = pos.sum() * 0.0 + quat.sum() * 0.0
+    coord, length = zero, zero
+    T = pos.shape[0]
+    if graph.idx.shape[1] == 0 or pos.shape[1] == 0:
+        return coord, length
+    c = local_coordinates(pos, quat, graph.idx, graph.detach_neighbours)
+    c_len = safe_norm(c)
+    w = graph.valid.to(pos.dtype)
+    w = w / w.sum(dim=-1, keepdim=True).clamp(min=1e-12)  # rows with no valid edge contribute 0
+    for s, ws in zip(shifts, shift_weights, strict=True):
+        if T <= s:
+            continue
+        d_coord = safe_norm(c[:-s] - c[s:])  # [T-s, M, K]
+        d_len = (c_len[:-s] - c_len[s:]).abs()
+        coord = coord + ws * _mean((d_coord * w).sum(-1))
+        length = length + ws * _mean((d_len * w).sum(-1))
+    return coord, length
+
+
+def velocity_losses(pos: torch.Tensor, quat: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(xyz, rot)``: mean node speed ``|x(t+1) - x(t)|`` (scene units per frame) and mean angular speed,
+    the geodesic angle between ``q(t)`` and ``q(t+1)`` (radians per frame). 0 when T < 2."""
+    if pos.shape[0] < 2:
+        z = pos.sum() * 0.0 + quat.sum() * 0.0
+        return z, z
+    v_xyz = safe_norm(pos[1:] - pos[:-1])
+    v_rot = Q.angle_between(quat[:-1], quat[1:])
+    return _mean(v_xyz), _mean(v_rot)
+
+
+def acceleration_losses(pos: torch.Tensor, quat: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(xyz, rot)``: mean ``|x(t+2) - 2 x(t+1) + x(t)|`` and mean angle between consecutive frame-to-frame
+    rotations ``d(t) = q(t+1) q(t)^-1`` and ``d(t+1)`` (0 for a constant angular velocity, whatever the axis
+    is). 0 when T < 3.
+
+    MoSca measures the rotational acceleration as the change of the angular *speed* only; the angle between
+    the increments also penalises changes of the rotation axis.
+    """
+    if pos.shape[0] < 3:
+        z = pos.sum() * 0.0 + quat.sum() * 0.0
+        return z, z
+    a_xyz = safe_norm(pos[2:] - 2.0 * pos[1:-1] + pos[:-2])
+    qn = Q.normalize(quat)
+    d = Q.multiply(qn[1:], Q.conjugate(qn[:-1]))  # [T-1, M, 4]
+    a_rot = Q.angle_between(d[:-1], d[1:])
+    return _mean(a_xyz), _mean(a_rot)
+
+
+def motion_losses(
+    pos: torch.Tensor, quat: torch.Tensor, graphs: list[ArapGraph], cfg: MotionLossConfig | None = None
+) -> MotionLosses:
+    """All motion regularisers of node trajectories ``pos`` [T, M, 3], ``quat`` [T, M, 4].
+
+    ``graphs`` are ARAP graphs (e.g. :meth:`worldtree.motion.scaffold.Scaffold.arap_graphs`: the base graph
+    and the multi-level ones); the ARAP terms are ``sum_g graph.weight * arap_loss(g)``. ``total`` is the
+    sum of every term times its ``cfg.lambda_*``.
+    """
+    cfg = cfg or MotionLossConfig()
+    zero = pos.sum() * 0.0 + quat.sum() * 0.0
+    coord, length = zero, zero
+    for g in graphs:
+        gc, gl = arap_loss(pos, quat, g, cfg.arap_shifts, cfg.arap_shift_weights)
+        coord = coord + g.weight * gc
+        length = length + g.weight * gl
+    v_xyz, v_rot = velocity_losses(pos, quat)
+    a_xyz, a_rot = acceleration_losses(pos, quat)
+    total = (
+        cfg.lambda_arap_coord * coord
+        + cfg.lambda_arap_len * length
+        + cfg.lambda_vel_xyz * v_xyz
+        + cfg.lambda_vel_rot * v_rot
+        + cfg.lambda_acc_xyz * a_xyz
+        + cfg.lambda_acc_rot * a_rot
+    )
+    return MotionLosses(coord, length, v_xyz, v_rot, a_xyz, a_rot, total)
