@@ -81,7 +81,7 @@ def run_one(backend: str, n: int, width: int, height: int, threads: int, iters: 
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--gaussians", type=int, default=20000, help="number of Gaussians")
-    ap.add_argument("--threads", type=int, default=2, help="torch / OpenMP threads")
+    ap.add_argument("--threads", default="2", help="torch / OpenMP thread counts, comma-separated (e.g. 1,2)")
     ap.add_argument("--iters", type=int, default=10, help="timed iterations per compiled run")
     ap.add_argument("--reference-iters", type=int, default=3, help="timed iterations per reference run")
     ap.add_argument("--sizes", default="320x180,480x270", help="comma-separated WIDTHxHEIGHT list")
@@ -92,38 +92,42 @@ def main(argv: list[str] | None = None) -> None:
         backend, size = a.one.split(":")
         w, h = (int(v) for v in size.split("x"))
         iters = a.iters if backend != "reference" else a.reference_iters
-        print(json.dumps(run_one(backend, a.gaussians, w, h, a.threads, iters)))
+        print(json.dumps(run_one(backend, a.gaussians, w, h, int(a.threads), iters)))
         return
 
-    print(f"rasterizer forward+backward, {a.gaussians} Gaussians, {a.threads} threads (median ms/iteration)")
+    print(f"rasterizer forward+backward, {a.gaussians} Gaussians (median ms/iteration)")
     print(f"load average before: {' '.join(f'{x:.2f}' for x in os.getloadavg())} on {os.cpu_count()} CPUs")
     header = (
-        f"{'size':>9} {'backend':>10} {'ran':>10} {'ms/iter':>9} {'min ms':>8} {'CPU ms':>8} {'visible':>8} "
+        f"{'threads':>7} {'size':>9} {'backend':>10} {'ran':>10} {'ms/iter':>9} {'min ms':>8} {'CPU ms':>8} {'visible':>8} "
         f"{'cover':>6} {'peak RSS MB':>12}"
     )
     print(header)
     print("-" * len(header))
-    for size in a.sizes.split(","):
-        res = {}
-        for backend in a.backends.split(","):
-            cmd = [sys.executable, "-m", "benchmarks.speed_render", "--one", f"{backend}:{size}"]
-            cmd += ["--gaussians", str(a.gaussians), "--threads", str(a.threads), "--iters", str(a.iters)]
-            cmd += ["--reference-iters", str(a.reference_iters)]
-            proc = subprocess.run(cmd, capture_output=True, text=True)
-            if proc.returncode != 0:
-                print(f"{size:>9} {backend:>10} failed: {proc.stderr.strip().splitlines()[-1:]}")
-                continue
-            r = json.loads(proc.stdout.strip().splitlines()[-1])
-            res[backend] = r
-            print(
-                f"{size:>9} {backend:>10} {r['backend']:>10} {r['ms_median']:9.1f} {r['ms_min']:8.1f} "
-                f"{r['cpu_ms_median']:8.1f} {r['visible']:8d} {r['coverage']:6.2f} {r['peak_rss_mb']:12.0f}"
-            )
-        if "cpu" in res and "reference" in res:
-            ratio = res["reference"]["ms_median"] / max(res["cpu"]["ms_median"], 1e-9)
-            print(
-                f"{size:>9} speed-up of the compiled kernel over the reference: {ratio:.1f}x (wall, median)"
-            )
+    for threads in a.threads.split(","):
+        for size in a.sizes.split(","):
+            res = {}
+            for backend in a.backends.split(","):
+                cmd = [sys.executable, "-m", "benchmarks.speed_render", "--one", f"{backend}:{size}"]
+                cmd += ["--gaussians", str(a.gaussians), "--threads", threads, "--iters", str(a.iters)]
+                cmd += ["--reference-iters", str(a.reference_iters)]
+                proc = subprocess.run(cmd, capture_output=True, text=True)
+                if proc.returncode != 0:
+                    print(
+                        f"{threads:>7} {size:>9} {backend:>10} failed: {proc.stderr.strip().splitlines()[-1:]}"
+                    )
+                    continue
+                r = json.loads(proc.stdout.strip().splitlines()[-1])
+                res[backend] = r
+                print(
+                    f"{threads:>7} {size:>9} {backend:>10} {r['backend']:>10} {r['ms_median']:9.1f} "
+                    f"{r['ms_min']:8.1f} {r['cpu_ms_median']:8.1f} {r['visible']:8d} {r['coverage']:6.2f} "
+                    f"{r['peak_rss_mb']:12.0f}"
+                )
+            if "cpu" in res and "reference" in res:
+                ratio = res["reference"]["ms_median"] / max(res["cpu"]["ms_median"], 1e-9)
+                print(
+                    f"{threads:>7} {size:>9} compiled kernel vs reference: {ratio:.1f}x faster (wall, median)"
+                )
     print(f"load average after: {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
     print("ms/iter and min ms are wall clock; CPU ms is process CPU time (all threads) per iteration.")
 

@@ -250,6 +250,12 @@ def build_scene(
         undist.append(tables[key])
     K_out = np.stack([u.K_out for u in undist])
 
+    masks, mask_info = None, {}
+    if cfg.masks is not None:  # imported masks are checked before any frame is processed
+        with timer("masks"):
+            masks = import_masks(cfg.masks, kept, cfg.test_camera, out_wh[0], out_wh[1])
+        mask_info = {"method": "imported", "source": str(Path(cfg.masks).resolve())}
+
     try:
         with atomic_dir(final, force=cfg.force) as tmp:
             # --- frames ------------------------------------------------------------------------------
@@ -285,10 +291,7 @@ def build_scene(
 
             # --- masks -------------------------------------------------------------------------------
             with timer("masks"):
-                if cfg.masks is not None:
-                    masks = import_masks(cfg.masks, kept, cfg.test_camera, out_wh[0], out_wh[1])
-                    mask_info = {"method": "imported", "source": str(Path(cfg.masks).resolve())}
-                else:
+                if masks is None:
                     masks = background_masks(test_frames, cfg.mask)
                     mask_info = {"method": "background-median", **asdict(cfg.mask)}
             with timer("write"):

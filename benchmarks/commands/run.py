@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import shlex
+import sys
+import warnings
 from pathlib import Path
 
 import typer
@@ -67,7 +69,9 @@ def register(app: typer.Typer) -> None:
                 method, scene, runs_dir, preset, device, overrides, lpips_weights, tensorboard, tag
             ),
         )
-        result = execute(req)
+        with warnings.catch_warnings():
+            warnings.showwarning = _one_line_warning
+            result = execute(req)
         if not result.skipped:
             scores = "  ".join(f"{k} {v:.4f}" for k, v in result.mean.items())
             print(f"done: {result.folder.root}  {scores}")
@@ -87,6 +91,11 @@ def _command_line(method, scene, runs_dir, preset, device, overrides, lpips_weig
     if tag is not None:
         parts += ["--tag", tag]
     return shlex.join(parts)
+
+
+def _one_line_warning(message, category, filename, lineno, file=None, line=None) -> None:
+    """Show warnings (e.g. missing LPIPS weights) as one ``warning:`` line, without source code."""
+    print(f"warning: {message}", file=sys.stderr)
 
 
 def _print_methods() -> None:

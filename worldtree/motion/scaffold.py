@@ -39,8 +39,10 @@ class ScaffoldConfig:
 
     unit_ratio: float = 0.01
     """One *unit* is ``unit_ratio * scene_scale`` scene units; every ``*_units`` field below is in units."""
-    node_spacing_units: float = 1.0
-    """Minimum curve distance between the nodes picked from the tracks (greedy, see :func:`greedy_select`)."""
+    node_spacing_units: float = 2.0
+    """Minimum curve distance between the nodes picked from the tracks (greedy, see :func:`greedy_select`).
+    Not given by the paper or REFERENCE: chosen well under the 5-unit edge threshold and the 7-unit radius, so
+    a node has ~15 valid neighbours on a surface and every Gaussian several nodes in reach."""
     max_nodes: int = 4096
     """Cap on the nodes picked at build time (the best-observed tracks are picked first)."""
     knn_k: int = 16
@@ -173,7 +175,7 @@ def curve_distance(
         # Exact differences rather than cdist's matrix-product form, which loses digits on close curves.
         d = torch.linalg.vector_norm(a[:, s:e, None, :] - b[:, None, :, :], dim=-1)  # [T', r, Q]
         co = a_obs[:, s:e, None] & b_obs[:, None, :]
-        d = torch.where(co, d, torch.full_like(d, -1.0))  # below every real distance
+        d = d.masked_fill(~co, -1.0)  # below every real distance
         top = torch.topk(d, k, dim=0, largest=True, sorted=True).values  # [k, r, Q] descending
         n = co.sum(dim=0)
         k_eff = torch.ceil(top_k * n.to(a.dtype) / Tp).long()

@@ -17,6 +17,7 @@ from worldtree.priors import depth as depth_mod
 from worldtree.priors import epipolar, flow, imported, tracks
 from worldtree.priors.cache import CacheEntry, PriorCache, hash_key, inputs_fingerprint
 from worldtree.priors.config import PriorsConfig, config_dict
+from worldtree.priors.flow import FlowPair
 
 ProgressFn = Callable[[str, int, int], None]
 """``progress(stage, done, total)``: called as work advances; stage is flow/depth/tracks/epipolar."""
@@ -42,7 +43,7 @@ class Priors:
 
     depth: np.ndarray
     depth_conf: np.ndarray
-    flow: dict[tuple[int, int], flow.FlowPair]
+    flow: dict[tuple[int, int], FlowPair]
     tracks: np.ndarray
     track_vis: np.ndarray
     track_dynamic: np.ndarray

@@ -131,10 +131,15 @@ class PriorsConfig:
     """All prior settings plus where each prior comes from ("classical" or a path to import)."""
 
     flow: FlowConfig = field(default_factory=FlowConfig)
+    """Settings of the classical flow (its FB and photometric checks also apply to imported flow)."""
     tracks: TrackConfig = field(default_factory=TrackConfig)
+    """Settings of the classical tracks."""
     depth: DepthConfig = field(default_factory=DepthConfig)
+    """Settings of the classical depth (also the reference of an imported depth's scale/shift fit)."""
     epi: EpiConfig = field(default_factory=EpiConfig)
+    """Epipolar errors, EPI masks and dynamic-track labels."""
     depth_import: DepthImportConfig = field(default_factory=DepthImportConfig)
+    """How imported depth is read and aligned (ignored for classical depth)."""
     depth_source: str = "classical"
     """"classical" or a folder / file of depth maps to import."""
     tracks_source: str = "classical"

@@ -92,16 +92,30 @@ def flow_pairs(num_frames: int, offsets: Iterable[int]) -> list[tuple[int, int]]
     return pairs
 
 
+def bilinear(img: np.ndarray, pts: np.ndarray) -> np.ndarray:
+    """Bilinear samples ``[N]`` of a single-channel ``img`` [H,W] at ``pts`` [N,2] (x, y), clamped to the border.
+
+    Plain numpy: cv2.remap limits its maps to 32767 entries per side.
+    """
+    H, W = img.shape
+    x = np.clip(pts[:, 0].astype(np.float64), 0, W - 1)
+    y = np.clip(pts[:, 1].astype(np.float64), 0, H - 1)
+    x0 = np.minimum(np.floor(x).astype(np.int64), W - 2) if W > 1 else np.zeros(len(x), np.int64)
+    y0 = np.minimum(np.floor(y).astype(np.int64), H - 2) if H > 1 else np.zeros(len(y), np.int64)
+    x1, y1 = np.minimum(x0 + 1, W - 1), np.minimum(y0 + 1, H - 1)
+    fx, fy = x - x0, y - y0
+    top = img[y0, x0] * (1 - fx) + img[y0, x1] * fx
+    bot = img[y1, x0] * (1 - fx) + img[y1, x1] * fx
+    return top * (1 - fy) + bot * fy
+
+
 def rigid_transfer(
     depth: np.ndarray, K_i: np.ndarray, w2c_i: np.ndarray, K_j: np.ndarray, w2c_j: np.ndarray, pts: np.ndarray
 ) -> np.ndarray:
     """Where static points at pixel positions ``pts`` [N,2] of frame i (depth map ``depth`` [H,W] of frame i,
     sampled bilinearly) project in frame j: ``[N, 2]``. Points that land behind camera j stay in place."""
     pts = np.asarray(pts, np.float32).reshape(-1, 2)
-    z = cv2.remap(
-        depth.astype(np.float32), pts[:, :1], pts[:, 1:], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE
-    )
-    z = z.reshape(-1).astype(np.float64)
+    z = bilinear(depth.astype(np.float64), pts)
     Ki, Kj = np.asarray(K_i, np.float64), np.asarray(K_j, np.float64)
     wi, wj = np.asarray(w2c_i, np.float64), np.asarray(w2c_j, np.float64)
     cam = np.stack([(pts[:, 0] - Ki[0, 2]) / Ki[0, 0] * z, (pts[:, 1] - Ki[1, 2]) / Ki[1, 1] * z, z], -1)

@@ -23,10 +23,13 @@ def _u8(img: np.ndarray) -> np.ndarray:
     return np.clip(np.round(img * 255.0), 0, 255).astype(np.uint8)
 
 
-def colorize_depth(depth: np.ndarray, conf: np.ndarray | None = None) -> np.ndarray:
-    """Depth ``[H,W]`` -> RGB uint8 ``[H,W,3]``: inverse depth between its 2nd and 98th percentiles, turbo."""
+def colorize_depth(
+    depth: np.ndarray, conf: np.ndarray | None = None, limits: tuple[float, float] | None = None
+) -> np.ndarray:
+    """Depth ``[H,W]`` -> RGB uint8 ``[H,W,3]``: inverse depth between ``limits`` (default its 2nd and 98th
+    percentiles) through the turbo colour map; pixels with zero confidence darkened."""
     inv = 1.0 / np.maximum(depth, 1e-9)
-    lo, hi = np.percentile(inv, [2, 98])
+    lo, hi = limits if limits is not None else np.percentile(inv, [2, 98])
     x = np.clip((inv - lo) / max(hi - lo, 1e-12), 0, 1)
     rgb = cv2.cvtColor(cv2.applyColorMap((x * 255).astype(np.uint8), cv2.COLORMAP_TURBO), cv2.COLOR_BGR2RGB)
     if conf is not None:
@@ -88,8 +91,11 @@ def write_previews(
     out_dir = Path(out_dir)
     written: list[Path] = []
     rows = []
-    for t in preview_frames(len(images), count):
-        d = colorize_depth(priors.depth[t], priors.depth_conf[t])
+    frames = preview_frames(len(images), count)
+    # One colour scale for all previewed frames, so the same depth has the same colour everywhere.
+    limits = tuple(np.percentile(1.0 / np.maximum(priors.depth[frames], 1e-9), [2, 98]))
+    for t in frames:
+        d = colorize_depth(priors.depth[t], priors.depth_conf[t], limits)
         tr = draw_tracks(images[t], priors.tracks, priors.track_vis, priors.track_dynamic, t)
         ep = overlay_mask(images[t], priors.epi_mask[t], priors.epi_error[t], scale=2 * threshold)
         for name, img in (("depth", d), ("tracks", tr), ("epi", ep)):

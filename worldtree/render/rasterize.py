@@ -106,5 +106,16 @@ def _check_shapes(means, quats, log_scales, opacities, colors, K, w2c, width, he
             raise ValueError(f"rasterize: {name} must have shape {list(shape)}, got {got}")
     if not means.is_floating_point():
         raise ValueError(f"rasterize: means must be floating point, got {means.dtype}")
+    for name, t in (
+        ("quats", quats),
+        ("log_scales", log_scales),
+        ("opacities", opacities),
+        ("colors", colors),
+    ):
+        if t.dtype != means.dtype or t.device != means.device:
+            raise ValueError(
+                f"rasterize: {name} is {t.dtype} on {t.device} but means is {means.dtype} on {means.device}; "
+                "pass every per-Gaussian tensor with one dtype and device"
+            )
     if int(width) < 1 or int(height) < 1:
         raise ValueError(f"rasterize: width and height must be >= 1, got {width}x{height}")

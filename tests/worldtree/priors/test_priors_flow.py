@@ -105,3 +105,19 @@ def test_presets_run(preset, planar_u8):
     flows = compute_flows(planar_u8[:2], FlowConfig(preset=preset, offsets=(1,)))
     assert set(flows) == {(0, 1), (1, 0)}
     assert np.isfinite(flows[(0, 1)].flow).all()
+
+
+def test_rigid_flow_on_a_large_frame_matches_projection():
+    # 300 x 200 = 60000 pixels (beyond cv2.remap's 32767-per-side map limit); checked at a few pixels by hand.
+    H, W = 200, 300
+    rng = np.random.default_rng(5)
+    depth = (2.0 + rng.random((H, W))).astype(np.float32)
+    K = np.array([[250.0, 0, 150], [0, 250, 100], [0, 0, 1]])
+    w1, w2 = np.eye(4), np.eye(4)
+    w2[:3, :3] = cv2.Rodrigues(np.array([0.02, -0.03, 0.01]))[0]
+    w2[:3, 3] = [-0.1, 0.02, 0.0]
+    f = rigid_flow(depth, K, w1, K, w2)
+    for y, x in ((0, 0), (57, 211), (199, 299)):
+        X = np.linalg.inv(K) @ np.array([x, y, 1.0]) * depth[y, x]
+        p = K @ (w2[:3, :3] @ X + w2[:3, 3])
+        np.testing.assert_allclose(f[y, x], p[:2] / p[2] - [x, y], atol=1e-3)

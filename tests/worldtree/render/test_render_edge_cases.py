@@ -160,6 +160,8 @@ def test_bad_arguments_raise():
         rasterize(width=w, height=h, backend="vulkan", **p)
     with pytest.raises(ValueError, match="quats"):
         rasterize(width=w, height=h, **{**p, "quats": p["quats"][:, :3]})
+    with pytest.raises(ValueError, match="one dtype"):
+        rasterize(width=w, height=h, **{**p, "colors": p["colors"].double()})
     with pytest.raises(ValueError, match="width"):
         rasterize(width=0, height=h, **p)
     if not torch.cuda.is_available():

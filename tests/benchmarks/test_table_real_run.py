@@ -1,0 +1,84 @@
+"""`wtbench table`/`plot` on a run folder made by the real `wtbench run` code (3 steps of the static baseline
+on the tiny analytic scene), so that the reader cannot drift from the writer."""
+
+from __future__ import annotations
+
+import dataclasses
+import importlib.util
+import json
+import math
+from pathlib import Path
+
+import pandas as pd
+import pytest
+import torch
+from typer.testing import CliRunner
+
+from baselines.registry import get_method
+from benchmarks.cli import app
+from benchmarks.results import HARNESS_METRICS, collect_runs
+from benchmarks.runs import RunRequest, execute
+
+
+def _scene_module():
+    path = Path(__file__).parents[1] / "baselines" / "scene_fixture.py"
+    spec = importlib.util.spec_from_file_location("wt_tests_scene_fixture_table", path)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+@pytest.fixture
+def real_run(tmp_path, monkeypatch):
+    spec = get_method("static")
+    quick = spec.presets["quick"]
+    monkeypatch.setitem(spec.presets, "quick", lambda: dataclasses.replace(quick(), init_num_points=200))
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        scene = _scene_module().write_tiny_scene(tmp_path / "scenes" / "tiny")
+        req = RunRequest(
+            scene=scene,
+            method="static",
+            runs_dir=tmp_path / "runs",
+            preset="quick",
+            device="cpu",
+            overrides={"steps": 3, "downscale": 1},
+            progress=False,
+        )
+        result = execute(req)
+    finally:
+        torch.set_num_threads(before)
+    return tmp_path / "runs", result.folder
+
+
+@pytest.mark.filterwarnings("ignore::UserWarning")
+def test_real_run_folder_reads_back(real_run, tmp_path):
+    runs, folder = real_run
+    got = collect_runs([runs])
+    assert got.notes == []
+    long = got.long.set_index("metric")
+    assert set(long["method"]) == {"static"} and set(long["scene"]) == {"tiny"}
+    assert set(long["configuration"]) == {"quick downscale=1 steps=3"}
+    assert set(long["protocol"]) == {json.loads(folder.metrics_json.read_text())["protocol"]["name"]}
+    mean = pd.read_csv(folder.metrics_csv).iloc[-1]
+    for m in HARNESS_METRICS:
+        want = float(mean[m])
+        assert (math.isnan(want) and math.isnan(long.loc[m, "value"])) or long.loc[
+            m, "value"
+        ] == pytest.approx(want)
+    timing = json.loads(folder.timing_json.read_text())
+    stages = dict(timing["stages_s"])
+    stages.pop("eval")
+    stages["train"] = timing["train"]["wall_s_all_sessions"]
+    assert long.loc["wall_time_s", "value"] == pytest.approx(sum(stages.values()))
+    assert long.loc["peak_memory_mb", "value"] == pytest.approx(timing["peak_rss_mib"])
+    assert long.loc["n_gaussians", "value"] == timing["num_gaussians"]
+
+    out = tmp_path / "table.csv"
+    res = CliRunner().invoke(app, ["table", str(runs), "-o", str(out)], catch_exceptions=False)
+    assert res.exit_code == 0, res.output
+    wide = pd.read_csv(out)
+    assert wide.loc[0, "psnr:mean(tiny)"] == pytest.approx(float(mean["psnr"]))
+    res = CliRunner().invoke(app, ["plot", str(runs), "-o", str(tmp_path / "p.png")], catch_exceptions=False)
+    assert res.exit_code == 0 and (tmp_path / "p.png").read_bytes()[:4] == b"\x89PNG"
