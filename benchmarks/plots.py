@@ -150,11 +150,11 @@ def draw(panels: Sequence[Panel], path: str | Path, dpi: int = 150) -> None:
     FigureCanvasAgg(fig)
     for k, p in enumerate(panels):
         ax = fig.add_subplot(1, len(panels), k + 1)
-        methods = sorted(p.points[p.points.columns[0]].astype(str).unique())
+        key = p.points[p.points.columns[0]].astype(str)  # the first group key, normally the method
+        methods = sorted(key.unique())
         colours = {m: f"C{i % 10}" for i, m in enumerate(methods)}
-        first_col = p.points.columns[0]
         for m in methods:
-            sel = p.points[p.points[first_col].astype(str) == m]
+            sel = p.points[key == m]
             ax.scatter(sel["x"], sel["y"], s=36, color=colours[m], label=m, zorder=3)
         front = p.points[p.points["pareto"]].sort_values(["x", "y"])
         # The boundary of the region the front dominates: along x at each front point's y until the next one.

@@ -209,11 +209,14 @@ def cost_metrics(timing: Mapping[str, Any] | None, model_info: Mapping[str, Any]
 
 
 def find_run_folders(runs_dir: Path) -> list[Path]:
-    """Folders ``runs_dir/<scene>/<method>/<tag>`` holding a ``config.json`` or ``DONE``, sorted."""
+    """Folders ``runs_dir/<scene>/<method>/<tag>`` holding a ``config.json`` or ``DONE``, sorted; hidden
+    names (temporary folders of atomic writes) are left out."""
     return sorted(
         p
         for p in runs_dir.glob("*/*/*")
-        if p.is_dir() and ((p / "config.json").is_file() or (p / "DONE").is_file())
+        if p.is_dir()
+        and not any(part.startswith(".") for part in p.relative_to(runs_dir).parts)
+        and ((p / "config.json").is_file() or (p / "DONE").is_file())
     )
 
 
@@ -225,6 +228,7 @@ def collect_runs(runs_dirs: Sequence[str | Path]) -> Collection:
     rows: list[dict[str, Any]] = []
     notes: list[str] = []
     unfinished: list[str] = []
+    seen: set[Path] = set()
     for d in runs_dirs:
         d = Path(d)
         if not d.is_dir():
@@ -232,6 +236,9 @@ def collect_runs(runs_dirs: Sequence[str | Path]) -> Collection:
                 f"RUNS_DIR {d}: no such folder; give the -o folder of `wtbench run`/`wtbench sweep`"
             )
         for run in find_run_folders(d):
+            if run.resolve() in seen:
+                continue  # the same run reached through two RUNS_DIR arguments counts once
+            seen.add(run.resolve())
             rel = str(run.relative_to(d))
             if not (run / "DONE").is_file():
                 unfinished.append(rel)

@@ -82,6 +82,9 @@ def test_long_table_values_and_skips(tmp_path):
     assert bv["peak_memory_mb"] == 1234.0  # CUDA peak preferred over the process RSS
     assert (bv["n_gaussians"], bv["n_scaffold_nodes"], bv["n_tree_nodes"]) == (2000, 64, 7)
     assert set(long["protocol"]) == {"worldtree"}
+    # The same root twice counts its runs once; a hidden (temporary) folder is not a run.
+    rf.write_run(tmp_path, "Jumping", "static", ".quick.tmp", FULL)
+    assert len(collect_runs([tmp_path, tmp_path / "."]).long) == 2 * len(METRICS)
 
 
 def test_configuration_label_rules():

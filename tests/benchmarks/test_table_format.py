@@ -149,3 +149,16 @@ def test_cli_empty_runs_dir_is_one_line_error(tmp_path):
     assert proc.returncode == 2
     lines = proc.stderr.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("error: RUNS_DIR") and "wtbench run" in lines[0]
+
+
+def test_explicit_empty_metric_and_infinity(tmp_path):
+    rf.write_run(tmp_path, "S", "m", "a", {"psnr": math.inf}, preset="a")
+    rf.write_run(tmp_path, "S", "m", "b", {"psnr": 30.0}, preset="b")
+    got = collect_runs([tmp_path])
+    assert any("infinite psnr" in n for n in got.notes)
+    table = build_wide(got.long, metrics=("psnr", "lpips"))
+    assert table.frame["lpips:mean(S)"].isna().all()  # asked for, so kept, and empty
+    _, rows = _markdown_rows(to_markdown(table))
+    assert rows["a"][2:] == ["**inf**", "**inf**", "-", "-"]
+    assert rows["b"][2:] == ["<u>30.00</u>", "<u>30.00</u>", "-", "-"]
+    assert "inf" in to_csv(table).splitlines()[1]
