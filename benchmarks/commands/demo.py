@@ -1,7 +1,7 @@
 """`wtbench demo`: the README's main job, end to end on a scene the project generates itself.
 
 generate a raw 12-camera capture -> `nvls build` -> `wtbench run` (each registered demo method, quick
-preset) -> a CSV table of the test-view scores. Every stage is skipped when its output already exists, so
+preset) -> `wtbench table` (CSV of the test-view scores). Every stage is skipped when its output already exists, so
 re-running the command resumes where it stopped.
 """
 
@@ -30,13 +30,12 @@ def register(app: typer.Typer) -> None:
 
 def run_demo(out: Path, methods: list[str], steps: int, size: str, device: str) -> Path:
     """Run the demo pipeline into ``out``; returns the path of the summary CSV."""
-    import pandas as pd
     from rich.console import Console
 
+    from benchmarks.commands.table import export_tables
     from benchmarks.runs import RunRequest, execute
     from nvidia_ls.build import BuildConfig, build_scene, parse_size
     from nvidia_ls.synth import SynthConfig, write_raw_scene
-    from worldtree.atomic import atomic_write_text
     from worldtree.errors import UserError
 
     console = Console()
@@ -60,10 +59,9 @@ def run_demo(out: Path, methods: list[str], steps: int, size: str, device: str) 
     else:
         console.print(f"[bold]2/3[/] scene exists: {scene}")
 
-    rows = []
     for m in methods:
-        console.print(f"[bold]3/3[/] wtbench run --method {m} --preset quick")
-        res = execute(
+        console.print(f"[bold]3/3[/] wtbench run --method {m} --scene {scene} --preset quick")
+        execute(
             RunRequest(
                 scene=scene,
                 method=m,
@@ -73,10 +71,7 @@ def run_demo(out: Path, methods: list[str], steps: int, size: str, device: str) 
                 command=f"wtbench demo --method {m}",
             )
         )
-        rows.append({"method": m, "scene": name, **res.mean})
-    table = pd.DataFrame(rows)
-    csv = out / "demo_table.csv"
-    atomic_write_text(csv, table.to_csv(index=False, float_format="%.4f"))
-    console.print(table.to_string(index=False, float_format=lambda v: f"{v:.4f}"))
-    console.print(f"table written to {csv}")
+    csv = out / "table.csv"
+    console.print(f"wtbench table {out / 'runs'} -o {csv}")
+    export_tables([out / "runs"], csv)
     return csv

@@ -39,25 +39,38 @@ def register(app: typer.Typer) -> None:
         ),
         mean_only: bool = typer.Option(False, "--mean-only", help="Only the mean column of each metric."),
     ) -> None:
-        import sys
+        export_tables(runs_dirs, out, group_by, metrics, fmt, protocol, mean_only)
 
-        from benchmarks.results import GROUP_KEYS, METRICS, collect_runs, select
-        from benchmarks.tables import build_wide, format_for, parse_list, render
-        from worldtree.atomic import atomic_write_text
 
-        keys = parse_list(group_by, "--group-by", GROUP_KEYS)
-        chosen = parse_list(metrics, "--metrics", METRICS)
-        fmt = format_for(out, fmt)
-        found = collect_runs(runs_dirs)
-        long = select(found.long, protocol)
-        table = build_wide(long, keys, chosen, mean_only=mean_only)
-        text = render(table, fmt)
-        if out is not None:
-            long_path = out.with_name(f"{out.stem}_long.csv")
-            atomic_write_text(long_path, long.to_csv(index=False, na_rep="", float_format="%.10g"))
-            atomic_write_text(out, text)
-        for note in found.notes + table.notes:
-            print(f"note: {note}", file=sys.stderr)
-        print(text if fmt != "csv" else render(table, "markdown"), end="")
-        if out is not None:
-            print(f"wrote {out} and {long_path}", file=sys.stderr)
+def export_tables(
+    runs_dirs: list[Path],
+    out: Path | None,
+    group_by: str = "method,configuration",
+    metrics: str | None = None,
+    fmt: str | None = None,
+    protocol: str | None = None,
+    mean_only: bool = False,
+) -> None:
+    """Collect finished runs, print the wide table, and write it to ``out`` with the long table beside it."""
+    import sys
+
+    from benchmarks.results import GROUP_KEYS, METRICS, collect_runs, select
+    from benchmarks.tables import build_wide, format_for, parse_list, render
+    from worldtree.atomic import atomic_write_text
+
+    keys = parse_list(group_by, "--group-by", GROUP_KEYS)
+    chosen = parse_list(metrics, "--metrics", METRICS)
+    fmt = format_for(out, fmt)
+    found = collect_runs(runs_dirs)
+    long = select(found.long, protocol)
+    table = build_wide(long, keys, chosen, mean_only=mean_only)
+    text = render(table, fmt)
+    if out is not None:
+        long_path = out.with_name(f"{out.stem}_long.csv")
+        atomic_write_text(long_path, long.to_csv(index=False, na_rep="", float_format="%.10g"))
+        atomic_write_text(out, text)
+    for note in found.notes + table.notes:
+        print(f"note: {note}", file=sys.stderr)
+    print(text if fmt != "csv" else render(table, "markdown"), end="")
+    if out is not None:
+        print(f"wrote {out} and {long_path}", file=sys.stderr)
