@@ -62,6 +62,9 @@ class ScaffoldConfig:
     drift) or ``"accumulated"`` (frame-to-frame Procrustes chained from the reference frame, as MoSca)."""
     rotation_ref_frame: int = -1
     """Reference frame of the rotations (identity there); -1 picks the frame where most nodes are observed."""
+    rotation_neighbours: int = 16
+    """Tracks in each node's Procrustes neighbourhood (the node's own track included): the nearest by curve
+    distance, counted only below ``edge_max_dist_units``."""
     unobserved_weight: float = 0.1
     """Procrustes weight of a neighbour whose position is filled (not observed) in either frame of a fit."""
     arap_level_units: tuple[float, ...] = (1.0, 4.0)
@@ -86,8 +89,10 @@ class ScaffoldConfig:
             raise ValueError(
                 "ScaffoldConfig: arap_level_units, arap_level_k and arap_level_weights need equal lengths"
             )
-        if self.knn_k < 1 or self.curve_top_k < 1 or self.curve_max_frames < 1:
-            raise ValueError("ScaffoldConfig: knn_k, curve_top_k and curve_max_frames must be >= 1")
+        if min(self.knn_k, self.curve_top_k, self.curve_max_frames, self.rotation_neighbours) < 1:
+            raise ValueError(
+                "ScaffoldConfig: knn_k, curve_top_k, curve_max_frames and rotation_neighbours must be >= 1"
+            )
         if not 0 < self.sigma_init_units < self.sigma_max_units:
             raise ValueError("ScaffoldConfig: need 0 < sigma_init_units < sigma_max_units")
         # Tuples survive a JSON round trip as lists; keep them tuples (frozen, hashable defaults).
@@ -508,10 +513,18 @@ class Scaffold(nn.Module):
             cache = self.attach(points, t_ref)
         idx = cache.idx
         p_ref = skinning.gather_frames(self.pos, t_ref, idx)
-        q_ref = skinning.gather_frames(self.quat, t_ref, idx)
-        p_t = skinning.gather_frames(self.pos, t_vec, idx)
-        q_t = skinning.gather_frames(self.quat, t_vec, idx)
-        q_rel, t_rel = se3.relative(q_t, p_t, q_ref, p_ref)
+        if torch.as_tensor(t).dim() == 0 and self.T * self.M < idx.numel():
+            # One target frame and many Gaussians: build the [T, M] table of every node's motion from each
+            # frame to t once, then gather, instead of composing a transform per (Gaussian, neighbour).
+            ti = int(t)
+            q_tab, t_tab = se3.relative(self.quat[ti][None], self.pos[ti][None], self.quat, self.pos)
+            q_rel = skinning.gather_frames(q_tab, t_ref, idx)
+            t_rel = skinning.gather_frames(t_tab, t_ref, idx)
+        else:
+            q_ref = skinning.gather_frames(self.quat, t_ref, idx)
+            p_t = skinning.gather_frames(self.pos, t_vec, idx)
+            q_t = skinning.gather_frames(self.quat, t_vec, idx)
+            q_rel, t_rel = se3.relative(q_t, p_t, q_ref, p_ref)
         return skinning.deform_neighbours(
             points,
             quats,
@@ -527,10 +540,18 @@ class Scaffold(nn.Module):
 
 @torch.no_grad()
 def _node_rotations(
-    pos: torch.Tensor, observed: torch.Tensor, knn_idx, edge_valid, cfg: ScaffoldConfig
+    pos: torch.Tensor,
+    observed: torch.Tensor,
+    knn_idx: torch.Tensor,
+    edge_valid: torch.Tensor,
+    cfg: ScaffoldConfig,
 ) -> torch.Tensor:
-    """[T, M, 4] node rotations from weighted Procrustes of each node's graph neighbourhood (itself included)."""
-    T, M = observed.shape
+    """[T, M, 4] node rotations by weighted Procrustes of neighbourhoods.
+
+    ``pos`` [T, P, 3] / ``observed`` [T, P]: the points the neighbourhoods index (the tracks); ``knn_idx``,
+    ``edge_valid`` [M, K]: node m's neighbourhood (itself included) and which members count.
+    """
+    T, M = observed.shape[0], knn_idx.shape[0]
     if M == 0:
         return torch.zeros((T, 0, 4), dtype=pos.dtype, device=pos.device)
     t_ref = cfg.rotation_ref_frame
@@ -578,7 +599,8 @@ def build_scaffold(
     Steps: nodes = :func:`greedy_select` of the tracks in the curve metric (:func:`curve_distance` on observed
     frames) at ``node_spacing_units``, best-observed tracks first, at most ``max_nodes``; node trajectories =
     those tracks'; KNN graph by curve distance (:meth:`Scaffold.update_topology`); rotations by weighted
-    Procrustes of each node's neighbourhood (``rotation_mode``); radii ``sigma_init_units``. No dynamic track
+    Procrustes of each node's ``rotation_neighbours`` nearest tracks in the curve metric (within
+    ``edge_max_dist_units``; ``rotation_mode``); radii ``sigma_init_units``. No dynamic track
     gives an empty scaffold (M = 0).
     """
     cfg = cfg or ScaffoldConfig()
@@ -599,21 +621,30 @@ def build_scaffold(
     frames = subsample_frames(T, cfg.curve_max_frames, traj.device)
     f_traj, f_obs = c_traj[frames], c_obs[frames]
 
+    n_cand = int(cand.numel())
+    n_rot = min(cfg.rotation_neighbours, n_cand)
+    nearest: dict[int, tuple[torch.Tensor, torch.Tensor]] = {}  # node -> its n_rot nearest tracks
+
     def dist_to(i: int) -> torch.Tensor:
-        return curve_distance(
+        row = curve_distance(
             f_traj[:, i : i + 1], f_traj, f_obs[:, i : i + 1], f_obs, cfg.curve_top_k, len(frames)
         )[0]
+        d, j = torch.topk(row, n_rot, largest=False, sorted=True)
+        nearest[i] = (j, d)
+        return row
 
-    sel = greedy_select(
-        int(cand.numel()), dist_to, cfg.node_spacing_units * unit, c_obs.sum(dim=0), cfg.max_nodes
-    )
-    sel = sel.to(traj.device)
-    pos, obs = c_traj[:, sel], c_obs[:, sel]
+    sel = greedy_select(n_cand, dist_to, cfg.node_spacing_units * unit, c_obs.sum(dim=0), cfg.max_nodes)
+    pos, obs = c_traj[:, sel.to(traj.device)], c_obs[:, sel.to(traj.device)]
     M = pos.shape[1]
     sigma_logit = _sigma_logit(cfg.sigma_init_units, cfg.sigma_max_units, M, traj.dtype, traj.device)
     quat = Q.identity((T, M), dtype=traj.dtype, device=traj.device)
     scf = Scaffold(pos, quat, sigma_logit, obs, unit, cfg)
-    scf.quat.data = _node_rotations(scf.pos.detach(), scf.observed, scf.knn_idx, scf.edge_valid, cfg)
+    # Rotations from each node's nearest *tracks* (denser than the nodes, so neighbourhoods are rarely
+    # collinear), within the edge threshold.
+    nb_idx = torch.stack([nearest[int(i)][0] for i in sel]).to(traj.device)
+    nb_d = torch.stack([nearest[int(i)][1] for i in sel]).to(traj.device)
+    nb_valid = nb_d < cfg.edge_max_dist_units * unit
+    scf.quat.data = _node_rotations(c_traj, c_obs, nb_idx, nb_valid, cfg)
     return scf
 
 

@@ -81,7 +81,13 @@ def test_rigid_motion_rotations_and_deformation(device, mode):
     assert math.degrees(float(Q.angle_between(q_t, q_expect).detach().max())) < 1e-3
     # A scalar target frame and a precomputed cache give the same answer.
     cache = scf.attach(pts, t_ref)
-    p5, _ = scf.deform(pts, rot, t_ref, 5, cache)
+    p5, q5 = scf.deform(pts, rot, t_ref, 5, cache)
+    # Deforming to the reference frame itself is the identity.
+    p_same, q_same = scf.deform(pts, rot, t_ref, t_ref, cache)
+    assert torch.allclose(p_same, pts, atol=1e-12) and torch.allclose(q_same, rot, atol=1e-12)
+    # The scalar-target path (per-node table) and the per-Gaussian path agree.
+    p5b, q5b = scf.deform(pts, rot, t_ref, torch.full((N,), 5, device=device), cache)
+    assert torch.allclose(p5, p5b, atol=1e-12) and torch.allclose(q5, q5b, atol=1e-12)
     assert float((p5 - traj[5]).detach().norm(dim=-1).max()) < 1e-6
 
 
@@ -104,6 +110,11 @@ def test_curve_distance_matches_brute_force_and_closed_forms():
     ref = brute_curve_distance(a.numpy(), b.numpy(), oa.numpy(), ob.numpy(), 3)
     np.testing.assert_allclose(D.numpy(), ref, atol=1e-12)
     assert np.isinf(ref[0]).all()
+    assert torch.equal(curve_distance(a, b, oa, ob, top_k=3, max_chunk=10), D)  # one row per block
+    # More frames than max_frames: the brute force on the same evenly spaced frames.
+    fr = subsample_frames(T, 4)
+    ref4 = brute_curve_distance(a[fr].numpy(), b[fr].numpy(), oa[fr].numpy(), ob[fr].numpy(), 3)
+    np.testing.assert_allclose(curve_distance(a, b, oa, ob, top_k=3, max_frames=4).numpy(), ref4, atol=1e-12)
     # Two parallel curves: the distance is the offset; two outlier frames are ignored with k = 3.
     base = torch.randn(T, 1, 3, generator=g, dtype=f64)
     other = base + torch.tensor([0.3, 0.0, 0.4], dtype=f64)
@@ -219,7 +230,7 @@ def test_parameters_state_roundtrip_and_sigma():
     assert names == {"pos", "quat", "sigma_logit"}
     assert torch.allclose(scf.sigma, torch.full((scf.M,), 0.07, dtype=f64))
     assert float(scf.sigma_max) == pytest.approx(0.2)
-    back = Scaffold.from_state(scf.to_state())
+    back = Scaffold.from_state(scf.to_state(), device="cpu")
     for k, v in scf.state_dict().items():
         assert torch.equal(back.state_dict()[k], v)
     assert back.cfg == scf.cfg and back.unit == scf.unit
@@ -324,3 +335,54 @@ def test_attach_picks_the_nearest_node_at_the_reference_frame():
         assert d[cache.attach[i]] == d.min()
         assert torch.equal(cache.idx[i], scf.knn_idx[cache.attach[i]])
         assert torch.equal(cache.valid[i], scf.edge_valid[cache.attach[i]])
+
+
+def test_lift_fill_build_pipeline_on_a_moving_plane():
+    """A textured square moving rigidly in front of a moving camera: tracks + analytic depth maps -> lift ->
+    fill -> scaffold; node rotations and deformation follow the true motion."""
+    from worldtree.motion.lift import fill_gaps, lift_tracks
+
+    T, H, W, n_side = 6, 60, 80, 12
+    K = torch.tensor([[70.0, 0, 40.0], [0, 70.0, 30.0], [0, 0, 1]], dtype=f64)
+    rots = Rotation.from_rotvec(np.linspace(0, 1, T)[:, None] * np.array([0.3, 0.5, 0.2]))
+    R_obj = torch.tensor(rots.as_matrix())
+    t_obj = torch.tensor(np.linspace(0, 1, T)[:, None] * np.array([0.05, -0.03, 0.04]) + [0, 0, 1.0])
+    g = np.linspace(-0.1, 0.1, n_side)
+    local = torch.tensor([[x, y, 0.0] for x in g for y in g], dtype=f64)  # [N, 3] in the plane z = 0
+    world = torch.einsum("tij,nj->tni", R_obj, local) + t_obj[:, None]
+    w2cs = torch.eye(4, dtype=f64).repeat(T, 1, 1)
+    w2cs[:, :3, :3] = torch.tensor(
+        Rotation.from_rotvec(np.linspace(0, 1, T)[:, None] * [0.0, 0.05, 0.0]).as_matrix()
+    )
+    w2cs[:, 0, 3] = torch.linspace(0, 0.02, T, dtype=f64)
+    cam = torch.einsum("tij,tnj->tni", w2cs[:, :3, :3], world) + w2cs[:, None, :3, 3]
+    uv = (cam @ K.T)[..., :2] / cam[..., 2:]
+    # Depth of the plane along each pixel ray: z = (n . p0) / (n . K^-1 (u, v, 1)) in camera coordinates.
+    vv, uu = torch.meshgrid(torch.arange(H, dtype=f64), torch.arange(W, dtype=f64), indexing="ij")
+    rays = torch.stack((uu, vv, torch.ones_like(uu)), -1) @ torch.linalg.inv(K).T  # [H, W, 3]
+    depths = torch.zeros(T, H, W, dtype=f64)
+    for t in range(T):
+        n_cam = w2cs[t, :3, :3] @ R_obj[t][:, 2]
+        p0 = cam[t, 0]
+        depths[t] = (n_cam @ p0) / (rays @ n_cam)
+    vis = torch.ones(T, local.shape[0], dtype=torch.bool)
+    vis[2:4, ::7] = False  # a few gaps, filled by interpolation
+    pts, valid = lift_tracks(uv, vis, depths, K.expand(T, 3, 3), w2cs)
+    assert torch.equal(valid, vis)
+    err = (pts - world)[valid].norm(dim=-1).max()
+    assert err < 1e-4  # bilinear sampling of a smooth depth map: tiny error
+    traj, observed = fill_gaps(pts, valid)
+    scf = build_scaffold(traj, observed, 1.0, ScaffoldConfig(node_spacing_units=3.0))
+    assert scf.M > 10
+    q_true = Q.from_matrix(R_obj)
+    for t in range(T):
+        rel_s = Q.multiply(scf.quat[t].detach(), Q.conjugate(scf.quat[0].detach()))
+        rel_t = Q.multiply(q_true[t], Q.conjugate(q_true[0])).expand_as(rel_s)
+        assert math.degrees(float(Q.angle_between(rel_s, rel_t).max())) < 1.0
+    p, _ = scf.deform(
+        world[0],
+        Q.identity((local.shape[0],), dtype=f64),
+        torch.zeros(local.shape[0], dtype=torch.long),
+        T - 1,
+    )
+    assert float((p - world[T - 1]).detach().norm(dim=-1).max()) < 2e-3  # 0.2 units
