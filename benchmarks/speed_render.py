@@ -86,6 +86,11 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--reference-iters", type=int, default=3, help="timed iterations per reference run")
     ap.add_argument("--sizes", default="320x180,480x270", help="comma-separated WIDTHxHEIGHT list")
     ap.add_argument("--backends", default="cpu,reference", help="comma-separated backends to compare")
+    ap.add_argument(
+        "--omp-wait-policy",
+        choices=["active", "passive"],
+        help="set OMP_WAIT_POLICY in the measured processes (passive helps on an oversubscribed machine)",
+    )
     ap.add_argument("--one", help=argparse.SUPPRESS)  # internal: run a single configuration, print JSON
     a = ap.parse_args(argv)
     if a.one:
@@ -96,6 +101,8 @@ def main(argv: list[str] | None = None) -> None:
         return
 
     print(f"rasterizer forward+backward, {a.gaussians} Gaussians (median ms/iteration)")
+    policy = a.omp_wait_policy or os.environ.get("OMP_WAIT_POLICY", "default")
+    print(f"OMP_WAIT_POLICY: {policy}")
     print(f"load average before: {' '.join(f'{x:.2f}' for x in os.getloadavg())} on {os.cpu_count()} CPUs")
     header = (
         f"{'threads':>7} {'size':>9} {'backend':>10} {'ran':>10} {'ms/iter':>9} {'min ms':>8} {'CPU ms':>8} {'visible':>8} "
@@ -110,7 +117,10 @@ def main(argv: list[str] | None = None) -> None:
                 cmd = [sys.executable, "-m", "benchmarks.speed_render", "--one", f"{backend}:{size}"]
                 cmd += ["--gaussians", str(a.gaussians), "--threads", threads, "--iters", str(a.iters)]
                 cmd += ["--reference-iters", str(a.reference_iters)]
-                proc = subprocess.run(cmd, capture_output=True, text=True)
+                env = dict(os.environ)
+                if a.omp_wait_policy:
+                    env["OMP_WAIT_POLICY"] = a.omp_wait_policy.upper()
+                proc = subprocess.run(cmd, capture_output=True, text=True, env=env)
                 if proc.returncode != 0:
                     print(
                         f"{threads:>7} {size:>9} {backend:>10} failed: {proc.stderr.strip().splitlines()[-1:]}"

@@ -211,8 +211,10 @@ def build_scene(
             bounds = np.zeros((n, 2))
             for i in range(n):
                 d = depths[(res.obs_cam == i) & (depths > 0)]
-                if d.size < 5:
+                if d.size < 5:  # too few own points for percentiles: use the whole reconstruction's
                     d = depths[depths > 0]
+                if d.size == 0:
+                    raise UserError("SfM triangulated no points in front of the cameras; pass --poses FILE")
                 bounds[i] = [0.9 * np.percentile(d, 1), 1.1 * np.percentile(d, 99)]
             pose_info = {
                 "method": "sfm",

@@ -10,6 +10,10 @@ from rich.table import Table
 from worldtree.errors import UserError
 
 
+def _fmt(v) -> str:
+    return f"{v:.3g}" if isinstance(v, float) else str(v)
+
+
 def describe_scene(scene: str | Path) -> Table:
     """A rich table with the scene's size, counts, cameras, pose and mask provenance, bounds and timings."""
     scene = Path(scene)
@@ -38,11 +42,11 @@ def describe_scene(scene: str | Path) -> Table:
         ("rig cameras", str(len(cams.get("cameras", [])))),
         ("training cameras", " ".join(str(c) for c in man.get("train_cameras", []))),
         ("source", f"{src.get('path')} ({src.get('layout')}, {src.get('time_steps')} time steps)"),
-        ("kept source times", f"{src_times[:1]}..{src_times[-1:]} ({len(src_times)})" if src_times else "-"),
+        ("kept source times", f"{src_times[0]}..{src_times[-1]} ({len(src_times)})" if src_times else "-"),
         (
             "poses",
             ", ".join(
-                f"{k}={poses[k]}"
+                f"{k}={_fmt(poses[k])}"
                 for k in ("method", "camera_model", "sfm_time", "reprojection_error_px", "normalize")
                 if k in poses
             ),

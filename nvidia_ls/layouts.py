@@ -11,7 +11,7 @@ Cameras are numbered from 1 and must be contiguous; time steps are the numbers i
 from __future__ import annotations
 
 import re
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -142,6 +142,8 @@ def _common_times(per_cam: dict[int, set[int]], root: Path, warnings: list[str])
 
 
 def _find_multiview(raw: Path) -> Path | None:
+    if raw.name == "mv_images":
+        return raw
     for cand in (raw / "mv_images", raw / "dense" / "mv_images"):
         if cand.is_dir():
             return cand
@@ -280,6 +282,3 @@ def open_raw(raw_dir: str | Path, num_cameras: int | None = None) -> RawCapture:
         f"{raw}: no raw layout found; expected mv_images/%05d/cam%02d.png (or dense/mv_images), "
         "cam%02d/%05d.png folders, or cam%02d.mp4 videos"
     )
-
-
-ProgressFn = Callable[[int, int], None]

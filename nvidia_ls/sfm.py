@@ -34,10 +34,11 @@ class SfmResult:
         dists: ``[N, 5]`` OpenCV distortion ``(k1, k2, p1, p2, k3)``.
         w2cs: ``[N, 4, 4]`` world-to-camera (OpenCV), SfM frame.
         points: ``[P, 3]`` triangulated points (SfM frame).
-        point_cams: list of ``(point index array, camera index array)`` observations.
+        obs_point, obs_cam: ``[O]`` observations: point index and camera index (into ``Ks``) of each.
         time: the source time step that registered every camera.
         tried: the time steps tried, in order.
         reprojection_error: mean reprojection error (pixels).
+        camera_model: "shared" or "per-camera".
     """
 
     Ks: np.ndarray

@@ -7,6 +7,7 @@ from pathlib import Path
 import typer
 
 from worldtree.errors import UserError
+from worldtree.priors.config import DepthConfig, DepthImportConfig, EpiConfig  # light: dataclasses only
 
 
 def register(app: typer.Typer) -> None:
@@ -24,7 +25,9 @@ def register(app: typer.Typer) -> None:
         depth_fit: bool = typer.Option(
             False, help="Fit a per-frame scale/shift of the imported depth to the classical depth."
         ),
-        depth_png_scale: float = typer.Option(1000.0, help="16-bit depth PNG values are divided by this."),
+        depth_png_scale: float = typer.Option(
+            DepthImportConfig.png_scale, help="16-bit depth PNG values are divided by this."
+        ),
         tracks: str = typer.Option(
             "classical", help="'classical' (Lucas-Kanade) or a CoTracker .npy/.npz/.pt file."
         ),
@@ -53,7 +56,7 @@ def _run(scene_dir, depth, depth_kind, depth_fit, depth_png_scale, tracks, flow,
     from rich.console import Console
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
-    from worldtree.priors import DepthConfig, DepthImportConfig, EpiConfig, PriorsConfig, compute_priors
+    from worldtree.priors import PriorsConfig, compute_priors
     from worldtree.priors.preview import write_previews
     from worldtree.scene import load_scene
 

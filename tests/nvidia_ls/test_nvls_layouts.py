@@ -33,6 +33,7 @@ def test_dense_subfolder_and_scene_name(tiny_raw, tmp_path):
     )
     assert out.name == "Balloon1"
     assert open_raw(root).layout == "multiview"
+    assert open_raw(root / "dense" / "mv_images").times == list(range(6))
 
 
 @pytest.mark.parametrize("layout", ["camera_folders", "videos"])

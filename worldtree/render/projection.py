@@ -60,21 +60,22 @@ def _project_cam(p, quats, log_scales, K, R, width, height, eps2d):
     lim_y_neg = (cy + 0.5) / fy + 0.3 * tan_y
     tx = z * torch.minimum(torch.maximum(x * rz, -lim_x_neg), lim_x_pos)
     ty = z * torch.minimum(torch.maximum(y * rz, -lim_y_neg), lim_y_pos)
-    zero = torch.zeros_like(z)
-    J = torch.stack(
-        [
-            torch.stack([fx * rz, zero, -fx * tx * rz * rz], -1),
-            torch.stack([zero, fy * rz, -fy * ty * rz * rz], -1),
-        ],
-        -2,
-    )  # [N, 2, 3]
     M = quat_to_rotmat(quats / quats.norm(dim=-1, keepdim=True)) * torch.exp(log_scales)[:, None, :]
-    A = J @ R @ M  # [N, 2, 3]; cov2d = A A^T is a Gram matrix, hence symmetric PSD by construction
-    a = (A[:, 0] * A[:, 0]).sum(-1) + eps2d
-    b = (A[:, 0] * A[:, 1]).sum(-1)
-    c = (A[:, 1] * A[:, 1]).sum(-1) + eps2d
+    W = R @ M  # [N, 3, 3] camera-frame square root of the covariance
+    # A = J W with the perspective Jacobian J = [[fx/z, 0, -fx tx/z^2], [0, fy/z, -fy ty/z^2]];
+    # cov2d = A A^T is a Gram matrix, hence symmetric positive semi-definite by construction.
+    A0 = (fx * rz)[:, None] * W[:, 0] - (fx * tx * rz * rz)[:, None] * W[:, 2]  # [N, 3]
+    A1 = (fy * rz)[:, None] * W[:, 1] - (fy * ty * rz * rz)[:, None] * W[:, 2]
+    a = (A0 * A0).sum(-1) + eps2d
+    b = (A0 * A1).sum(-1)
+    c = (A1 * A1).sum(-1) + eps2d
     means2d = torch.stack([fx * x * rz + cx, fy * y * rz + cy], -1)
     return means2d, torch.stack([a, b, c], -1), z
+
+
+def _rotate(v: Tensor, R: Tensor) -> Tensor:
+    """v [N, 3] -> v R^T (rotate row vectors)."""
+    return v @ R.T
 
 
 def _radius(cov2d: Tensor) -> Tensor:
@@ -117,7 +118,7 @@ def project_gaussians(
             ok &= keep
         m0, q0, s0 = _sanitise(means, quats, log_scales, ok)
         R = w2c[:3, :3]
-        p = m0 @ R.T + w2c[:3, 3]
+        p = _rotate(m0, R) + w2c[:3, 3]
         ok &= torch.isfinite(p).all(-1) & (p[:, 2] > near)
         p = torch.where(ok[:, None], p, _safe_point(p))
         mu, cov, _ = _project_cam(p, q0, s0, K, R, width, height, eps2d)
@@ -134,18 +135,25 @@ def project_gaussians(
 
     # Pass 2, differentiable, on the survivors only: culled rows are never touched, so their gradients are
     # exactly zero, and survivors have finite, positive-determinant covariances by construction.
-    idx = torch.nonzero(ok).squeeze(1)
-    R = w2c[:3, :3]
-    p = means[idx] @ R.T + w2c[:3, 3]
-    mu, cov, z = _project_cam(p, quats[idx], log_scales[idx], K, R, width, height, eps2d)
-    a, b, c = cov.unbind(-1)
-    det = a * c - b * b
-    conics = torch.stack([c / det, -b / det, a / det], -1)
+    all_ok = bool(ok.all())
+    idx = None if all_ok else torch.nonzero(ok).squeeze(1)
+
+    def gather(t: Tensor) -> Tensor:
+        return t if idx is None else t[idx]
 
     def scatter(values: Tensor, cols: int) -> Tensor:
+        if idx is None:
+            return values
         shape = (n, cols) if cols else (n,)
         out = torch.zeros(shape, dtype=values.dtype, device=values.device)
         return out.index_put((idx,), values)
+
+    R = w2c[:3, :3]
+    p = _rotate(gather(means), R) + w2c[:3, 3]
+    mu, cov, z = _project_cam(p, gather(quats), gather(log_scales), K, R, width, height, eps2d)
+    a, b, c = cov.unbind(-1)
+    det = a * c - b * b
+    conics = torch.stack([c / det, -b / det, a / det], -1)
 
     return Projection(means2d=scatter(mu, 2), conics=scatter(conics, 3), depths=scatter(z, 0), radii=radii)
 

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import torch
 from torch import Tensor
+from torch.utils.checkpoint import checkpoint
 
 from worldtree.render.projection import TILE, tile_rect
 
@@ -16,6 +17,9 @@ ALPHA_MAX = 0.99  # cap on a single Gaussian's alpha
 ALPHA_MIN = 1.0 / 255.0  # alphas below this are skipped
 T_MIN = 1e-4  # compositing stops before transmittance would drop below this
 CHUNK_ELEMENTS = 1 << 22  # pixels x Gaussians evaluated per chunk (bounds the memory of one step)
+CHECKPOINT_ELEMENTS = (
+    1 << 25
+)  # above this many pixel x Gaussian pairs per frame, recompute chunks in backward
 
 
 def bin_gaussians(means2d: Tensor, depths: Tensor, radii: Tensor, width: int, height: int):
@@ -82,21 +86,30 @@ def rasterize_reference(
     # Chunks of tiles with similar list lengths (sorted by length) keep the padding small.
     order = torch.argsort(tile_count, stable=True)
     counts = tile_count[order].tolist()
-    out_chunks = []
+    chunks = []
     t0 = 0
     while t0 < n_tiles:
         t1 = t0 + 1
         while t1 < n_tiles and (t1 - t0 + 1) * max(counts[t1], 1) * TILE * TILE <= CHUNK_ELEMENTS:
             t1 += 1
-        tiles = order[t0:t1]
-        kmax = max(counts[t1 - 1], 1)
-        out_chunks.append(
-            _rasterize_tiles(tiles, kmax, tw, tile_start, tile_count, gids, n, mu, con, opa, feat, off)
-        )
+        chunks.append((order[t0:t1], max(counts[t1 - 1], 1)))
         t0 = t1
-    out = torch.cat(out_chunks)[
-        torch.argsort(order)
-    ]  # [n_tiles, 256, 5] in row-major tile order: r, g, b, z, T
+    # Large frames: recompute each chunk during backward instead of keeping its [tiles, 256, K] intermediates
+    # (slower by about half, but the memory of a step stays at one chunk's worth).
+    total = sum(len(tiles) * kmax * TILE * TILE for tiles, kmax in chunks)
+    recompute = (
+        torch.is_grad_enabled()
+        and total > CHECKPOINT_ELEMENTS
+        and any(t.requires_grad for t in (mu, con, opa, feat))
+    )
+    out_chunks = []
+    for tiles, kmax in chunks:
+        args = (tiles, kmax, tw, tile_start, tile_count, gids, n, mu, con, opa, feat, off)
+        out_chunks.append(
+            checkpoint(_rasterize_tiles, *args, use_reentrant=False) if recompute else _rasterize_tiles(*args)
+        )
+    # [n_tiles, 256, 5] back in row-major tile order: r, g, b, z, T
+    out = torch.cat(out_chunks)[torch.argsort(order)]
     out = out.reshape(th, tw, TILE, TILE, 5).permute(0, 2, 1, 3, 4).reshape(th * TILE, tw * TILE, 5)
     out = out[:height, :width]
     T = out[..., 4]

@@ -7,6 +7,7 @@ import math
 import numpy as np
 import pytest
 import torch
+import torch.utils.checkpoint
 from scipy.spatial.transform import Rotation
 
 from worldtree.render import rasterize
@@ -120,3 +121,30 @@ def test_saturation_stops_compositing():
     assert float(1 - out.alpha[4, 4]) == pytest.approx(0.05**3, rel=1e-9)
     assert float(out.rgb[4, 4, 0]) == pytest.approx(0.95, rel=1e-9)
     assert float(out.depth[4, 4]) == pytest.approx(sum(0.95 * 0.05**k * float(means[k, 2]) for k in range(3)))
+
+
+def test_recomputed_chunks_give_the_same_gradients(make_scene, monkeypatch):
+    """Large frames recompute chunks in backward (checkpointing); forcing it must not change anything."""
+    from worldtree.render import reference
+
+    p, w, h = make_scene(n=60, width=50, height=40, seed=11)
+    keys = ("means", "quats", "log_scales", "opacities", "colors", "w2c", "background")
+    grads = []
+    calls = []
+
+    def counting_checkpoint(fn, *args, **kw):
+        calls.append(1)
+        return torch.utils.checkpoint.checkpoint(fn, *args, **kw)
+
+    monkeypatch.setattr(reference, "checkpoint", counting_checkpoint)
+    for limit in (reference.CHECKPOINT_ELEMENTS, 0):
+        monkeypatch.setattr(reference, "CHECKPOINT_ELEMENTS", limit)
+        monkeypatch.setattr(reference, "CHUNK_ELEMENTS", 256 * 64)  # several chunks
+        for k in keys:
+            p[k].grad = None
+        out = rasterize(width=w, height=h, backend="reference", **p)
+        (out.rgb.sum() + out.depth.sum()).backward()
+        grads.append([p[k].grad.clone() for k in keys])
+    assert len(calls) > 1  # only the second render recomputed, in several chunks
+    for a, b in zip(*grads, strict=True):
+        assert torch.allclose(a, b, rtol=1e-12, atol=1e-12)

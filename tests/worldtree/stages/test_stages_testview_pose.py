@@ -1,0 +1,192 @@
+"""Test-view pose: Sim(3) alignment (against an independent numpy Umeyama) and photometric refinement."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from scipy.spatial.transform import Rotation
+
+from worldtree.render import rasterize
+from worldtree.stages.cameras import Sim3, apply_delta, centres, rotation_angle_deg
+from worldtree.stages.testview_pose import PoseRefineConfig, align_sim3, refine_test_poses
+
+
+def numpy_umeyama(src: np.ndarray, dst: np.ndarray):
+    """Umeyama 1991, eqs. 34-42, written from the paper: dst ~ c R src + t."""
+    mu_s, mu_d = src.mean(0), dst.mean(0)
+    var_s = ((src - mu_s) ** 2).sum(1).mean()
+    cov = (dst - mu_d).T @ (src - mu_s) / len(src)
+    U, D, Vt = np.linalg.svd(cov)
+    S = np.eye(3)
+    if np.linalg.det(U) * np.linalg.det(Vt) < 0:
+        S[2, 2] = -1
+    R = U @ S @ Vt
+    c = np.trace(np.diag(D) @ S) / var_s
+    return c, R, mu_d - c * R @ mu_s
+
+
+def make_w2c(R_c2w: np.ndarray, centre: np.ndarray) -> np.ndarray:
+    w2c = np.eye(4)
+    w2c[:3, :3] = R_c2w.T
+    w2c[:3, 3] = -R_c2w.T @ centre
+    return w2c
+
+
+def transform_poses(w2cs: np.ndarray, s: float, R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """The same cameras in a frame where x' = s R x + t (written out directly, not via Sim3)."""
+    out = []
+    for w in w2cs:
+        Rc2w = w[:3, :3].T
+        c = -Rc2w @ w[:3, 3]
+        out.append(make_w2c(R @ Rc2w, s * R @ c + t))
+    return np.stack(out)
+
+
+def random_rig(rng, n: int, collinear: bool = False) -> np.ndarray:
+    poses = []
+    for i in range(n):
+        c = np.array([0.3 * i, 0.0, 0.0]) if collinear else rng.normal(size=3)
+        poses.append(make_w2c(Rotation.random(random_state=rng).as_matrix(), c))
+    return np.stack(poses)
+
+
+def test_align_sim3_recovers_known_similarity():
+    rng = np.random.default_rng(0)
+    src = random_rig(rng, 8)
+    R_true = Rotation.random(random_state=rng).as_matrix()
+    s_true, t_true = 2.7, np.array([0.4, -1.2, 3.0])
+    dst = transform_poses(src, s_true, R_true, t_true)
+    sim = align_sim3(torch.from_numpy(src), torch.from_numpy(dst))
+    c_ref, R_ref, t_ref = numpy_umeyama(
+        centres(torch.from_numpy(src)).numpy(), centres(torch.from_numpy(dst)).numpy()
+    )
+    np.testing.assert_allclose(sim.scale, s_true, rtol=1e-10)
+    np.testing.assert_allclose(sim.R.numpy(), R_true, atol=1e-10)
+    np.testing.assert_allclose(sim.t.numpy(), t_true, atol=1e-10)
+    np.testing.assert_allclose(sim.scale, c_ref, rtol=1e-10)
+    np.testing.assert_allclose(sim.R.numpy(), R_ref, atol=1e-10)
+    # The test camera's pose follows: exactly the pose written out independently.
+    test = random_rig(rng, 1)
+    got = sim.apply_w2c(torch.from_numpy(test)).numpy()
+    np.testing.assert_allclose(got, transform_poses(test, s_true, R_true, t_true), atol=1e-9)
+
+
+def test_align_sim3_noisy_matches_numpy_umeyama():
+    rng = np.random.default_rng(1)
+    src = random_rig(rng, 10)
+    dst = transform_poses(src, 0.5, Rotation.random(random_state=rng).as_matrix(), rng.normal(size=3))
+    dst[:, :3, 3] += rng.normal(scale=0.01, size=(10, 3))
+    sim = align_sim3(torch.from_numpy(src), torch.from_numpy(dst))
+    c_ref, R_ref, t_ref = numpy_umeyama(
+        centres(torch.from_numpy(src)).numpy(), centres(torch.from_numpy(dst)).numpy()
+    )
+    np.testing.assert_allclose(sim.scale, c_ref, rtol=1e-9)
+    np.testing.assert_allclose(sim.R.numpy(), R_ref, atol=1e-9)
+    np.testing.assert_allclose(sim.t.numpy(), t_ref, atol=1e-9)
+
+
+def test_align_sim3_collinear_centres_use_orientations():
+    rng = np.random.default_rng(2)
+    src = random_rig(rng, 6, collinear=True)
+    R_true = Rotation.random(random_state=rng).as_matrix()
+    dst = transform_poses(src, 1.5, R_true, np.array([1.0, 2.0, 3.0]))
+    sim = align_sim3(torch.from_numpy(src), torch.from_numpy(dst))
+    np.testing.assert_allclose(sim.R.numpy(), R_true, atol=1e-9)
+    np.testing.assert_allclose(sim.scale, 1.5, rtol=1e-9)
+    np.testing.assert_allclose(sim.t.numpy(), [1.0, 2.0, 3.0], atol=1e-9)
+
+
+def test_apply_w2c_keeps_the_image_of_mapped_points():
+    rng = np.random.default_rng(3)
+    sim = Sim3(
+        1.7, torch.from_numpy(Rotation.random(random_state=rng).as_matrix()), torch.tensor([0.2, 0.1, -0.4])
+    )
+    w2c = torch.from_numpy(random_rig(rng, 1)[0])
+    pts = torch.from_numpy(rng.normal(size=(20, 3)))
+
+    def project(w, x):
+        cam = x @ w[:3, :3].T + w[:3, 3]
+        return cam[:, :2] / cam[:, 2:], cam[:, 2]
+
+    uv0, z0 = project(w2c, pts)
+    uv1, z1 = project(sim.apply_w2c(w2c), sim.apply_points(pts))
+    torch.testing.assert_close(uv1, uv0)
+    torch.testing.assert_close(z1, 1.7 * z0)
+
+
+# ---------------------------------------------------------------------------------------------- refinement
+W, H = 48, 32
+
+
+def tiny_scene(seed: int = 0):
+    """~300 coloured Gaussians on a bumpy surface 4 units in front of a camera at the origin."""
+    g = torch.Generator().manual_seed(seed)
+    n = 300
+    xy = (torch.rand(n, 2, generator=g) - 0.5) * torch.tensor([3.6, 2.6])
+    z = 4.0 + 0.4 * torch.sin(2.0 * xy[:, :1]) * torch.cos(1.5 * xy[:, 1:])
+    means = torch.cat([xy, z], 1)
+    quats = torch.tensor([[1.0, 0.0, 0.0, 0.0]]).repeat(n, 1)
+    log_scales = torch.full((n, 3), float(np.log(0.09)))
+    opac = torch.full((n,), 0.9)
+    colors = torch.rand(n, 3, generator=g)
+    K = torch.tensor([[40.0, 0.0, (W - 1) / 2], [0.0, 40.0, (H - 1) / 2], [0.0, 0.0, 1.0]])
+
+    def render_fn(_time: int, w2c: torch.Tensor):
+        return rasterize(means, quats, log_scales, opac, colors, K, w2c, W, H)
+
+    return render_fn
+
+
+def pose_errors(a: torch.Tensor, b: torch.Tensor) -> tuple[float, float]:
+    rot = float(rotation_angle_deg(a[:3, :3], b[:3, :3]))
+    return rot, float((centres(a) - centres(b)).norm())
+
+
+def test_refinement_recovers_a_small_perturbation():
+    render_fn = tiny_scene()
+    truth = torch.eye(4)
+    with torch.no_grad():
+        target = render_fn(0, truth).rgb
+    xi = torch.tensor([0.04, -0.03, 0.02, 0.012, -0.01, 0.008])  # ~4 cm and ~0.9 degrees
+    start = apply_delta(xi, truth)
+    rot0, tr0 = pose_errors(start, truth)
+    cfg = PoseRefineConfig(first_steps=150, lr_init=3e-3, lr_final=1e-4)
+    res = refine_test_poses(render_fn, start, target[None], [0], cfg)
+    rot1, tr1 = pose_errors(res.w2cs[0], truth)
+    assert res.steps == [150]
+    assert res.loss_after[0] < 0.3 * res.loss_before[0]
+    assert rot1 < 0.25 * rot0, (rot0, rot1)
+    assert tr1 < 0.25 * tr0, (tr0, tr1)
+
+
+def test_next_frames_start_from_the_previous_result():
+    render_fn = tiny_scene(1)
+    truth = torch.eye(4)
+    with torch.no_grad():
+        target = render_fn(0, truth).rgb
+    start = apply_delta(torch.tensor([0.03, 0.02, 0.0, 0.0, 0.01, 0.0]), truth)
+    # Three frames of the same static view: later frames get few steps but start near the answer.
+    cfg = PoseRefineConfig(first_steps=300, next_steps=5)
+    res = refine_test_poses(render_fn, start, target[None].repeat(3, 1, 1, 1), [0, 1, 2], cfg)
+    assert res.steps == [300, 5, 5]
+    _, tr_start = pose_errors(start, truth)
+    for k in range(3):
+        _, tr = pose_errors(res.w2cs[k], truth)
+        assert tr < 0.1 * tr_start
+    # Frame 1 starts where frame 0 ended, so its starting error is frame 0's final error.
+    assert res.loss_before[1] == pytest.approx(res.loss_after[0], rel=1e-5)
+
+
+def test_disabled_refinement_and_empty_views_keep_the_pose():
+    render_fn = tiny_scene()
+    start = apply_delta(torch.tensor([0.03, 0.0, 0.0, 0.0, 0.0, 0.0]), torch.eye(4))
+    target = torch.zeros(1, H, W, 3)
+    res = refine_test_poses(render_fn, start, target, [0], PoseRefineConfig(enabled=False))
+    torch.testing.assert_close(res.w2cs[0], start)
+    # A camera looking away sees nothing (alpha 0 everywhere): no step is taken, the pose is kept.
+    away = torch.diag(torch.tensor([1.0, 1.0, -1.0, 1.0]))
+    away[0, 0] = -1.0
+    res = refine_test_poses(render_fn, away, target, [0], PoseRefineConfig(first_steps=5))
+    assert res.steps == [0]
+    torch.testing.assert_close(res.w2cs[0], away)

@@ -1,0 +1,116 @@
+"""Dynamic Gaussians: a :class:`~worldtree.gaussians.GaussianSet` whose members each live at a canonical
+(reference) frame and are carried to any frame by the motion scaffold.
+
+Extra per-Gaussian entries in ``params`` (so density control grows and shrinks them with the rest):
+
+    t_ref     [N]    long, frozen (requires_grad False): the reference frame of each Gaussian
+    skin_corr [N, K] optional learned additive correction of the K skinning weights (MoSca)
+
+The mean and rotation stored are those at ``t_ref``; :meth:`DynamicGaussians.at` returns them at frame ``t``
+by dual-quaternion blending of the scaffold nodes' motion ``T_k(t) T_k(t_ref)^-1``
+(:meth:`worldtree.motion.scaffold.Scaffold.deform`). Scale, opacity and colour do not change with time.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+from worldtree.gaussians import GaussianSet
+from worldtree.motion.scaffold import Scaffold, SkinCache
+
+
+class DynamicGaussians(GaussianSet):
+    """Gaussians with a reference frame each; see the module docstring."""
+
+    def __init__(self, params):
+        # Integer entries (t_ref) cannot require gradients: wrap them as frozen parameters first.
+        fixed = {
+            k: v
+            if isinstance(v, nn.Parameter) or v.is_floating_point()
+            else nn.Parameter(v.detach().clone(), requires_grad=False)
+            for k, v in params.items()
+        }
+        if "t_ref" not in fixed:
+            raise ValueError("DynamicGaussians needs a 't_ref' entry (reference frame per Gaussian)")
+        super().__init__(fixed)
+
+    @classmethod
+    def from_points_at(
+        cls,
+        points: torch.Tensor,
+        colors: torch.Tensor,
+        t_ref: torch.Tensor,
+        init_opacity: float = 0.1,
+        skin_k: int = 0,
+    ) -> DynamicGaussians:
+        """Isotropic Gaussians at ``points`` [N, 3] (their positions at frames ``t_ref`` [N] long) with RGB
+        ``colors`` [N, 3]; ``skin_k > 0`` adds a zero skinning correction [N, skin_k]."""
+        base = GaussianSet.from_points(points, colors, init_opacity=init_opacity)
+        params: dict[str, torch.Tensor] = dict(base.params.items())
+        params["t_ref"] = nn.Parameter(t_ref.to(points.device).long().clone(), requires_grad=False)
+        if skin_k > 0:
+            params["skin_corr"] = torch.zeros(points.shape[0], skin_k, device=points.device)
+        return cls(params)
+
+    @classmethod
+    def empty(cls, device: torch.device | str = "cpu", skin_k: int = 0) -> DynamicGaussians:
+        """A set with no Gaussian (a static scene)."""
+        z = torch.zeros
+        params = {
+            "means": z(0, 3, device=device),
+            "quats": z(0, 4, device=device),
+            "log_scales": z(0, 3, device=device),
+            "opacity_logits": z(0, device=device),
+            "sh0": z(0, 3, device=device),
+            "t_ref": nn.Parameter(z(0, dtype=torch.long, device=device), requires_grad=False),
+        }
+        if skin_k > 0:
+            params["skin_corr"] = z(0, skin_k, device=device)
+        return cls(params)
+
+    @property
+    def t_ref(self) -> torch.Tensor:
+        """[N] long reference frame of each Gaussian."""
+        return self.params["t_ref"]
+
+    @property
+    def skin_correction(self) -> torch.Tensor | None:
+        """[N, K] skinning-weight correction, or None."""
+        return self.params["skin_corr"] if "skin_corr" in self.params else None
+
+    def attach(self, scaffold: Scaffold) -> SkinCache:
+        """Skinning neighbourhoods of the current means at their reference frames (no gradient)."""
+        return scaffold.attach(self.means.detach(), self.t_ref)
+
+    def at(
+        self, scaffold: Scaffold, t: int, cache: SkinCache | None = None
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(means [N, 3], quats [N, 4] unit)`` at frame ``t``, differentiable in the Gaussians, the node
+        poses, radii and the skinning correction. With no node (M = 0) the stored values come back."""
+        if len(self) == 0 or scaffold.M == 0:
+            return self.means, self.quats
+        corr = self.skin_correction
+        if corr is not None and cache is not None and corr.shape[1] != cache.idx.shape[1]:
+            corr = None  # the graph's K changed (e.g. fewer nodes than K): the correction no longer lines up
+        m, q = scaffold.deform(self.means, self.quats, self.t_ref, t, cache, corr)
+        return m, q / q.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+
+    @classmethod
+    def load(cls, path, device: torch.device | str = "cpu") -> DynamicGaussians:
+        from pathlib import Path
+
+        from worldtree.errors import UserError
+
+        path = Path(path)
+        if not path.is_file():
+            raise UserError(f"{path}: no such model file")
+        try:
+            data = torch.load(path, map_location=device, weights_only=True)
+        except Exception as e:  # torch raises several types for corrupt files
+            raise UserError(
+                f"{path}: not a readable Gaussian model ({type(e).__name__}); re-run training"
+            ) from e
+        if "t_ref" not in data:
+            raise UserError(f"{path}: a static Gaussian file (no t_ref); expected dynamic Gaussians")
+        return cls(data)

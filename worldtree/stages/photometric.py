@@ -1,0 +1,397 @@
+"""Joint photometric fit of static + dynamic Gaussians, the motion scaffold and (from a set step) the cameras.
+
+Each step renders one training frame ``i`` with the static Gaussians and the dynamic ones carried to frame
+``i`` by the scaffold (:meth:`worldtree.dynamic.DynamicGaussians.at`), and minimises (appendix of the paper,
+weights of MoSca, REFERENCE section 2)
+
+    L = lambda_rgb (L1 + lambda_dssim (1 - SSIM))            RGB, 1.0 and 0.1
+      + lambda_depth * SSI-L1(depth)                          0.05
+      + lambda_track * track  (every ``track_every`` steps)   0.005, every 8 steps, clamp 100 px
+      + motion regularisers (ARAP coordinate/length, velocity, acceleration; MotionLossConfig)
+
+- SSI-L1: the rendered depth ``depth / alpha`` and the prior are each normalised by their median and mean
+  absolute deviation over pixels with alpha > 0.5, then compared by L1 (scale-shift invariant).
+- track: for a random other frame ``j``, every Gaussian's pixel position in frame ``j`` (its position at time
+  ``j`` projected by camera ``j``) is rendered as a colour from camera ``i``; at each dynamic track's pixel in
+  frame ``i`` this predicts its pixel in frame ``j``; the error is clamped at ``track_clamp_px``.
+- cameras: a pose delta per frame (frame 0 fixed) whose learning rate is 0 before ``camera_start_step``.
+
+Density control runs on the static and the dynamic set separately (their own :class:`DensifyStrategy`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import torch
+
+from worldtree.dynamic import DynamicGaussians
+from worldtree.gaussians import GaussianSet
+from worldtree.losses import ssim
+from worldtree.motion.regularizers import MotionLossConfig, motion_losses
+from worldtree.motion.scaffold import Scaffold
+from worldtree.optim import ConstantLR, ExponentialLR, GroupedAdam
+from worldtree.render import rasterize
+from worldtree.stages.cameras import apply_delta
+from worldtree.strategy import DensifyStrategy
+from worldtree.trainer import StepOutput
+
+
+@dataclass
+class PhotometricConfig:
+    """Joint photometric fit (defaults: the paper's NVIDIA-LS root schedule)."""
+
+    steps: int = 4000
+    """Optimisation steps (NVIDIA-LS root: 4000)."""
+    lambda_rgb: float = 1.0
+    """Weight of the RGB term."""
+    lambda_dssim: float = 0.1
+    """Weight of (1 - SSIM) inside the RGB term (added to L1)."""
+    lambda_depth: float = 0.05
+    """Weight of the scale-shift-invariant depth L1."""
+    lambda_track: float = 0.005
+    """Weight of the 2D track loss (pixels)."""
+    track_every: int = 8
+    """The track loss is evaluated every this many steps."""
+    track_clamp_px: float = 100.0
+    """Track errors are clamped at this many pixels."""
+    motion: MotionLossConfig = field(default_factory=MotionLossConfig)
+    """ARAP / velocity / acceleration weights."""
+    camera_start_step: int = 1500
+    """Cameras are optimised from this step on (NVIDIA-LS: 1500)."""
+    lr_cam_rot: float = 1e-4
+    """Camera rotation-delta learning rate (radians)."""
+    lr_cam_trans: float = 1e-4
+    """Camera translation-delta learning rate, times the scene extent."""
+    lr_means: float = 1.6e-4
+    """Gaussian position learning rate, times the extent, decaying to 1% over ``steps``."""
+    lr_sh0: float = 2.5e-3
+    """Colour learning rate."""
+    lr_opacity: float = 0.05
+    """Opacity-logit learning rate."""
+    lr_scales: float = 5e-3
+    """Log-scale learning rate."""
+    lr_quats: float = 1e-3
+    """Gaussian rotation learning rate."""
+    lr_skin_corr: float = 1e-3
+    """Skinning-correction learning rate."""
+    lr_node_pos: float = 1.6e-4
+    """Scaffold node position learning rate, times the extent."""
+    lr_node_quat: float = 1e-3
+    """Scaffold node rotation learning rate."""
+    lr_node_sigma: float = 1e-3
+    """Scaffold node radius (logit) learning rate."""
+    static_strategy: DensifyStrategy = field(
+        default_factory=lambda: DensifyStrategy(refine_start=500, refine_stop=3000, reset_every=0)
+    )
+    """Density control of the static Gaussians."""
+    dynamic_strategy: DensifyStrategy = field(
+        default_factory=lambda: DensifyStrategy(refine_start=500, refine_stop=3000, reset_every=0)
+    )
+    """Density control of the dynamic Gaussians."""
+    reattach_every: int = 100
+    """Skinning neighbourhoods are recomputed this often (and after every density change)."""
+    backend: str = "auto"
+    """Rasterizer backend."""
+
+
+def quick_photometric_config() -> PhotometricConfig:
+    """CPU-friendly: 600 steps, cameras from step 300, density control every 100 steps between 100 and 450."""
+    strat = DensifyStrategy(
+        refine_start=100, refine_stop=450, refine_every=100, reset_every=0, max_gaussians=20_000
+    )
+    return PhotometricConfig(
+        steps=600,
+        camera_start_step=300,
+        static_strategy=strat,
+        dynamic_strategy=DensifyStrategy(**vars(strat)),
+    )
+
+
+class _StartAt:
+    """Learning rate ``value`` from step ``start`` on, 0 before."""
+
+    def __init__(self, start: int, value: float):
+        self.start, self.value = start, value
+
+    def __call__(self, step: int) -> float:
+        return self.value if step >= self.start else 0.0
+
+
+class _View:
+    """The slice of a joint render that belongs to one Gaussian set, as density control expects it."""
+
+    def __init__(self, out, sl: slice):
+        self.rgb = out.rgb
+        self.radii = out.radii[sl]
+        self.means2d = out.means2d.detach()[sl].clone()
+        grad = out.means2d.grad
+        if grad is not None:
+            self.means2d.grad = grad[sl].clone()
+
+
+def ssi_normalise(d: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """``(d - median) / mean|d - median|`` over ``mask`` (values elsewhere are returned but meaningless)."""
+    v = d[mask]
+    if v.numel() == 0:
+        return torch.zeros_like(d)
+    med = v.detach().median()
+    scale = (v - med).abs().mean().clamp_min(1e-6)
+    return (d - med) / scale
+
+
+def ssi_depth_l1(depth: torch.Tensor, alpha: torch.Tensor, prior: torch.Tensor) -> torch.Tensor:
+    """Scale-shift-invariant L1 between ``depth / alpha`` and ``prior`` [H, W] over alpha > 0.5."""
+    mask = (alpha.detach() > 0.5) & torch.isfinite(prior) & (prior > 0)
+    if int(mask.sum()) < 16:
+        return depth.sum() * 0.0
+    d = depth / alpha.clamp_min(1e-6)
+    a, b = ssi_normalise(d, mask), ssi_normalise(prior, mask)
+    return (a - b)[mask].abs().mean()
+
+
+def project(points: torch.Tensor, K: torch.Tensor, w2c: torch.Tensor) -> torch.Tensor:
+    """Pixels ``[N, 2]`` of world points ``[N, 3]`` (depth clamped at 1e-6 to stay finite)."""
+    cam = points @ w2c[:3, :3].T + w2c[:3, 3]
+    z = cam[:, 2:].clamp_min(1e-6)
+    return torch.cat([K[0, 0] * cam[:, :1] / z + K[0, 2], K[1, 1] * cam[:, 1:2] / z + K[1, 2]], 1)
+
+
+class PhotometricFit:
+    """Trainable joint fit (see the module docstring); :class:`worldtree.trainer.Trainer` runs it.
+
+    Args:
+        cfg: settings.
+        images: [T, H, W, 3] in [0, 1]. depth: [T, H, W] depth prior. Ks: [T, 3, 3]. w2cs: [T, 4, 4] start.
+        static: background Gaussians (e.g. from the static warm-up). dynamic: dynamic Gaussians.
+        scaffold: motion scaffold over the T frames.
+        tracks: [T, N, 2] dynamic tracks (pixels) and ``track_vis`` [T, N] bool, or None (no track loss).
+        extent: scene extent (world units). seed: frame order and track-pair sampling.
+    """
+
+    def __init__(
+        self,
+        cfg: PhotometricConfig,
+        images: torch.Tensor,
+        depth: torch.Tensor,
+        Ks: torch.Tensor,
+        w2cs: torch.Tensor,
+        static: GaussianSet,
+        dynamic: DynamicGaussians,
+        scaffold: Scaffold,
+        tracks: torch.Tensor | None,
+        track_vis: torch.Tensor | None,
+        extent: float,
+        seed: int = 0,
+    ):
+        self.cfg = cfg
+        self.images, self.depth, self.Ks, self.w2c0 = images, depth, Ks, w2cs
+        self.static, self.dynamic, self.scaffold = static, dynamic, scaffold
+        self.tracks, self.track_vis = tracks, track_vis
+        self.extent = float(extent)
+        self.T = images.shape[0]
+        self.cam_xi = torch.zeros(max(self.T - 1, 0), 6, device=images.device, requires_grad=True)
+        self.order = torch.Generator().manual_seed(seed)
+        self.pairs = torch.Generator().manual_seed(seed + 1)
+        self.queue: list[int] = []
+        self._build_optimizers()
+        cfg.static_strategy.check_sanity(self.static, self.static_opt)
+        self.static_state = cfg.static_strategy.initialize_state(self.extent)
+        self.dyn_state = cfg.dynamic_strategy.initialize_state(self.extent)
+        self.cache = self.dynamic.attach(self.scaffold)
+        self.backend = "none"
+
+    # ------------------------------------------------------------------ set-up
+    def _gauss_schedules(self, gs: GaussianSet) -> dict:
+        c = self.cfg
+        s = {
+            "means": ExponentialLR(
+                c.lr_means * self.extent, 0.01 * c.lr_means * self.extent, max(c.steps, 1)
+            ),
+            "quats": ConstantLR(c.lr_quats),
+            "log_scales": ConstantLR(c.lr_scales),
+            "opacity_logits": ConstantLR(c.lr_opacity),
+            "sh0": ConstantLR(c.lr_sh0),
+        }
+        if "skin_corr" in gs.params:
+            s["skin_corr"] = ConstantLR(c.lr_skin_corr)
+        return s
+
+    def _build_optimizers(self) -> None:
+        c = self.cfg
+        st = self._gauss_schedules(self.static)
+        self.static_opt = GroupedAdam({k: self.static.params[k] for k in st}, st)
+        ds = self._gauss_schedules(self.dynamic)
+        self.dyn_opt = GroupedAdam({k: self.dynamic.params[k] for k in ds}, ds)
+        other = {
+            "node_pos": self.scaffold.pos,
+            "node_quat": self.scaffold.quat,
+            "node_sigma": self.scaffold.sigma_logit,
+            "cam": self.cam_xi,
+        }
+        sched = {
+            "node_pos": ConstantLR(c.lr_node_pos * self.extent),
+            "node_quat": ConstantLR(c.lr_node_quat),
+            "node_sigma": ConstantLR(c.lr_node_sigma),
+            # One group for the camera twist: rotation and translation share the lr; translation is scaled.
+            "cam": _StartAt(c.camera_start_step, c.lr_cam_rot),
+        }
+        self.other_opt = GroupedAdam(other, sched)
+
+    # ------------------------------------------------------------------ rendering
+    def camera(self, i: int) -> torch.Tensor:
+        """[4, 4] current world-to-camera pose of frame ``i``."""
+        if i == 0 or self.T < 2:
+            return self.w2c0[i]
+        xi = self.cam_xi[i - 1]
+        ratio = self.cfg.lr_cam_trans * self.extent / max(self.cfg.lr_cam_rot, 1e-12)
+        return apply_delta(torch.cat([xi[:3] * ratio, xi[3:]]), self.w2c0[i])
+
+    def cameras(self) -> torch.Tensor:
+        """[T, 4, 4] current poses (detached)."""
+        with torch.no_grad():
+            return torch.stack([self.camera(i) for i in range(self.T)])
+
+    def gaussians_at(self, t: int, cache=None):
+        """Joint tensors ``(means, quats, log_scales, opacities, colours)`` of static + dynamic at frame t."""
+        dm, dq = self.dynamic.at(self.scaffold, t, cache if cache is not None else self.cache)
+        s, d = self.static, self.dynamic
+        return (
+            torch.cat([s.means, dm]),
+            torch.cat([s.quats, dq]),
+            torch.cat([s.log_scales, d.log_scales]),
+            torch.cat([s.opacities, d.opacities]),
+            torch.cat([s.colors, d.colors]),
+        )
+
+    def render(self, K, w2c, width, height, t: int, colors=None, cache=None):
+        m, q, ls, o, c = self.gaussians_at(t, cache)
+        out = rasterize(
+            m, q, ls, o, c if colors is None else colors, K, w2c, width, height, backend=self.cfg.backend
+        )
+        self.backend = out.backend
+        return out
+
+    # ------------------------------------------------------------------ losses
+    def track_loss(self, i: int) -> torch.Tensor | None:
+        """Clamped pixel error of the rendered correspondence map from frame ``i`` to a random frame."""
+        if self.tracks is None or self.T < 2 or self.tracks.shape[1] == 0:
+            return None
+        j = int(torch.randint(0, self.T - 1, (1,), generator=self.pairs))
+        j = j + 1 if j >= i else j
+        both = self.track_vis[i] & self.track_vis[j]
+        if int(both.sum()) == 0:
+            return None
+        H, W = self.images.shape[1:3]
+        mj, _ = self.dynamic.at(self.scaffold, j, self.cache)
+        pts_j = torch.cat([self.static.means, mj])
+        uv_j = project(pts_j, self.Ks[j], self.camera(j))
+        col = torch.cat([uv_j, torch.ones_like(uv_j[:, :1])], 1)
+        out = self.render(self.Ks[i], self.camera(i), W, H, i, colors=col)
+        flow = out.rgb[..., :2] / out.alpha.clamp_min(1e-6)[..., None]  # [H, W, 2] predicted pixel in j
+        p_i = self.tracks[i, both]
+        col_i = p_i[:, 0].round().long().clamp(0, W - 1)
+        row_i = p_i[:, 1].round().long().clamp(0, H - 1)
+        ok = out.alpha[row_i, col_i].detach() > 0.5
+        if int(ok.sum()) == 0:
+            return None
+        err = (flow[row_i, col_i] - self.tracks[j, both]).norm(dim=-1).clamp(max=self.cfg.track_clamp_px)
+        return err[ok].mean()
+
+    def frame_losses(self, i: int, step: int) -> tuple[torch.Tensor, dict[str, float], Any]:
+        c = self.cfg
+        H, W = self.images.shape[1:3]
+        out = self.render(self.Ks[i], self.camera(i), W, H, i)
+        l1 = (out.rgb - self.images[i]).abs().mean()
+        loss = l1
+        parts = {"l1": float(l1.detach())}
+        if c.lambda_dssim > 0:
+            s = ssim(out.rgb, self.images[i])
+            loss = loss + c.lambda_dssim * (1.0 - s)
+            parts["ssim"] = float(s.detach())
+        loss = c.lambda_rgb * loss
+        if c.lambda_depth > 0:
+            ld = ssi_depth_l1(out.depth, out.alpha, self.depth[i])
+            loss = loss + c.lambda_depth * ld
+            parts["depth"] = float(ld.detach())
+        if c.lambda_track > 0 and c.track_every > 0 and step % c.track_every == 0:
+            lt = self.track_loss(i)
+            if lt is not None:
+                loss = loss + c.lambda_track * lt
+                parts["track_px"] = float(lt.detach())
+        if self.scaffold.M > 0:
+            ml = motion_losses(self.scaffold.pos, self.scaffold.quat, self.scaffold.arap_graphs(), c.motion)
+            loss = loss + ml.total
+            parts["motion"] = float(ml.total.detach())
+        return loss, parts, out
+
+    # ------------------------------------------------------------------ Trainable
+    def _next_frame(self) -> int:
+        if not self.queue:
+            self.queue = torch.randperm(self.T, generator=self.order).tolist()
+        return self.queue.pop()
+
+    def training_step(self, step: int) -> StepOutput:
+        for opt in (self.static_opt, self.dyn_opt, self.other_opt):
+            opt.set_step(step)
+        i = self._next_frame()
+        loss, parts, out = self.frame_losses(i, step)
+        return StepOutput(loss=loss, scalars=parts, info=out)
+
+    def optimizer_step(self, step: int, out: StepOutput) -> dict[str, float]:
+        for opt in (self.static_opt, self.dyn_opt, self.other_opt):
+            opt.step()
+            opt.zero_grad()
+        n_s = len(self.static)
+        render = out.info
+        before = len(self.dynamic)
+        self.cfg.static_strategy.step_post_backward(
+            self.static, self.static_opt, self.static_state, step, _View(render, slice(0, n_s))
+        )
+        if before > 0:
+            self.cfg.dynamic_strategy.step_post_backward(
+                self.dynamic, self.dyn_opt, self.dyn_state, step, _View(render, slice(n_s, n_s + before))
+            )
+        changed = len(self.dynamic) != before or (step % self.cfg.dynamic_strategy.refine_every == 0)
+        if changed or (self.cfg.reattach_every > 0 and step % self.cfg.reattach_every == 0):
+            self.cache = self.dynamic.attach(self.scaffold)
+        return {"static": float(len(self.static)), "dynamic": float(len(self.dynamic))}
+
+    def state_dict(self) -> dict[str, Any]:
+        def cpu(d):
+            return {k: (v.detach().cpu() if isinstance(v, torch.Tensor) else v) for k, v in d.items()}
+
+        return {
+            "static": cpu(dict(self.static.params.items())),
+            "dynamic": cpu(dict(self.dynamic.params.items())),
+            "scaffold": self.scaffold.to_state(),
+            "cam_xi": self.cam_xi.detach().cpu(),
+            "static_opt": self.static_opt.state_dict(),
+            "dyn_opt": self.dyn_opt.state_dict(),
+            "other_opt": self.other_opt.state_dict(),
+            "static_state": cpu(self.static_state),
+            "dyn_state": cpu(self.dyn_state),
+            "queue": list(self.queue),
+            "pairs_rng": self.pairs.get_state(),
+        }
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        dev = self.images.device
+        self.static.load_params(state["static"])
+        self.dynamic.load_params(state["dynamic"])
+        self.scaffold = Scaffold.from_state(state["scaffold"], dev)
+        self.cam_xi = state["cam_xi"].to(dev).clone().requires_grad_(True)
+        self._build_optimizers()
+        self.static_opt.load_state_dict(state["static_opt"])
+        self.dyn_opt.load_state_dict(state["dyn_opt"])
+        self.other_opt.load_state_dict(state["other_opt"])
+        self.static_state = {
+            k: (v.to(dev) if isinstance(v, torch.Tensor) else v) for k, v in state["static_state"].items()
+        }
+        self.dyn_state = {
+            k: (v.to(dev) if isinstance(v, torch.Tensor) else v) for k, v in state["dyn_state"].items()
+        }
+        self.queue = [int(i) for i in state["queue"]]
+        self.pairs.set_state(state["pairs_rng"])
+        self.cache = self.dynamic.attach(self.scaffold)

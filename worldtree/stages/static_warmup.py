@@ -1,0 +1,276 @@
+"""Static warm-up ("SW"): fit the background Gaussians to the static pixels of the training video first.
+
+The dynamic (EPI) mask of each frame is dilated by ``dilate_px``; only the remaining static pixels enter the
+loss, so moving content neither drags the background nor gets baked into it. The image loss is
+
+    (1 - lambda_dssim) * L1_static + lambda_dssim * (1 - SSIM_static) + lambda_depth * depth_static
+
+where ``L1_static`` averages over static pixels, ``SSIM_static`` averages the SSIM map (11x11 window) over
+pixels whose whole window is static (the static mask eroded by the window radius, so no dynamic pixel reaches
+the loss through a window), and ``depth_static`` is the mean ``|d - D| / D`` between the rendered depth
+``d = depth / alpha`` and the (bundle-adjusted) depth prior ``D`` over static pixels with alpha > 0.5.
+
+Cameras are fixed (they come from BA). The Gaussians start from the depth prior lifted at static pixels.
+Training runs in :class:`worldtree.trainer.Trainer` (checkpoints, resume, progress) through
+:class:`StaticWarmup`, which implements :class:`worldtree.trainer.Trainable`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import torch
+import torch.nn.functional as F
+
+from worldtree.errors import UserError
+from worldtree.gaussians import GaussianSet
+from worldtree.losses import ssim_map
+from worldtree.optim import ConstantLR, ExponentialLR, GroupedAdam
+from worldtree.render import rasterize
+from worldtree.strategy import DensifyStrategy
+from worldtree.trainer import StepOutput
+
+SSIM_WINDOW = 11
+
+
+@dataclass
+class StaticWarmupConfig:
+    """Static warm-up settings (steps: the paper's 6000)."""
+
+    enabled: bool = True
+    """Run the warm-up; False starts the joint fit from the lifted static points (``--ablate sw``)."""
+    steps: int = 6000
+    """Optimisation steps (one training frame per step, each frame once per epoch)."""
+    dilate_px: int = 3
+    """The dynamic mask is dilated by this many pixels (square) before its complement is used."""
+    init_stride_px: int = 4
+    """Initial points: the depth prior is lifted at static pixels on a grid of this stride in every frame."""
+    init_max_points: int = 20_000
+    """At most this many initial points (a seeded random subset)."""
+    init_opacity: float = 0.1
+    """Opacity of the initial Gaussians."""
+    lambda_dssim: float = 0.2
+    """Weight of (1 - SSIM) in the image loss."""
+    lambda_depth: float = 0.05
+    """Weight of the relative depth error against the depth prior (0 disables it)."""
+    lr_means: float = 1.6e-4
+    """Initial position learning rate, times the scene extent (decays to 1% over ``steps``)."""
+    lr_sh0: float = 2.5e-3
+    """Colour learning rate."""
+    lr_opacity: float = 0.05
+    """Opacity-logit learning rate."""
+    lr_scales: float = 5e-3
+    """Log-scale learning rate."""
+    lr_quats: float = 1e-3
+    """Quaternion learning rate."""
+    strategy: DensifyStrategy = field(
+        default_factory=lambda: DensifyStrategy(refine_start=500, refine_stop=4000, reset_every=3000)
+    )
+    """Density control of the static set."""
+    backend: str = "auto"
+    """Rasterizer backend."""
+
+
+def quick_static_warmup_config() -> StaticWarmupConfig:
+    """CPU-friendly: 300 steps, densification every 100 steps between 100 and 250, no opacity reset."""
+    return StaticWarmupConfig(
+        steps=300,
+        init_max_points=4000,
+        strategy=DensifyStrategy(
+            refine_start=100, refine_stop=250, refine_every=100, reset_every=0, max_gaussians=20_000
+        ),
+    )
+
+
+def static_weights(dynamic: torch.Tensor, dilate_px: int) -> torch.Tensor:
+    """``[T, H, W]`` float 1 on static pixels, 0 on the dynamic mask ``dynamic [T, H, W]`` dilated by
+    ``dilate_px`` (square structuring element)."""
+    d = dynamic.float()[:, None]
+    if dilate_px > 0:
+        d = F.max_pool2d(d, 2 * dilate_px + 1, stride=1, padding=dilate_px)
+    return 1.0 - d[:, 0]
+
+
+def ssim_weights(static: torch.Tensor) -> torch.Tensor:
+    """Weights of the 'valid' SSIM map ``[T, H - 10, W - 10]``: 1 where the whole 11x11 window is static."""
+    inner = -F.max_pool2d(-static[:, None], SSIM_WINDOW, stride=1)  # min over each window
+    return inner[:, 0]
+
+
+@torch.no_grad()
+def lift_static_points(
+    images: torch.Tensor,
+    depth: torch.Tensor,
+    static: torch.Tensor,
+    Ks: torch.Tensor,
+    w2cs: torch.Tensor,
+    stride: int,
+    max_points: int,
+    generator: torch.Generator,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(points [P, 3], colours [P, 3])``: the depth prior at static pixels of a ``stride`` grid, lifted
+    with each frame's camera; at most ``max_points`` (random subset)."""
+    T, H, W = depth.shape
+    pts, cols = [], []
+    v, u = torch.meshgrid(
+        torch.arange(0, H, stride, device=depth.device), torch.arange(0, W, stride, device=depth.device),
+        indexing="ij",
+    )  # fmt: skip
+    for t in range(T):
+        z = depth[t, v, u]
+        ok = (static[t, v, u] > 0.5) & torch.isfinite(z) & (z > 0)
+        if not ok.any():
+            continue
+        uu, vv, zz = u[ok].to(depth.dtype), v[ok].to(depth.dtype), z[ok]
+        K = Ks[t].to(depth.dtype)
+        x = (uu - K[0, 2]) / K[0, 0] * zz
+        y = (vv - K[1, 2]) / K[1, 1] * zz
+        cam = torch.stack([x, y, zz], -1)
+        R, tr = w2cs[t, :3, :3].to(depth.dtype), w2cs[t, :3, 3].to(depth.dtype)
+        pts.append((cam - tr) @ R)
+        cols.append(images[t, v[ok], u[ok]])
+    if not pts:
+        raise UserError(
+            "static warm-up: no static pixel with a valid depth; the dynamic mask covers every frame "
+            "(check the priors' EPI threshold or the imported masks)"
+        )
+    P, C = torch.cat(pts), torch.cat(cols)
+    if P.shape[0] > max_points:
+        keep = torch.randperm(P.shape[0], generator=generator)[:max_points].to(P.device)
+        P, C = P[keep], C[keep]
+    return P, C
+
+
+class StaticWarmup:
+    """Trainable static warm-up; after :class:`worldtree.trainer.Trainer` runs it, :attr:`gaussians` holds
+    the background.
+
+    Args:
+        cfg: settings.
+        images: [T, H, W, 3] training frames in [0, 1]. dynamic: [T, H, W] bool dynamic masks.
+        depth: [T, H, W] depth prior (scene units, after BA scaling). Ks: [T, 3, 3]. w2cs: [T, 4, 4] (fixed).
+        extent: scene extent (world units) for the learning rate and density thresholds.
+        seed: seed of the frame order and of the initial subset.
+        gaussians: start from these instead of the lifted depth (e.g. to continue a warm-up).
+    """
+
+    def __init__(
+        self,
+        cfg: StaticWarmupConfig,
+        images: torch.Tensor,
+        dynamic: torch.Tensor,
+        depth: torch.Tensor,
+        Ks: torch.Tensor,
+        w2cs: torch.Tensor,
+        extent: float,
+        seed: int = 0,
+        gaussians: GaussianSet | None = None,
+    ):
+        self.cfg = cfg
+        self.images, self.depth, self.Ks, self.w2cs = images, depth, Ks, w2cs
+        self.static = static_weights(dynamic.to(images.device), cfg.dilate_px)
+        self.ssim_w = ssim_weights(self.static)
+        self.extent = float(extent)
+        self.order = torch.Generator().manual_seed(seed)
+        self.queue: list[int] = []
+        if gaussians is None:
+            pts, cols = lift_static_points(
+                images, depth, self.static, Ks, w2cs, cfg.init_stride_px, cfg.init_max_points,
+                torch.Generator().manual_seed(seed),
+            )  # fmt: skip
+            gaussians = GaussianSet.from_points(pts, cols, init_opacity=cfg.init_opacity)
+        self.gaussians = gaussians
+        self.optimizer = self._make_optimizer()
+        cfg.strategy.check_sanity(self.gaussians, self.optimizer)
+        self.strategy_state = cfg.strategy.initialize_state(self.extent)
+        self.backend = "none"
+
+    def _make_optimizer(self) -> GroupedAdam:
+        c = self.cfg
+        schedules = {
+            "means": ExponentialLR(
+                c.lr_means * self.extent, 0.01 * c.lr_means * self.extent, max(c.steps, 1)
+            ),
+            "quats": ConstantLR(c.lr_quats),
+            "log_scales": ConstantLR(c.lr_scales),
+            "opacity_logits": ConstantLR(c.lr_opacity),
+            "sh0": ConstantLR(c.lr_sh0),
+        }
+        return GroupedAdam(dict(self.gaussians.params.items()), schedules)
+
+    def _next_frame(self) -> int:
+        if not self.queue:
+            self.queue = torch.randperm(self.images.shape[0], generator=self.order).tolist()
+        return self.queue.pop()
+
+    def frame_loss(self, i: int, out) -> tuple[torch.Tensor, dict[str, float]]:
+        """Masked loss of render ``out`` against frame ``i`` (see the module docstring)."""
+        c = self.cfg
+        w = self.static[i]
+        err = (out.rgb - self.images[i]).abs().mean(-1)
+        l1 = (err * w).sum() / w.sum().clamp_min(1.0)
+        loss = (1.0 - c.lambda_dssim) * l1
+        parts = {"l1": float(l1.detach())}
+        if c.lambda_dssim > 0:
+            sw = self.ssim_w[i]
+            smap = ssim_map(out.rgb, self.images[i]).mean(1)[0]  # [H-10, W-10], channels averaged
+            s = (smap * sw).sum() / sw.sum().clamp_min(1.0)
+            loss = loss + c.lambda_dssim * (1.0 - s) * (sw.sum() > 0)
+            parts["ssim"] = float(s.detach())
+        if c.lambda_depth > 0:
+            alpha = out.alpha
+            ok = (alpha.detach() > 0.5) & (w > 0) & (self.depth[i] > 0)
+            d = out.depth / alpha.clamp_min(1e-6)
+            prior = torch.where(ok, self.depth[i], torch.ones_like(self.depth[i]))
+            rel = ((d - prior).abs() / prior) * ok
+            l_d = rel.sum() / ok.sum().clamp_min(1)
+            loss = loss + c.lambda_depth * l_d
+            parts["depth"] = float(l_d.detach())
+        return loss, parts
+
+    def render(self, i: int):
+        gs = self.gaussians
+        W, H = self.images.shape[2], self.images.shape[1]
+        out = rasterize(
+            gs.means, gs.quats, gs.log_scales, gs.opacities, gs.colors, self.Ks[i], self.w2cs[i], W, H,
+            backend=self.cfg.backend,
+        )  # fmt: skip
+        self.backend = out.backend
+        return out
+
+    # ------------------------------------------------------------------ Trainable
+    def training_step(self, step: int) -> StepOutput:
+        self.optimizer.set_step(step)
+        i = self._next_frame()
+        out = self.render(i)
+        loss, parts = self.frame_loss(i, out)
+        self.cfg.strategy.step_pre_backward(self.gaussians, self.optimizer, self.strategy_state, step, out)
+        return StepOutput(loss=loss, scalars=parts, info=out)
+
+    def optimizer_step(self, step: int, out: StepOutput) -> dict[str, float]:
+        self.optimizer.step()
+        self.optimizer.zero_grad()
+        self.cfg.strategy.step_post_backward(
+            self.gaussians, self.optimizer, self.strategy_state, step, out.info
+        )
+        return {"gaussians": float(len(self.gaussians))}
+
+    def state_dict(self) -> dict[str, Any]:
+        st = self.strategy_state
+        return {
+            "gaussians": {k: v.detach().cpu() for k, v in self.gaussians.params.items()},
+            "optimizer": self.optimizer.state_dict(),
+            "strategy": {k: (v.cpu() if isinstance(v, torch.Tensor) else v) for k, v in st.items()},
+            "queue": list(self.queue),
+        }
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        dev = self.images.device
+        self.gaussians.load_params(state["gaussians"])
+        self.optimizer = self._make_optimizer()
+        self.optimizer.load_state_dict(state["optimizer"])
+        self.strategy_state = {
+            k: (v.to(dev) if isinstance(v, torch.Tensor) else v) for k, v in state["strategy"].items()
+        }
+        self.queue = [int(i) for i in state["queue"]]
