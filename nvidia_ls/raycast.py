@@ -82,61 +82,66 @@ def intersect(prim: Primitive, o: np.ndarray, d: np.ndarray, R=None, c=None):
     n_rays = d.shape[0]
     t = np.full(n_rays, np.inf, dtype=dt)
     uv = np.zeros((n_rays, 2), dtype=dt)
-    nl = np.zeros((n_rays, 3), dtype=dt)
+    n_world = np.zeros((n_rays, 3), dtype=dt)
+    # Each branch works on the rays that can still hit (``cand``) and fills ``hit`` rows only: most rays
+    # miss most primitives, so this keeps the static set and small objects cheap.
     if prim.kind == "plane":
         dz = _safe(dl[:, 2])
         th = -ol[2] / dz
-        p = ol[None, :] + th[:, None] * dl
-        ok = (
-            (th > _EPS)
-            & (p[:, 0] >= 0)
-            & (p[:, 0] <= prim.size[0])
-            & (p[:, 1] >= 0)
-            & (p[:, 1] <= prim.size[1])
-        )
-        t[ok] = th[ok]
-        uv[ok] = p[ok, :2]
-        nl[:, 2] = np.where(dl[:, 2] < 0, 1.0, -1.0)  # two-sided: normal faces the viewer
+        cand = np.nonzero(th > _EPS)[0]
+        px = ol[0] + th[cand] * dl[cand, 0]
+        py = ol[1] + th[cand] * dl[cand, 1]
+        ok = (px >= 0) & (px <= prim.size[0]) & (py >= 0) & (py <= prim.size[1])
+        hit = cand[ok]
+        t[hit] = th[hit]
+        uv[hit, 0] = px[ok]
+        uv[hit, 1] = py[ok]
+        nl = np.zeros((hit.size, 3), dtype=dt)
+        nl[:, 2] = np.where(dz[hit] < 0, 1.0, -1.0)  # two-sided: normal faces the viewer
     elif prim.kind == "box":
         h = prim.size.astype(dt)
-        ds = _safe(dl)
+        # Cull with the bounding sphere first (a dot product per ray), then run the slab test on the rest.
+        b = dl @ ol
+        cand = np.nonzero(b * b - (ol @ ol - h @ h) >= 0)[0]
+        dc = dl[cand]
+        ds = _safe(dc)
         t1 = (-h[None, :] - ol[None, :]) / ds
         t2 = (h[None, :] - ol[None, :]) / ds
         tnear = np.minimum(t1, t2)
-        tfar = np.maximum(t1, t2)
         tmin = tnear.max(axis=1)
-        tmax = tfar.min(axis=1)
+        tmax = np.maximum(t1, t2).min(axis=1)
         ok = (tmax >= tmin) & (tmin > _EPS)
-        axis = tnear.argmax(axis=1)
-        p = ol[None, :] + tmin[:, None] * dl
-        t[ok] = tmin[ok]
+        hit = cand[ok]
+        th = tmin[ok]
+        axis = tnear[ok].argmax(axis=1)
+        p = ol[None, :] + th[:, None] * dc[ok]
+        t[hit] = th
         # Face coordinates: the two other axes, offset per face so faces do not repeat the same patch.
         other = np.array([[1, 2], [0, 2], [0, 1]])[axis]
-        rows = np.arange(n_rays)
-        a = p[rows, other[:, 0]] + h[other[:, 0]]
-        b = p[rows, other[:, 1]] + h[other[:, 1]]
+        rows = np.arange(hit.size)
         side = np.sign(p[rows, axis])
-        uv[ok, 0] = (a + 2.3 * axis + 1.1 * (side > 0))[ok]
-        uv[ok, 1] = b[ok]
+        uv[hit, 0] = p[rows, other[:, 0]] + h[other[:, 0]] + 2.3 * axis + 1.1 * (side > 0)
+        uv[hit, 1] = p[rows, other[:, 1]] + h[other[:, 1]]
+        nl = np.zeros((hit.size, 3), dtype=dt)
         nl[rows, axis] = side
     elif prim.kind == "sphere":
         r = prim.size[0]
         b = dl @ ol
-        cc = ol @ ol - r * r
-        disc = b * b - cc
-        ok = disc >= 0
+        disc = b * b - (ol @ ol - r * r)
         th = -b - np.sqrt(np.maximum(disc, 0.0))
-        ok &= th > _EPS
-        p = ol[None, :] + th[:, None] * dl
-        t[ok] = th[ok]
+        hit = np.nonzero((disc >= 0) & (th > _EPS))[0]
+        th = th[hit]
+        p = ol[None, :] + th[:, None] * dl[hit]
+        t[hit] = th
         lon = np.arctan2(p[:, 0], p[:, 2])
         lat = np.arcsin(np.clip(p[:, 1] / r, -1.0, 1.0))
-        uv[:, 0] = (lon + np.pi) * r
-        uv[:, 1] = (lat + np.pi / 2) * r
+        uv[hit, 0] = (lon + np.pi) * r
+        uv[hit, 1] = (lat + np.pi / 2) * r
         nl = p / r
     else:
         raise ValueError(f"unknown primitive kind {prim.kind!r}")
-    return t, uv, nl @ R.T.astype(dt)
+    n_world[hit] = nl @ R.T.astype(dt)
+    return t, uv, n_world
 
 
 def shade(prim: Primitive, uv: np.ndarray, n: np.ndarray) -> np.ndarray:

@@ -91,3 +91,37 @@ def test_unreadable_image_is_user_error(tmp_path):
         read_image(p)
     with pytest.raises(UserError, match="no such image"):
         read_image(tmp_path / "missing.png")
+
+
+def test_run_cli_exit_codes(capsys):
+    import typer
+
+    from worldtree.errors import run_cli
+
+    app = typer.Typer()
+
+    @app.command()
+    def fail(kind: str) -> None:
+        if kind == "exit":
+            raise typer.Exit(3)
+        raise UserError("--kind bad: use good")
+
+    @app.command()
+    def ok() -> None:
+        pass
+
+    import sys
+
+    for argv, code in ((["fail", "exit"], 3), (["fail", "user"], 2), (["ok"], None)):
+        sys_argv = sys.argv
+        sys.argv = ["prog", *argv]
+        try:
+            if code is None:
+                run_cli(app)
+            else:
+                with pytest.raises(SystemExit) as e:
+                    run_cli(app)
+                assert e.value.code == code
+        finally:
+            sys.argv = sys_argv
+    assert "error: --kind bad: use good" in capsys.readouterr().err

@@ -16,7 +16,8 @@ def run_cli(app) -> None:
     import sys
 
     try:
-        app(standalone_mode=False)
+        # With standalone_mode=False click returns a typer.Exit's code instead of exiting with it.
+        code = app(standalone_mode=False)
     except UserError as e:
         print(f"error: {e}", file=sys.stderr)
         raise SystemExit(2) from None
@@ -35,3 +36,5 @@ def run_cli(app) -> None:
             print("aborted", file=sys.stderr)
             raise SystemExit(1) from None
         raise
+    if isinstance(code, int) and code != 0:
+        raise SystemExit(code)

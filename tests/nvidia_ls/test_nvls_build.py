@@ -116,3 +116,17 @@ def test_resize_scales_intrinsics(synth_raw, tmp_path):
     # Half size: f halves, the centre moves to (W'-1)/2 (OpenCV pixel centres).
     np.testing.assert_allclose(scene.test_K.numpy()[0, 0], Ks[0][0, 0] / 2, rtol=1e-6)
     np.testing.assert_allclose(scene.test_K.numpy()[:2, 2], [63.5, 35.5], atol=1e-4)
+
+
+def test_build_synthetic_scene_in_one_call(tmp_path):
+    from nvidia_ls.demo import build_synthetic_scene
+    from nvidia_ls.synth import SynthConfig
+
+    raw, scene_dir = build_synthetic_scene(
+        tmp_path, SynthConfig(cameras=5, steps=6, width=48, height=32), BuildConfig(frames=4)
+    )
+    scene = load_scene(scene_dir)
+    _, w2cs = read_gt_cameras(raw)
+    assert scene.num_frames == 4 and scene_dir == tmp_path / "scenes" / "Synth"
+    assert scene.frame_cameras.tolist() == [2, 3, 4, 5]
+    np.testing.assert_allclose(scene.w2cs[2].numpy(), w2cs[3], atol=1e-5)

@@ -48,7 +48,7 @@ class TrackConfig:
     """Pyramid levels above the full resolution."""
     fb_max_px: float = 1.0
     """A step is kept when tracking back lands within this many pixels of the start."""
-    min_eigen: float = 1e-3
+    min_eigen: float = 1e-4
     """Lucas-Kanade minimum-eigenvalue threshold (cv2 minEigThreshold): drops textureless points."""
     reseed_every: int = 4
     """Re-seed uncovered areas every this many frames (1 = every frame)."""

@@ -124,6 +124,62 @@ class _RasterizeCPU(torch.autograd.Function):
         return g_m, g_con, g_o, g_col, g_z, g_bg, None, None, None
 
 
+class _ProjectCPU(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, means, quats, log_scales, w2c, K, keep, width, height, near, eps2d):
+        means2d, conics, depths, radii = _load().project_forward(
+            means, quats, log_scales, K, w2c, keep, width, height, near, eps2d, torch.get_num_threads()
+        )
+        ctx.save_for_backward(means, quats, log_scales, w2c, K, radii)
+        ctx.args = (width, height, near, eps2d)
+        ctx.mark_non_differentiable(radii)
+        return means2d, conics, depths, radii
+
+    @staticmethod
+    def backward(ctx, g_m2d, g_con, g_z, _g_radii):
+        means, quats, log_scales, w2c, K, radii = ctx.saved_tensors
+        width, height, near, eps2d = ctx.args
+        g_m2d = torch.zeros(means.shape[0], 2, dtype=means.dtype) if g_m2d is None else g_m2d.contiguous()
+        g_con = torch.zeros(means.shape[0], 3, dtype=means.dtype) if g_con is None else g_con.contiguous()
+        g_z = torch.zeros(means.shape[0], dtype=means.dtype) if g_z is None else g_z.contiguous()
+        d_means, d_quats, d_ls, d_w2c = _load().project_backward(
+            means, quats, log_scales, K, w2c, radii, g_m2d, g_con, g_z, width, height, near, eps2d,
+            torch.get_num_threads(),
+        )  # fmt: skip
+        return d_means, d_quats, d_ls, d_w2c, None, None, None, None, None, None
+
+
+def project_cpu(
+    means: Tensor,
+    quats: Tensor,
+    log_scales: Tensor,
+    K: Tensor,
+    w2c: Tensor,
+    width: int,
+    height: int,
+    near: float,
+    eps2d: float,
+    keep: Tensor,
+) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """C++ version of :func:`worldtree.render.projection.project_gaussians` (same formulas, hand-written backward).
+
+    Returns means2d [N, 2], conics [N, 3], depths [N], radii [N] int32; differentiable w.r.t. means, quats,
+    log_scales and w2c. Computed in double internally, stored in the input dtype.
+    """
+    return _ProjectCPU.apply(
+        means.contiguous(),
+        quats.contiguous(),
+        log_scales.contiguous(),
+        w2c.contiguous(),
+        K.detach().contiguous(),
+        keep.contiguous(),
+        int(width),
+        int(height),
+        float(near),
+        float(eps2d),
+    )
+
+
 def rasterize_cpu(
     means2d: Tensor,
     conics: Tensor,

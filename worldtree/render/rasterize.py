@@ -65,24 +65,30 @@ def rasterize(
         )
         return RenderOutput(rgb, alpha, depth, means2d, radii, radii > 0, chosen)
 
-    proj = project_gaussians(
-        means, quats, log_scales, K, w2c, width, height, near=near, eps2d=eps2d, keep=keep
-    )
-    means2d = proj.means2d
-    if means2d.requires_grad:
-        means2d.retain_grad()
     if chosen == "cpu":
+        from worldtree.render.cpu_kernel import project_cpu
         from worldtree.render.cpu_kernel import rasterize_cpu as raster
+
+        means2d, conics, depths, radii = project_cpu(
+            means, quats, log_scales, K, w2c, width, height, near, eps2d, keep
+        )
     else:
         from worldtree.render.reference import rasterize_reference as raster
-    rgb, alpha, depth = raster(means2d, proj.conics, opac, cols, proj.depths, proj.radii, bg, width, height)
+
+        proj = project_gaussians(
+            means, quats, log_scales, K, w2c, width, height, near=near, eps2d=eps2d, keep=keep
+        )
+        means2d, conics, depths, radii = proj.means2d, proj.conics, proj.depths, proj.radii
+    if means2d.requires_grad:
+        means2d.retain_grad()
+    rgb, alpha, depth = raster(means2d, conics, opac, cols, depths, radii, bg, width, height)
     return RenderOutput(
         rgb=rgb,
         alpha=alpha,
         depth=depth,
         means2d=means2d,
-        radii=proj.radii,
-        visible=proj.radii > 0,
+        radii=radii,
+        visible=radii > 0,
         backend=chosen,
     )
 

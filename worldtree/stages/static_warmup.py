@@ -99,27 +99,28 @@ def ssim_weights(static: torch.Tensor) -> torch.Tensor:
 
 
 @torch.no_grad()
-def lift_static_points(
+def lift_pixels(
     images: torch.Tensor,
     depth: torch.Tensor,
-    static: torch.Tensor,
+    mask: torch.Tensor,
     Ks: torch.Tensor,
     w2cs: torch.Tensor,
     stride: int,
     max_points: int,
     generator: torch.Generator,
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """``(points [P, 3], colours [P, 3])``: the depth prior at static pixels of a ``stride`` grid, lifted
-    with each frame's camera; at most ``max_points`` (random subset)."""
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """``(points [P, 3], colours [P, 3], frames [P] long)``: the depth prior ``depth [T, H, W]`` at the pixels
+    of a ``stride`` grid where ``mask [T, H, W]`` is > 0.5 and the depth is valid, lifted with each frame's
+    ``Ks``/``w2cs``; at most ``max_points`` (a random subset drawn from ``generator``). May be empty."""
     T, H, W = depth.shape
-    pts, cols = [], []
+    pts, cols, frames = [], [], []
     v, u = torch.meshgrid(
         torch.arange(0, H, stride, device=depth.device), torch.arange(0, W, stride, device=depth.device),
         indexing="ij",
     )  # fmt: skip
     for t in range(T):
         z = depth[t, v, u]
-        ok = (static[t, v, u] > 0.5) & torch.isfinite(z) & (z > 0)
+        ok = (mask[t, v, u].float() > 0.5) & torch.isfinite(z) & (z > 0)
         if not ok.any():
             continue
         uu, vv, zz = u[ok].to(depth.dtype), v[ok].to(depth.dtype), z[ok]
@@ -130,15 +131,25 @@ def lift_static_points(
         R, tr = w2cs[t, :3, :3].to(depth.dtype), w2cs[t, :3, 3].to(depth.dtype)
         pts.append((cam - tr) @ R)
         cols.append(images[t, v[ok], u[ok]])
+        frames.append(torch.full((int(ok.sum()),), t, dtype=torch.long, device=depth.device))
     if not pts:
+        z3 = depth.new_zeros((0, 3))
+        return z3, z3.clone(), torch.zeros(0, dtype=torch.long, device=depth.device)
+    P, C, F_ = torch.cat(pts), torch.cat(cols), torch.cat(frames)
+    if P.shape[0] > max_points:
+        keep = torch.randperm(P.shape[0], generator=generator)[:max_points].to(P.device)
+        P, C, F_ = P[keep], C[keep], F_[keep]
+    return P, C, F_
+
+
+def lift_static_points(images, depth, static, Ks, w2cs, stride, max_points, generator):
+    """:func:`lift_pixels` on the static pixels; a :class:`UserError` when there is none."""
+    P, C, _ = lift_pixels(images, depth, static, Ks, w2cs, stride, max_points, generator)
+    if P.shape[0] == 0:
         raise UserError(
             "static warm-up: no static pixel with a valid depth; the dynamic mask covers every frame "
             "(check the priors' EPI threshold or the imported masks)"
         )
-    P, C = torch.cat(pts), torch.cat(cols)
-    if P.shape[0] > max_points:
-        keep = torch.randperm(P.shape[0], generator=generator)[:max_points].to(P.device)
-        P, C = P[keep], C[keep]
     return P, C
 
 

@@ -169,18 +169,25 @@ def test_bad_arguments_raise():
             rasterize(width=w, height=h, backend="gsplat", **p)
 
 
-def test_auto_falls_back_to_reference_when_the_build_fails(monkeypatch, caplog):
+def test_auto_falls_back_to_reference_when_the_build_fails(monkeypatch, caplog, tmp_path):
+    """A real failed build (a source that does not compile): one warning, then the reference, logged once."""
     from worldtree.render import backends
 
+    broken = tmp_path / "broken.cpp"
+    broken.write_text("#error simulated build failure\n")
+    monkeypatch.setenv("TORCH_EXTENSIONS_DIR", str(tmp_path / "ext"))
+    monkeypatch.setattr(cpu_kernel, "_SRC", broken)
     monkeypatch.setattr(cpu_kernel, "_module", None)
-    monkeypatch.setattr(cpu_kernel, "_error", "RuntimeError: no compiler (simulated)")
+    monkeypatch.setattr(cpu_kernel, "_error", None)
     monkeypatch.setattr(backends, "_logged", set())
     p, w, h = _single([0.0, 0.0, 2.0])
     with caplog.at_level("INFO", logger="worldtree.render"):
         out = rasterize(width=w, height=h, **p)
         rasterize(width=w, height=h, **p)
     assert out.backend == "reference"
-    assert sum("reference" in r.getMessage() for r in caplog.records) == 1  # logged once
+    warnings = [r for r in caplog.records if r.levelname == "WARNING"]
+    assert len(warnings) == 1 and "C++ rasterizer unavailable" in warnings[0].getMessage()
+    assert sum("backend on cpu: reference" in r.getMessage() for r in caplog.records) == 1  # logged once
     with pytest.raises(UserError, match="did not build"):
         rasterize(width=w, height=h, backend="cpu", **p)
 

@@ -89,15 +89,17 @@ Bins bin_gaussians(const T* means2d, const T* depths, const int32_t* radii, int6
   return bins;
 }
 
-// Pixels of the tile outside which this Gaussian's alpha is certainly < 1/255 (with a one-pixel margin, so the
-// exact per-pixel tests decide every borderline case). Returns false when no pixel can be reached.
+// Pixels of the tile outside which this Gaussian's alpha is certainly < 1/255: the bounding box of the ellipse
+// d^T C d <= 2 ln(255 o), widened by a slack on the exponent (far above float rounding) and one pixel, so the
+// exact per-pixel tests decide every borderline case and skipping the rest changes no result. Returns false
+// when no pixel can be reached.
 template <typename T>
 inline bool reach_box(T mx, T my, T a, T b, T c, T o, int px0, int px1, int py0, int py1, int& x0, int& x1, int& y0,
                       int& y1) {
   if (!(o >= Consts<T>::alpha_min)) return false;
   x0 = px0, x1 = px1, y0 = py0, y1 = py1;
   const double det = double(a) * double(c) - double(b) * double(b);
-  const double L = 2.0 * std::log(255.0 * double(o));  // alpha >= 1/255 needs d^T C d <= L
+  const double L = 2.0 * std::log(255.0 * double(o)) + 1e-3;  // alpha >= 1/255 needs d^T C d <= L
   if (det > 0 && std::isfinite(det) && L >= 0) {
     const double ex = std::sqrt(L * double(c) / det) + 1.0, ey = std::sqrt(L * double(a) / det) + 1.0;
     if (std::isfinite(ex) && std::isfinite(ey)) {
@@ -325,6 +327,220 @@ void backward_impl(const T* means2d, const T* conics, const T* opac, const T* co
   }
 }
 
+// ---------------------------------------------------------------------------------------------------------
+// EWA projection, forward and hand-written backward (same formulas as worldtree/render/projection.py, which is
+// the autograd oracle for it). One Gaussian per iteration, computed in double and stored in T.
+
+struct Camera {
+  double fx, fy, cx, cy, R[9], t[3], lxp, lxn, lyp, lyn;
+  int width, height;
+  double near, eps2d;
+};
+
+Camera make_camera(const torch::Tensor& K, const torch::Tensor& w2c, int64_t width, int64_t height, double near,
+                   double eps2d) {
+  auto k = K.to(torch::kDouble).contiguous();
+  auto v = w2c.to(torch::kDouble).contiguous();
+  const double* kp = k.data_ptr<double>();
+  const double* vp = v.data_ptr<double>();
+  Camera c;
+  c.fx = kp[0], c.fy = kp[4], c.cx = kp[2], c.cy = kp[5];
+  for (int r = 0; r < 3; ++r) {
+    for (int j = 0; j < 3; ++j) c.R[3 * r + j] = vp[4 * r + j];
+    c.t[r] = vp[4 * r + 3];
+  }
+  c.width = int(width), c.height = int(height), c.near = near, c.eps2d = eps2d;
+  const double tan_x = 0.5 * width / c.fx, tan_y = 0.5 * height / c.fy;
+  c.lxp = (width - 0.5 - c.cx) / c.fx + 0.3 * tan_x;
+  c.lxn = (c.cx + 0.5) / c.fx + 0.3 * tan_x;
+  c.lyp = (height - 0.5 - c.cy) / c.fy + 0.3 * tan_y;
+  c.lyn = (c.cy + 0.5) / c.fy + 0.3 * tan_y;
+  return c;
+}
+
+// Everything the forward computes for one Gaussian, kept for its backward.
+struct ProjState {
+  double m[3], qn, qh[4], s[3], Rq[9], M[9], p[3], rz, X, Y, xin, yin, W[9], A0[3], A1[3], a, b, c, det;
+};
+
+// Returns false when the Gaussian is culled before its covariance is known to be usable.
+inline bool project_one(const Camera& cam, const double* m, const double* q, const double* ls, ProjState& S) {
+  for (int i = 0; i < 3; ++i)
+    if (!std::isfinite(m[i]) || !std::isfinite(ls[i])) return false;
+  for (int i = 0; i < 4; ++i)
+    if (!std::isfinite(q[i])) return false;
+  S.qn = std::sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]);
+  if (!(S.qn > 1e-8)) return false;
+  for (int i = 0; i < 3; ++i) S.m[i] = m[i];
+  for (int r = 0; r < 3; ++r)
+    S.p[r] = cam.R[3 * r] * m[0] + cam.R[3 * r + 1] * m[1] + cam.R[3 * r + 2] * m[2] + cam.t[r];
+  if (!(std::isfinite(S.p[0]) && std::isfinite(S.p[1]) && std::isfinite(S.p[2]) && S.p[2] > cam.near)) return false;
+  for (int i = 0; i < 4; ++i) S.qh[i] = q[i] / S.qn;
+  const double w = S.qh[0], x = S.qh[1], y = S.qh[2], z = S.qh[3];
+  const double Rq[9] = {1 - 2 * (y * y + z * z), 2 * (x * y - w * z),     2 * (x * z + w * y),
+                        2 * (x * y + w * z),     1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+                        2 * (x * z - w * y),     2 * (y * z + w * x),     1 - 2 * (x * x + y * y)};
+  for (int i = 0; i < 3; ++i) S.s[i] = std::exp(ls[i]);
+  for (int j = 0; j < 3; ++j)
+    for (int k = 0; k < 3; ++k) {
+      S.Rq[3 * j + k] = Rq[3 * j + k];
+      S.M[3 * j + k] = Rq[3 * j + k] * S.s[k];
+    }
+  for (int r = 0; r < 3; ++r)
+    for (int k = 0; k < 3; ++k)
+      S.W[3 * r + k] = cam.R[3 * r] * S.M[k] + cam.R[3 * r + 1] * S.M[3 + k] + cam.R[3 * r + 2] * S.M[6 + k];
+  S.rz = 1.0 / S.p[2];
+  const double xr = S.p[0] * S.rz, yr = S.p[1] * S.rz;
+  S.X = std::min(std::max(xr, -cam.lxn), cam.lxp);
+  S.Y = std::min(std::max(yr, -cam.lyn), cam.lyp);
+  S.xin = (xr > -cam.lxn && xr < cam.lxp) ? 1.0 : 0.0;  // direction not clamped: J follows x
+  S.yin = (yr > -cam.lyn && yr < cam.lyp) ? 1.0 : 0.0;
+  const double j00 = cam.fx * S.rz, j02 = -cam.fx * S.X * S.rz, j11 = cam.fy * S.rz, j12 = -cam.fy * S.Y * S.rz;
+  for (int k = 0; k < 3; ++k) {
+    S.A0[k] = j00 * S.W[k] + j02 * S.W[6 + k];
+    S.A1[k] = j11 * S.W[3 + k] + j12 * S.W[6 + k];
+  }
+  S.a = S.A0[0] * S.A0[0] + S.A0[1] * S.A0[1] + S.A0[2] * S.A0[2] + cam.eps2d;
+  S.b = S.A0[0] * S.A1[0] + S.A0[1] * S.A1[1] + S.A0[2] * S.A1[2];
+  S.c = S.A1[0] * S.A1[0] + S.A1[1] * S.A1[1] + S.A1[2] * S.A1[2] + cam.eps2d;
+  S.det = S.a * S.c - S.b * S.b;
+  return std::isfinite(S.a) && std::isfinite(S.b) && std::isfinite(S.c) && std::isfinite(S.det) && S.det > 0 &&
+         std::isfinite(S.c / S.det) && std::isfinite(S.a / S.det);
+}
+
+template <typename T>
+void project_forward_impl(const Camera& cam, const T* means, const T* quats, const T* lsc, const bool* keep, int64_t n,
+                          int threads, T* means2d, T* conics, T* depths, int32_t* radii) {
+  const int tw = (cam.width + TILE - 1) / TILE, th = (cam.height + TILE - 1) / TILE;
+#pragma omp parallel for schedule(static) num_threads(threads)
+  for (int64_t i = 0; i < n; ++i) {
+    means2d[2 * i] = means2d[2 * i + 1] = T(0);
+    conics[3 * i] = conics[3 * i + 1] = conics[3 * i + 2] = T(0);
+    depths[i] = T(0);
+    radii[i] = 0;
+    if (!keep[i]) continue;
+    const double m[3] = {double(means[3 * i]), double(means[3 * i + 1]), double(means[3 * i + 2])};
+    const double q[4] = {double(quats[4 * i]), double(quats[4 * i + 1]), double(quats[4 * i + 2]),
+                         double(quats[4 * i + 3])};
+    const double ls[3] = {double(lsc[3 * i]), double(lsc[3 * i + 1]), double(lsc[3 * i + 2])};
+    ProjState S;
+    if (!project_one(cam, m, q, ls, S)) continue;
+    {
+      // Cull what the storage type cannot hold, as the PyTorch projection does in that dtype: a covariance or
+      // determinant that overflows, or a conic that is not finite and positive on its diagonal.
+      const T ta = T(S.a), tb = T(S.b), tc = T(S.c), tdet = ta * tc - tb * tb;
+      const T c0 = T(S.c / S.det), c1 = T(-S.b / S.det), c2 = T(S.a / S.det);
+      if (!(std::isfinite(double(tdet)) && tdet > T(0) && std::isfinite(double(ta)) && std::isfinite(double(tc))))
+        continue;
+      if (!(std::isfinite(double(c0)) && std::isfinite(double(c1)) && std::isfinite(double(c2)) && c0 > T(0) &&
+            c2 > T(0)))
+        continue;
+    }
+    const double mid = 0.5 * (S.a + S.c);
+    double r = std::ceil(3.0 * std::sqrt(mid + std::sqrt(std::max(mid * mid - S.det, 0.1))));
+    r = std::min(r, double(1 << 24));
+    if (!(r > 0)) continue;
+    const T u = T(cam.fx * S.p[0] * S.rz + cam.cx), v = T(cam.fy * S.p[1] * S.rz + cam.cy);
+    if (!std::isfinite(double(u)) || !std::isfinite(double(v))) continue;
+    int x0, x1, y0, y1;
+    tile_rect<T>(u, v, T(r), tw, th, x0, x1, y0, y1);
+    if (!(x1 > x0 && y1 > y0)) continue;
+    means2d[2 * i] = u, means2d[2 * i + 1] = v;
+    conics[3 * i] = T(S.c / S.det), conics[3 * i + 1] = T(-S.b / S.det), conics[3 * i + 2] = T(S.a / S.det);
+    depths[i] = T(S.p[2]);
+    radii[i] = static_cast<int32_t>(r);
+  }
+}
+
+template <typename T>
+void project_backward_impl(const Camera& cam, const T* means, const T* quats, const T* lsc, const int32_t* radii,
+                           int64_t n, const T* g_m2d, const T* g_con, const T* g_z, int threads, T* d_means,
+                           T* d_quats, T* d_ls, double* d_Rt /* [n][12], summed by the caller in order */) {
+#pragma omp parallel num_threads(threads)
+  {
+#pragma omp for schedule(static)
+    for (int64_t i = 0; i < n; ++i) {
+      double* acc = d_Rt + 12 * i;
+      for (int k = 0; k < 3; ++k) d_means[3 * i + k] = d_ls[3 * i + k] = T(0);
+      for (int k = 0; k < 4; ++k) d_quats[4 * i + k] = T(0);
+      if (radii[i] <= 0) continue;  // culled: exactly zero gradient
+      const double m[3] = {double(means[3 * i]), double(means[3 * i + 1]), double(means[3 * i + 2])};
+      const double q[4] = {double(quats[4 * i]), double(quats[4 * i + 1]), double(quats[4 * i + 2]),
+                           double(quats[4 * i + 3])};
+      const double ls[3] = {double(lsc[3 * i]), double(lsc[3 * i + 1]), double(lsc[3 * i + 2])};
+      ProjState S;
+      if (!project_one(cam, m, q, ls, S)) continue;
+      const double a = S.a, b = S.b, c = S.c, det = S.det, d2 = det * det;
+      const double g0 = double(g_con[3 * i]), g1 = double(g_con[3 * i + 1]), g2 = double(g_con[3 * i + 2]);
+      // conic = (c, -b, a) / det with det = a c - b^2.
+      const double ga = g0 * (-c * c / d2) + g1 * (b * c / d2) + g2 * (-b * b / d2);
+      const double gb = g0 * (2 * b * c / d2) + g1 * (-1.0 / det - 2 * b * b / d2) + g2 * (2 * a * b / d2);
+      const double gc = g0 * (-b * b / d2) + g1 * (a * b / d2) + g2 * (-a * a / d2);
+      double dA0[3], dA1[3];
+      for (int k = 0; k < 3; ++k) {
+        dA0[k] = 2 * ga * S.A0[k] + gb * S.A1[k];
+        dA1[k] = gb * S.A0[k] + 2 * gc * S.A1[k];
+      }
+      const double rz = S.rz, fx = cam.fx, fy = cam.fy;
+      const double j00 = fx * rz, j02 = -fx * S.X * rz, j11 = fy * rz, j12 = -fy * S.Y * rz;
+      double dW[9];
+      double dj00 = 0, dj02 = 0, dj11 = 0, dj12 = 0;
+      for (int k = 0; k < 3; ++k) {
+        dW[k] = j00 * dA0[k];
+        dW[3 + k] = j11 * dA1[k];
+        dW[6 + k] = j02 * dA0[k] + j12 * dA1[k];
+        dj00 += dA0[k] * S.W[k];
+        dj02 += dA0[k] * S.W[6 + k];
+        dj11 += dA1[k] * S.W[3 + k];
+        dj12 += dA1[k] * S.W[6 + k];
+      }
+      // W = R M.
+      double dR[9], dM[9];
+      for (int r = 0; r < 3; ++r)
+        for (int j = 0; j < 3; ++j)
+          dR[3 * r + j] = dW[3 * r] * S.M[3 * j] + dW[3 * r + 1] * S.M[3 * j + 1] + dW[3 * r + 2] * S.M[3 * j + 2];
+      for (int j = 0; j < 3; ++j)
+        for (int k = 0; k < 3; ++k)
+          dM[3 * j + k] = cam.R[j] * dW[k] + cam.R[3 + j] * dW[3 + k] + cam.R[6 + j] * dW[6 + k];
+      // M = Rq diag(s), s = exp(log_scales).
+      double dRq[9];
+      for (int k = 0; k < 3; ++k) {
+        double ds = 0;
+        for (int j = 0; j < 3; ++j) {
+          dRq[3 * j + k] = dM[3 * j + k] * S.s[k];
+          ds += dM[3 * j + k] * S.Rq[3 * j + k];
+        }
+        d_ls[3 * i + k] = T(ds * S.s[k]);
+      }
+      const double w = S.qh[0], x = S.qh[1], y = S.qh[2], z = S.qh[3];
+      const double* G = dRq;
+      const double dqh[4] = {
+          2 * (-z * G[1] + y * G[2] + z * G[3] - x * G[5] - y * G[6] + x * G[7]),
+          2 * (y * G[1] + z * G[2] + y * G[3] - 2 * x * G[4] - w * G[5] + z * G[6] + w * G[7] - 2 * x * G[8]),
+          2 * (-2 * y * G[0] + x * G[1] + w * G[2] + x * G[3] + z * G[5] - w * G[6] + z * G[7] - 2 * y * G[8]),
+          2 * (-2 * z * G[0] - w * G[1] + x * G[2] + w * G[3] - 2 * z * G[4] + y * G[5] + x * G[6] + y * G[7])};
+      const double dot = dqh[0] * S.qh[0] + dqh[1] * S.qh[1] + dqh[2] * S.qh[2] + dqh[3] * S.qh[3];
+      for (int k = 0; k < 4; ++k) d_quats[4 * i + k] = T((dqh[k] - S.qh[k] * dot) / S.qn);
+      // Camera point p: from the 2D mean, the depth and the Jacobian entries.
+      const double gu = double(g_m2d[2 * i]), gv = double(g_m2d[2 * i + 1]);
+      const double px = S.p[0], py = S.p[1];
+      double dp[3];
+      dp[0] = gu * fx * rz - dj02 * fx * rz * S.xin * rz;
+      dp[1] = gv * fy * rz - dj12 * fy * rz * S.yin * rz;
+      dp[2] = double(g_z[i]) - gu * fx * px * rz * rz - gv * fy * py * rz * rz - dj00 * fx * rz * rz -
+              dj11 * fy * rz * rz - dj02 * fx * (S.xin * (-px * rz * rz) * rz - S.X * rz * rz) -
+              dj12 * fy * (S.yin * (-py * rz * rz) * rz - S.Y * rz * rz);
+      // p = R m + t.
+      for (int j = 0; j < 3; ++j)
+        d_means[3 * i + j] = T(cam.R[j] * dp[0] + cam.R[3 + j] * dp[1] + cam.R[6 + j] * dp[2]);
+      for (int r = 0; r < 3; ++r) {
+        for (int j = 0; j < 3; ++j) acc[3 * r + j] += dR[3 * r + j] + dp[r] * S.m[j];
+        acc[9 + r] += dp[r];
+      }
+    }
+  }
+}
+
 void check(const torch::Tensor& t, const char* name, int64_t n, int64_t cols) {
   TORCH_CHECK(t.device().is_cpu(), name, " must be a CPU tensor");
   TORCH_CHECK(t.is_contiguous(), name, " must be contiguous");
@@ -407,7 +623,69 @@ std::vector<torch::Tensor> rasterize_backward(torch::Tensor means2d, torch::Tens
           grad.index({Slice(), Slice(6, 9)}), grad.index({Slice(), 9})};
 }
 
+// Returns means2d [N,2], conics [N,3], depths [N], radii [N] int32 (zeros where culled).
+std::vector<torch::Tensor> project_forward(torch::Tensor means, torch::Tensor quats, torch::Tensor log_scales,
+                                           torch::Tensor K, torch::Tensor w2c, torch::Tensor keep, int64_t width,
+                                           int64_t height, double near, double eps2d, int64_t threads) {
+  const int64_t n = means.size(0);
+  check(means, "means", n, 3);
+  check(quats, "quats", n, 4);
+  check(log_scales, "log_scales", n, 3);
+  check(keep, "keep", n, 0);
+  TORCH_CHECK(keep.scalar_type() == torch::kBool, "keep must be bool");
+  const Camera cam = make_camera(K, w2c, width, height, near, eps2d);
+  auto opts = means.options();
+  auto means2d = torch::empty({n, 2}, opts), conics = torch::empty({n, 3}, opts), depths = torch::empty({n}, opts);
+  auto radii = torch::empty({n}, opts.dtype(torch::kInt32));
+  AT_DISPATCH_FLOATING_TYPES(means.scalar_type(), "project_forward", [&] {
+    project_forward_impl<scalar_t>(cam, means.data_ptr<scalar_t>(), quats.data_ptr<scalar_t>(),
+                                   log_scales.data_ptr<scalar_t>(), keep.data_ptr<bool>(), n, int(threads),
+                                   means2d.data_ptr<scalar_t>(), conics.data_ptr<scalar_t>(),
+                                   depths.data_ptr<scalar_t>(), radii.data_ptr<int32_t>());
+  });
+  return {means2d, conics, depths, radii};
+}
+
+// Returns gradients: means [N,3], quats [N,4], log_scales [N,3], w2c [4,4] (rotation and translation rows).
+std::vector<torch::Tensor> project_backward(torch::Tensor means, torch::Tensor quats, torch::Tensor log_scales,
+                                            torch::Tensor K, torch::Tensor w2c, torch::Tensor radii,
+                                            torch::Tensor g_m2d, torch::Tensor g_con, torch::Tensor g_z, int64_t width,
+                                            int64_t height, double near, double eps2d, int64_t threads) {
+  const int64_t n = means.size(0);
+  check(g_m2d, "grad means2d", n, 2);
+  check(g_con, "grad conics", n, 3);
+  check(g_z, "grad depths", n, 0);
+  const Camera cam = make_camera(K, w2c, width, height, near, eps2d);
+  auto opts = means.options();
+  auto d_means = torch::empty({n, 3}, opts), d_quats = torch::empty({n, 4}, opts);
+  auto d_ls = torch::empty({n, 3}, opts);
+  const int nt = std::max<int>(1, int(threads));
+  // Per-Gaussian pose contributions, summed serially below so the result does not depend on the threads.
+  auto d_Rt = torch::zeros({n, 12}, opts.dtype(torch::kDouble));
+  AT_DISPATCH_FLOATING_TYPES(means.scalar_type(), "project_backward", [&] {
+    project_backward_impl<scalar_t>(cam, means.data_ptr<scalar_t>(), quats.data_ptr<scalar_t>(),
+                                    log_scales.data_ptr<scalar_t>(), radii.data_ptr<int32_t>(), n,
+                                    g_m2d.data_ptr<scalar_t>(), g_con.data_ptr<scalar_t>(), g_z.data_ptr<scalar_t>(),
+                                    nt, d_means.data_ptr<scalar_t>(), d_quats.data_ptr<scalar_t>(),
+                                    d_ls.data_ptr<scalar_t>(), d_Rt.data_ptr<double>());
+  });
+  auto rt = torch::zeros({12}, opts.dtype(torch::kDouble));
+  {
+    const double* src = d_Rt.data_ptr<double>();
+    double* dst = rt.data_ptr<double>();
+    for (int64_t i = 0; i < n; ++i)
+      for (int k = 0; k < 12; ++k) dst[k] += src[12 * i + k];
+  }
+  auto d_w2c = torch::zeros({4, 4}, opts.dtype(torch::kDouble));
+  using torch::indexing::Slice;
+  d_w2c.index_put_({Slice(0, 3), Slice(0, 3)}, rt.index({Slice(0, 9)}).reshape({3, 3}));
+  d_w2c.index_put_({Slice(0, 3), 3}, rt.index({Slice(9, 12)}));
+  return {d_means, d_quats, d_ls, d_w2c.to(w2c.scalar_type())};
+}
+
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
+  m.def("project_forward", &project_forward, "EWA projection forward (CPU)");
+  m.def("project_backward", &project_backward, "EWA projection backward (CPU)");
   m.def("forward", &rasterize_forward, "Gaussian tile rasterizer forward (CPU)");
   m.def("backward", &rasterize_backward, "Gaussian tile rasterizer backward (CPU)");
 }
