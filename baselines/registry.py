@@ -23,7 +23,7 @@ from worldtree.scene import Scene
 from worldtree.trainer import TrainContext, TrainSummary
 
 # Modules that register methods when imported (one line per method).
-METHOD_MODULES: tuple[str, ...] = ("baselines.static3dgs",)
+METHOD_MODULES: tuple[str, ...] = ("baselines.static3dgs", "baselines.base")
 
 COMMON_FIELDS = ("seed", "steps", "downscale")
 

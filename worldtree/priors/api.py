@@ -84,11 +84,13 @@ def _tick(progress: ProgressFn | None, stage: str, done: int, total: int) -> Non
 
 
 # ------------------------------------------------------------------------------------------------ stages
-def _flows(imgs, cfg: PriorsConfig, cache: PriorCache, fp: str, progress, init=None) -> tuple[dict, str, str]:
-    """Flow pairs; ``init`` = (depth [T,H,W], Ks, w2cs, depth_key) starts DIS from the rigid flow."""
+def _flows(
+    imgs, cfg: PriorsConfig, cache: PriorCache, fp: str, progress, init=None, fields=None
+) -> tuple[dict, str, str]:
+    """Flow pairs; ``init`` = (depth [T,H,W], Ks, w2cs, depth_key) starts DIS from the rigid flow;
+    ``fields`` are the imported flows ({(i, j): [H,W,2]}) when ``cfg.flow_source`` is a folder."""
     T, H, W = imgs.shape[:3]
     if cfg.flow_source != "classical":
-        fields = imported.read_flows(cfg.flow_source, T, H, W)
         out = {}
         for (i, j), f in fields.items():
             # The FB check needs the reverse field; without it only landing inside and colour are checked.
@@ -272,17 +274,20 @@ def compute_priors(
     cache = PriorCache(cache_dir)
     fp = inputs_fingerprint(imgs, Ks, w2cs)
 
-    # Read imported tracks and masks first, so a bad file fails before any long computation.
+    # Read imported tracks, masks and flow first, so a bad file fails before any long computation.
     imported_tracks = None
     if cfg.tracks_source != "classical":
         imported_tracks = imported.read_tracks(cfg.tracks_source, T, H, W)
     mask = None
     if cfg.masks_source is not None:
         mask = imported.read_masks(cfg.masks_source, T, H, W)
+    fields = None
+    if cfg.flow_source != "classical":
+        fields = imported.read_flows(cfg.flow_source, T, H, W)
     # Depth first: metric depth and the poses predict where static pixels go, which guides flow and tracks.
     depth, depth_conf, depth_src, depth_key = _depth(imgs, Ks, w2cs, scene, cfg, cache, fp, progress)
     init = (depth, Ks, w2cs, depth_key) if depth_key is not None else None
-    flows, flow_key, flow_src = _flows(imgs, cfg, cache, fp, progress, init)
+    flows, flow_key, flow_src = _flows(imgs, cfg, cache, fp, progress, init, fields)
     if imported_tracks is not None:
         xy, vis = imported_tracks
         tracks_src = f"imported:{cfg.tracks_source}"

@@ -2,8 +2,10 @@
 
 Seeds are a regular grid plus Shi-Tomasi corners at the first frame. Each step t -> t+1 tracks every live point
 forward, tracks the result back, and keeps it when it comes home within ``fb_max_px`` (and stays inside the
-image); a point that fails is finished for good (no re-identification). Every ``reseed_every`` frames, uncovered
-areas (farther than ``min_distance`` from any live point) get new grid and corner seeds, until ``max_tracks``.
+image); a point that fails is finished for good (no re-identification), and a seed that fails within
+``min_length`` frames is discarded at once (its slot is reused). Every ``reseed_every`` frames, uncovered areas
+(farther than ``min_distance`` from any live point) get new grid and corner seeds, while fewer than
+``max_tracks`` slots are in use.
 With ``bidirectional`` the points seeded after the first frame are also tracked backwards in time, so a track
 can start before its seed frame.
 
@@ -132,28 +134,41 @@ def track_video(
     xy = np.zeros((T, cap, 2), np.float32)
     vis = np.zeros((T, cap), bool)
     seed = np.zeros(cap, np.int64)
-    n = 0
+    n = 0  # slots used so far
+    free: list[int] = []  # slots of seeds that died young, reused before new ones
 
     def add(t: int, pts: np.ndarray) -> np.ndarray:
-        nonlocal n
-        m = min(len(pts), cap - n)
-        idx = np.arange(n, n + m)
-        xy[t, idx] = pts[:m]
+        nonlocal n, free
+        reuse = free[: len(pts)]
+        free = free[len(reuse) :]
+        m = min(len(pts) - len(reuse), cap - n)
+        idx = np.concatenate([np.asarray(reuse, np.int64), np.arange(n, n + m)])
+        xy[t, idx] = pts[: len(idx)]
         vis[t, idx] = True
         seed[idx] = t
         n += m
         return idx
+
+    def retire(dead: np.ndarray) -> None:
+        # Seeds lost within min_length frames (textureless, occluded) would be dropped at the end anyway;
+        # freeing their slots at once keeps max_tracks for tracks that last.
+        young = dead[vis[:, dead].sum(0) < cfg.min_length]
+        vis[:, young] = False
+        xy[:, young] = 0.0
+        free.extend(young.tolist())
 
     active = add(0, seed_points(grays[0], np.zeros((0, 2)), cfg, cap, cfg.max_corners))
     if on_frame is not None:
         on_frame(0)
     for t in range(T - 1):
         p1, ok = _lk_step(grays[t], grays[t + 1], xy[t, active], cfg, *guesses(t, t + 1))
+        retire(active[~ok])
         active = active[ok]
         xy[t + 1, active] = p1[ok]
         vis[t + 1, active] = True
-        if (t + 1) % max(1, cfg.reseed_every) == 0 and n < cap:
-            new = seed_points(grays[t + 1], xy[t + 1, active], cfg, cap - n, cfg.max_corners // 4)
+        budget = cap - n + len(free)
+        if (t + 1) % max(1, cfg.reseed_every) == 0 and budget > 0:
+            new = seed_points(grays[t + 1], xy[t + 1, active], cfg, budget, cfg.max_corners // 4)
             active = np.concatenate([active, add(t + 1, new)])
         if on_frame is not None:
             on_frame(t + 1)
@@ -168,7 +183,7 @@ def track_video(
             vis[t - 1, back] = True
 
     xy, vis, seed = xy[:, :n], vis[:, :n], seed[:n]
-    keep = vis.sum(0) >= cfg.min_length
+    keep = vis.sum(0) >= cfg.min_length  # also drops retired slots that were never reused
     xy, vis, seed = xy[:, keep], vis[:, keep], seed[keep]
     return Tracks(hold_invisible(xy, vis), vis, seed)
 

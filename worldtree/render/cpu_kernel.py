@@ -1,4 +1,4 @@
-"""Compiled CPU backend: C++/OpenMP tile compositing with a hand-written backward (csrc/rasterize_cpu.cpp).
+"""Compiled CPU backend: C++/OpenMP projection and tile compositing, backward by hand (csrc/rasterize_cpu.cpp).
 
 The extension is compiled on first use with :func:`torch.utils.cpp_extension.load` and cached under
 ``$TORCH_EXTENSIONS_DIR`` (default ``~/.cache/torch_extensions``); the module name carries a hash of the
@@ -21,7 +21,7 @@ from torch import Tensor
 log = logging.getLogger("worldtree.render")
 
 _SRC = Path(__file__).parent / "csrc" / "rasterize_cpu.cpp"
-# -ffp-contract=off: no fused multiply-adds, so the arithmetic rounds exactly like the PyTorch reference.
+# -ffp-contract=off: no fused multiply-adds, so the compositing rounds exactly like the PyTorch reference.
 # No -ffast-math: the kernel's NaN guards (comparisons that are false for NaN) must keep their meaning.
 _CFLAGS = ["-O3", "-fopenmp", "-ffp-contract=off", "-march=native", "-std=c++17"]
 _LDFLAGS = ["-fopenmp"]

@@ -1,4 +1,7 @@
-"""EWA projection of 3D Gaussians to screen-space ellipses, in differentiable PyTorch (shared by all backends).
+"""EWA projection of 3D Gaussians to screen-space ellipses, in differentiable PyTorch.
+
+Used by the reference backend and as the autograd oracle of the C++ projection (csrc/rasterize_cpu.cpp), which
+implements the same formulas for the compiled backend.
 
 Pixel convention (OpenCV): pixel (row i, column j) has its centre at (u, v) = (j, i); a camera point (x, y, z)
 lands at u = fx x / z + cx, v = fy y / z + cy. The skew term K[0, 1] is ignored.

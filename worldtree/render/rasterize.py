@@ -1,4 +1,4 @@
-"""The public rasterizer entry point: shared projection, then the chosen backend's tile compositing."""
+"""The public rasterizer entry point: projection, then tile compositing, by the chosen backend."""
 
 from __future__ import annotations
 

@@ -198,3 +198,5 @@ def test_bad_import_fails_before_computing(scene, tmp_path, monkeypatch):
         compute_priors(scene, dataclasses.replace(FAST, tracks_source=str(tmp_path / "x.npz")), tmp_path)
     with pytest.raises(UserError, match="not a folder"):
         compute_priors(scene, dataclasses.replace(FAST, masks_source=str(tmp_path / "m")), tmp_path)
+    with pytest.raises(UserError, match="not a folder"):
+        compute_priors(scene, dataclasses.replace(FAST, flow_source=str(tmp_path / "f")), tmp_path)

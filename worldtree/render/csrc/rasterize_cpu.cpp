@@ -1,4 +1,5 @@
-// Tile rasterizer for screen-space Gaussians on the CPU: forward and hand-written backward, OpenMP over tiles.
+// Gaussian rasterizer on the CPU: EWA projection (per Gaussian) and tile compositing (per tile), forward and
+// hand-written backward, OpenMP-parallel. The projection follows worldtree/render/projection.py (its oracle).
 //
 // Same image formation as worldtree/render/reference.py (the oracle): Gaussians binned into 16x16 tiles by
 // their bounding square, front to back per tile (ties by index); per pixel alpha = min(0.99, o exp(power)),
