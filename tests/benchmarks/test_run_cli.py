@@ -115,7 +115,7 @@ def test_interrupted_run_resumes_from_checkpoint(scene, tmp_path, small_quick, m
 @pytest.mark.parametrize(
     ("extra", "needle"),
     [
-        (["--method", "nosuch", "--scene", "."], "choose one of: static"),
+        (["--method", "nosuch", "--scene", "."], "is not a registered method; choose one of:"),
         (["--method", "static", "--scene", "/no/such/scene"], "no such folder"),
         (["--method", "static", "--scene", ".", "--preset", "huge"], "has presets paper, quick"),
     ],
