@@ -98,9 +98,13 @@ def background_masks(frames: np.ndarray, cfg: MaskConfig | None = None) -> np.nd
     return out
 
 
-def find_mask_file(mask_dir: Path, source_time: int, camera: int) -> Path | None:
-    """The mask of ``camera`` at ``source_time``: ``%05d/cam%02d.*`` (mv_masks layout) or ``%05d.*``."""
-    for stem in (mask_dir / f"{source_time:05d}" / f"cam{camera:02d}", mask_dir / f"{source_time:05d}"):
+def find_mask_file(mask_dir: Path, source_time: int, camera: int, index: int | None = None) -> Path | None:
+    """The mask of ``camera`` at ``source_time``: ``%05d/cam%02d.*`` (mv_masks layout) or ``%05d.*``; or,
+    given the kept-frame ``index``, the authors' NVIDIA-LS name ``v%03d_t%03d.*`` (camera, index)."""
+    stems = [mask_dir / f"{source_time:05d}" / f"cam{camera:02d}", mask_dir / f"{source_time:05d}"]
+    if index is not None:
+        stems.append(mask_dir / f"v{camera:03d}_t{index:03d}")
+    for stem in stems:
         for suf in IMAGE_SUFFIXES:
             for cand in (stem.with_suffix(suf), stem.with_suffix(suf.upper())):
                 if cand.is_file():
@@ -113,7 +117,7 @@ def import_masks(
 ) -> np.ndarray:
     """Read externally made masks of the test camera, one per kept time step.
 
-    Files are found by source time index (:func:`find_mask_file`); each is binarised (> half range) and
+    Files are found by source time index or by kept-frame index (:func:`find_mask_file`); each is binarised (> half range) and
     resized to ``width x height`` with nearest-neighbour sampling.
 
     Returns:
@@ -126,8 +130,8 @@ def import_masks(
     if not mask_dir.is_dir():
         raise UserError(f"--masks {mask_dir}: not a folder; give the folder of test-camera masks")
     paths, missing = [], []
-    for t in source_times:
-        p = find_mask_file(mask_dir, t, camera)
+    for i, t in enumerate(source_times):
+        p = find_mask_file(mask_dir, t, camera, index=i)
         if p is None:
             missing.append(t)
         paths.append(p)
@@ -135,7 +139,8 @@ def import_masks(
         shown = ", ".join(f"{t:05d}" for t in missing[:6]) + (" ..." if len(missing) > 6 else "")
         raise UserError(
             f"--masks {mask_dir}: no mask for {len(missing)} of {len(source_times)} time steps ({shown}); "
-            f"expected files named %05d/cam{camera:02d}.png or %05d.png by source time"
+            f"expected files named %05d/cam{camera:02d}.png or %05d.png by source time, "
+            f"or v{camera:03d}_t%03d.png by kept frame"
         )
     out = np.zeros((len(paths), height, width), bool)
     for i, p in enumerate(paths):

@@ -82,6 +82,19 @@ def test_imported_masks_flat_names_are_resized_nearest(tmp_path):
     np.testing.assert_array_equal(out[0], np.tile([False] * 4 + [True] * 4, (4, 1)))
 
 
+def test_imported_masks_authors_names_by_kept_index(tmp_path):
+    # The authors' NVIDIA-LS masks are named v001_tXXX by kept-frame index, not by source time.
+    d = tmp_path / "m"
+    d.mkdir()
+    for i in range(2):
+        m = np.zeros((4, 8), np.uint8)
+        m[:, i] = 255
+        cv2.imwrite(str(d / f"v001_t{i:03d}.png"), m)
+    out = import_masks(d, [10, 20], camera=1, width=8, height=4)
+    assert out[0, :, 0].all() and not out[0, :, 1:].any()
+    assert out[1, :, 1].all() and not out[1, :, [0, *range(2, 8)]].any()
+
+
 def test_imported_masks_missing_is_one_line_error(synth_raw, tmp_path):
     masks = tmp_path / "masks"
     shutil.copytree(synth_raw / "gt" / "masks", masks)
