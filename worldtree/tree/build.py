@@ -1,0 +1,159 @@
+"""Algorithm 1 (BFS tree building) on top of a trained root: split, inherit, train each layer, repeat.
+
+:func:`grow_tree` takes the trained root :class:`~worldtree.tree.node.NodeState` and, for ``d = 0 ..
+depth - 1``, splits every node of layer ``d`` that is long enough (:mod:`worldtree.tree.split`), makes its
+children's states (:func:`worldtree.tree.inherit.split_state`), writes them under ``folder/layer<d+1>``, trains
+them with the :class:`~worldtree.tree.parallel.LayerRunner` and reads the trained states back.
+
+Node-function contract (the method's part): ``fn(payload, ctx)`` receives :func:`node_input` (``{"state":
+NodeState payload, "depth": d}``) and returns :func:`node_output` (the trained state, optionally the node's
+per-frame ``profile`` for the ``gradient`` split of its own children, and JSON-able ``stats``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from worldtree.atomic import atomic_write_json
+from worldtree.tree.inherit import InheritConfig, split_state
+from worldtree.tree.node import NodeState
+from worldtree.tree.parallel import LayerReport, LayerRunner, write_input
+from worldtree.tree.split import SplitChoice, choose_split
+from worldtree.tree.tpt import DEFAULT_MIN_LEN, TemporalPartitionTree
+
+__all__ = ["TreeConfig", "TreeResult", "grow_tree", "node_input", "node_output", "read_node_input"]
+
+
+@dataclass(frozen=True)
+class TreeConfig:
+    """Shape of the tree and how children inherit (defaults: the paper's NVIDIA-LS settings)."""
+
+    depth: int = 2
+    """Deepest layer (0 = the root only, i.e. the Base method; the paper: 2)."""
+    min_len: int = DEFAULT_MIN_LEN
+    """Nodes with fewer frames are leaves."""
+    split: str = "binary"
+    """Split strategy: ``binary``, ``gradient`` (node profiles from training) or ``flow`` (a global profile)."""
+    inherit: InheritConfig = InheritConfig()
+    """Caps, opacity reset and ancestor policy."""
+
+    def __post_init__(self) -> None:
+        if self.depth < 0:
+            raise ValueError(f"--depth {self.depth}: must be >= 0")
+        from worldtree.tree.split import SPLIT_STRATEGIES
+
+        if self.split not in SPLIT_STRATEGIES:
+            raise ValueError(f"--split {self.split!r}: choose one of {', '.join(SPLIT_STRATEGIES)}")
+
+
+@dataclass
+class TreeResult:
+    """Everything :func:`grow_tree` made."""
+
+    tree: TemporalPartitionTree
+    states: dict[int, NodeState]
+    """Trained state of every node (the root as given)."""
+    layers: list[LayerReport] = field(default_factory=list)
+    """One report per trained layer (depth 1 ..)."""
+    splits: dict[int, SplitChoice] = field(default_factory=dict)
+    """Split decision of every node that has children."""
+    stats: dict[int, dict] = field(default_factory=dict)
+    """Each trained node's ``stats`` from its function."""
+
+
+def node_input(state: NodeState, depth: int) -> dict:
+    """The payload a node-training function receives."""
+    return {"state": state.to_payload(), "depth": int(depth)}
+
+
+def read_node_input(payload: dict, device: torch.device | str = "cpu") -> tuple[NodeState, int]:
+    """``(state, depth)`` from :func:`node_input`'s payload, tensors on ``device``."""
+    return NodeState.from_payload(payload["state"], device), int(payload["depth"])
+
+
+def node_output(
+    state: NodeState, profile: np.ndarray | torch.Tensor | None = None, stats: dict | None = None
+) -> dict:
+    """The payload a node-training function returns: the trained state, its per-frame ``profile``
+    ``[T_node]`` (for the gradient split, or None) and JSON-able ``stats``."""
+    prof = None
+    if profile is not None:
+        prof = torch.as_tensor(np.asarray(profile, dtype=np.float64))
+        if prof.shape != (state.interval.length,):
+            raise ValueError(f"node {state.index}: profile {tuple(prof.shape)} != [{state.interval.length}]")
+    return {"state": state.to_payload(), "profile": prof, "stats": dict(stats or {})}
+
+
+def grow_tree(
+    root: NodeState,
+    cfg: TreeConfig,
+    runner: LayerRunner,
+    folder: str | Path,
+    seed: int = 0,
+    root_profile: np.ndarray | torch.Tensor | None = None,
+    flow: np.ndarray | torch.Tensor | None = None,
+) -> TreeResult:
+    """Build and train the tree below ``root`` (already trained; its chain is empty).
+
+    Args:
+        root: the trained root state over ``[0, T - 1]``.
+        cfg: depth, minimum length, split strategy, inheritance.
+        runner: trains each layer (parallel or sequential); its node function follows the module's contract.
+        folder: where the layers' files go (``folder/layer<d>/node<j>/...``, ``folder/tree.json``).
+        seed: run seed; node ``j`` trains with seed ``seed + j`` and inherits with ``(seed, j)``.
+        root_profile: the root's per-frame profile ``[T]`` for the ``gradient`` split.
+        flow: global per-frame profile ``[T]`` for the ``flow`` split (:func:`worldtree.tree.split.flow_profile`).
+    """
+    if root.index != 1 or root.chain:
+        raise ValueError("grow_tree starts from the root state (index 1, no ancestors)")
+    folder = Path(folder)
+    T = root.interval.length
+    tree = TemporalPartitionTree(T, cfg.min_len)
+    if root.interval.start != 0:
+        raise ValueError(f"the root interval must start at frame 0, got {root.interval}")
+    res = TreeResult(tree, {1: root})
+    profiles: dict[int, Any] = {1: root_profile}
+    flow_np = None if flow is None else np.asarray(torch.as_tensor(flow, dtype=torch.float64).cpu().numpy())
+    for d in range(cfg.depth):
+        new: list[int] = []
+        for j in tree.layer(d):
+            if not tree.can_split(j):
+                continue
+            iv = tree.interval(j)
+            prof = profiles.get(j) if cfg.split == "gradient" else None
+            if cfg.split == "flow" and flow_np is not None:
+                prof = flow_np[iv.start : iv.end + 1]
+            choice = choose_split(cfg.split, iv, prof, cfg.min_len)
+            a, b = tree.add_children(j, choice.point)
+            res.splits[j] = choice
+            left, right = split_state(res.states[j], tree.interval(a), tree.interval(b), cfg.inherit, seed)
+            layer_dir = folder / f"layer{d + 1}"
+            write_input(layer_dir, a, node_input(left, d + 1))
+            write_input(layer_dir, b, node_input(right, d + 1))
+            new += [a, b]
+        if not new:
+            break
+        layer_dir = folder / f"layer{d + 1}"
+        rep = runner.run_layer(d + 1, layer_dir, new, seeds=[seed + j for j in new])
+        res.layers.append(rep)
+        for j in new:
+            out = runner.load_output(layer_dir, j)
+            res.states[j] = NodeState.from_payload(out["state"])
+            profiles[j] = out.get("profile")
+            res.stats[j] = dict(out.get("stats") or {})
+    atomic_write_json(
+        folder / "tree.json",
+        {
+            "tree": tree.to_dict(),
+            "split": cfg.split,
+            "splits": {str(j): {"point": c.point, "fallback": c.fallback} for j, c in res.splits.items()},
+            "layers": [r.to_dict() for r in res.layers],
+            "stats": {str(j): s for j, s in res.stats.items()},
+        },
+    )
+    return res
