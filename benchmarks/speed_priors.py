@@ -10,7 +10,8 @@ rigid motion, which give the true flow, the true track of any pixel and the true
 
 - flow EPE (pixels) of the gap-1 pairs over pixels visible in both frames (all / static / dynamic / FB-valid);
 - tracks: median and mean error (pixels) against the true trajectory of each track's seed point, over frames
-  where both see it; fraction of tracks visible in every frame; number of tracks;
+  where both see it; fraction of tracks visible in every frame and of the tracks visible at frame 0 still
+  visible at the last frame; number of tracks;
 - depth AbsRel on static pixels (all, and confident ones only);
 - EPI mask IoU with the true dynamic mask, precision and recall; dynamic-track precision;
 - seconds per frame of each prior.
@@ -180,6 +181,10 @@ def run(gt: GroundTruth, cfg: PriorsConfig) -> dict[str, float]:
     out["tracks median err px"] = float(np.median(te)) if te.size else float("nan")
     out["tracks mean err px"] = float(te.mean()) if te.size else float("nan")
     out["tracks visible in all frames"] = float(tr.visible.all(0).mean()) if tr.num_tracks else 0.0
+    first = tr.visible[0]
+    out["frame-0 tracks visible at the last frame"] = (
+        float(tr.visible[-1, first].mean()) if first.any() else 0.0
+    )
     out["tracks visible per frame"] = float(tr.visible.sum(1).mean())
 
     t0 = time.perf_counter()
