@@ -281,7 +281,7 @@ class BaseMethod:
 
     def _test_pose(self) -> None:
         s, fit = self.scene, self.fit_state
-        self.sim3 = align_sim3(s.w2cs, fit.cameras())
+        self.sim3 = align_sim3(s.w2cs, fit.cameras(), self.cfg.test_pose.align_rotation)
         if s.test_images.shape[0] == 0:
             return
         start = self.sim3.apply_w2c(s.test_w2c)

@@ -23,7 +23,7 @@ from worldtree.scene import Scene
 from worldtree.trainer import TrainContext, TrainSummary
 
 # Modules that register methods when imported (one line per method).
-METHOD_MODULES: tuple[str, ...] = ("baselines.static3dgs", "baselines.base")
+METHOD_MODULES: tuple[str, ...] = ("baselines.static3dgs", "baselines.base", "baselines.worldtree")
 
 COMMON_FIELDS = ("seed", "steps", "downscale")
 

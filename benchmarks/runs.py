@@ -39,6 +39,8 @@ from worldtree.errors import UserError
 from worldtree.imageio import write_image
 
 TUNABLE = ("steps", "seed", "downscale")
+# Method options of `wtbench run` (set only on methods whose config has the field), in tag order.
+METHOD_OPTIONS = ("ablate", "depth", "chain_length", "split", "sequential")
 
 
 @dataclass(frozen=True)
@@ -91,9 +93,18 @@ class RunFolder:
         return self.done.is_file()
 
 
-def run_tag(preset: str, overrides: dict[str, Any]) -> str:
-    """Folder name of a configuration: the preset, then ``-<field><value>`` per override in a fixed order."""
+def run_tag(preset: str, overrides: dict[str, Any], options: dict[str, Any] | None = None) -> str:
+    """Folder name of a configuration: the preset, then ``-<field><value>`` per override in a fixed order,
+    then the method options: ``-no<name>`` per ablation, ``-depth<D>``, ``-chain<K>``, ``-split<S>``, ``-seq``
+    (e.g. ``quick-steps200-noba-nosac-depth3``)."""
     parts = [preset] + [f"{k}{overrides[k]}" for k in TUNABLE if k in overrides]
+    opts = options or {}
+    parts += [f"no{a}" for a in sorted(set(opts.get("ablate") or ()))]
+    for key, name in (("depth", "depth"), ("chain_length", "chain"), ("split", "split")):
+        if opts.get(key) is not None:
+            parts.append(f"{name}{opts[key]}")
+    if opts.get("sequential"):
+        parts.append("seq")
     return "-".join(parts)
 
 
@@ -168,6 +179,9 @@ class RunRequest:
     """auto, cpu, cuda or cuda:N."""
     overrides: dict[str, int] = field(default_factory=dict)
     """Overridden common config fields (steps, seed, downscale)."""
+    options: dict[str, Any] = field(default_factory=dict)
+    """Method options (``METHOD_OPTIONS``: ablate list, depth, chain_length, split, sequential), set on the
+    config fields of the same name; a method whose config lacks one refuses it."""
     lpips_weights: Path | None = None
     """Folder with the LPIPS weight files (None: the evaluator's default search)."""
     tensorboard: bool = False
@@ -194,6 +208,7 @@ def _config_record(spec, cfg, req: RunRequest) -> dict[str, Any]:
         "method": spec.name,
         "preset": req.preset,
         "overrides": dict(req.overrides),
+        "options": dict(req.options),
         "config": dataclasses.asdict(cfg),
         "seed": cfg.seed,
         "scene": str(req.scene.resolve()),
@@ -238,8 +253,8 @@ def execute(req: RunRequest) -> RunResult:
             raise UserError(f"override {k!r} is not one of {', '.join(TUNABLE)}")
         if k in ("steps", "downscale") and v < 1:
             raise UserError(f"--{k} {v}: must be at least 1")
-    cfg = dataclasses.replace(cfg, **req.overrides)
-    tag = req.tag or run_tag(req.preset, req.overrides)
+    cfg = dataclasses.replace(cfg, **req.overrides, **_method_options(cfg, spec.name, req.options))
+    tag = req.tag or run_tag(req.preset, req.overrides, req.options)
     folder = RunFolder(Path(req.runs_dir) / root.name / spec.name / tag)
 
     record = _config_record(spec, cfg, req)
@@ -307,6 +322,22 @@ def execute(req: RunRequest) -> RunResult:
         folder.done, {"finished": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()), "mean": mean}
     )
     return RunResult(folder, skipped=False, mean=mean)
+
+
+def _method_options(cfg, method: str, options: dict[str, Any]) -> dict[str, Any]:
+    """``options`` checked against ``cfg``'s fields, the ablation list as a tuple."""
+    names = {f.name for f in dataclasses.fields(cfg)}
+    out: dict[str, Any] = {}
+    for k, v in options.items():
+        if k not in METHOD_OPTIONS:
+            raise UserError(f"option {k!r} is not one of {', '.join(METHOD_OPTIONS)}")
+        if k not in names:
+            flag = "--" + k.replace("_", "-")
+            raise UserError(
+                f"{flag}: method {method!r} has no such option; drop it or use --method worldtree"
+            )
+        out[k] = tuple(v) if k == "ablate" else v
+    return out
 
 
 def _render_test(method, view: TestView, folder: RunFolder) -> None:

@@ -31,6 +31,19 @@ def register(app: typer.Typer) -> None:
         steps: int | None = typer.Option(None, "--steps", help="Override the number of training steps."),
         seed: int | None = typer.Option(None, "--seed", help="Override the random seed."),
         downscale: int | None = typer.Option(None, "--downscale", help="Override the training image shrink."),
+        ablate: list[str] | None = typer.Option(
+            None, "--ablate", help="worldtree: ablate a component (ba, sw, tpt, sac); repeat for several."
+        ),
+        depth: int | None = typer.Option(None, "--depth", help="worldtree: deepest tree layer (default 2)."),
+        chain_length: int | None = typer.Option(
+            None, "--chain-length", help="worldtree: ancestors rendered at test time (default: all)."
+        ),
+        split: str | None = typer.Option(
+            None, "--split", help="worldtree: split strategy binary (default), gradient or flow."
+        ),
+        sequential: bool = typer.Option(
+            False, "--sequential", help="worldtree: train each layer's nodes one after another."
+        ),
         lpips_weights: Path | None = typer.Option(
             None, "--lpips-weights", help="Folder holding alexnet-owt-7be5be79.pth and alex.pth."
         ),
@@ -54,6 +67,7 @@ def register(app: typer.Typer) -> None:
         overrides = {
             k: v for k, v in (("steps", steps), ("seed", seed), ("downscale", downscale)) if v is not None
         }
+        options = _options(ablate, depth, chain_length, split, sequential)
         req = RunRequest(
             scene=scene,
             method=method,
@@ -61,12 +75,13 @@ def register(app: typer.Typer) -> None:
             preset=preset,
             device=device,
             overrides=overrides,
+            options=options,
             lpips_weights=lpips_weights,
             tensorboard=tensorboard,
             force=force,
             tag=tag,
             command=_command_line(
-                method, scene, runs_dir, preset, device, overrides, lpips_weights, tensorboard, tag
+                method, scene, runs_dir, preset, device, overrides, lpips_weights, tensorboard, tag, options
             ),
         )
         with warnings.catch_warnings():
@@ -77,13 +92,37 @@ def register(app: typer.Typer) -> None:
             print(f"done: {result.folder.root}  {scores}")
 
 
-def _command_line(method, scene, runs_dir, preset, device, overrides, lpips_weights, tensorboard, tag) -> str:
+def _options(ablate, depth, chain_length, split, sequential) -> dict:
+    """The method options given (``benchmarks.runs.METHOD_OPTIONS``); ablations sorted and deduplicated."""
+    opts: dict = {}
+    if ablate:
+        opts["ablate"] = sorted({a.strip().lower() for a in ablate})
+    for k, v in (("depth", depth), ("chain_length", chain_length), ("split", split)):
+        if v is not None:
+            opts[k] = v
+    if sequential:
+        opts["sequential"] = True
+    return opts
+
+
+def _command_line(
+    method, scene, runs_dir, preset, device, overrides, lpips_weights, tensorboard, tag, options=None
+) -> str:
     """The command in canonical form (every resolved option), so that it can be pasted to repeat the run
     however it was invoked (shell, script, or in-process)."""
     parts = ["wtbench", "run", "--method", method, "--scene", str(scene), "-o", str(runs_dir)]
     parts += ["--preset", preset, "--device", device]
     for k, v in overrides.items():
         parts += [f"--{k}", str(v)]
+    for k, v in (options or {}).items():
+        flag = "--" + k.replace("_", "-")
+        if k == "ablate":
+            for a in v:
+                parts += [flag, a]
+        elif k == "sequential":
+            parts.append(flag)
+        else:
+            parts += [flag, str(v)]
     if lpips_weights is not None:
         parts += ["--lpips-weights", str(lpips_weights)]
     if tensorboard:

@@ -83,3 +83,26 @@ def test_presets_and_config_fields():
     assert (paper.test_pose.first_steps, paper.test_pose.next_steps) == (300, 30)
     assert quick.steps < paper.steps and quick.sw.steps < paper.sw.steps
     assert spec.config("quick-ablate-ba").ablate_ba and not spec.config("quick-ablate-ba").ablate_sw
+
+
+def test_second_fit_resumes_from_the_checkpoints(tiny_scene, tmp_path):
+    from baselines.base import BaseMethod, smoke_config
+    from worldtree.checkpoint import seed_everything
+    from worldtree.device import pick_device
+    from worldtree.scene import load_scene
+    from worldtree.trainer import TrainContext
+
+    scene = load_scene(tiny_scene)
+    ctx = TrainContext(checkpoint_dir=tmp_path / "ckpt", progress=False)
+    seed_everything(0)
+    first = BaseMethod(smoke_config(), scene, pick_device("cpu"))
+    s1 = first.fit(ctx)
+    img1 = first.render(scene.test_K, scene.test_w2c, scene.width, scene.height, 2)
+    assert (tmp_path / "ckpt" / "ba.pt").is_file()
+    seed_everything(0)
+    second = BaseMethod(smoke_config(), scene, pick_device("cpu"))
+    s2 = second.fit(ctx)
+    assert (s1.start_step, s1.end_step) == (0, 20) and (s2.start_step, s2.end_step) == (20, 20)
+    torch.testing.assert_close(second.fit_state.cameras(), first.fit_state.cameras())
+    img2 = second.render(scene.test_K, scene.test_w2c, scene.width, scene.height, 2)
+    torch.testing.assert_close(img2, img1)
