@@ -1,0 +1,80 @@
+"""Side-by-side mp4 of a run's test-view renders next to the ground truth (and the mask, when present)."""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from worldtree.errors import UserError
+from worldtree.imageio import read_image, read_mask
+
+
+def _label(img: np.ndarray, text: str) -> np.ndarray:
+    out = img.copy()
+    scale = max(0.3, img.shape[0] / 400)
+    cv2.putText(out, text, (4, int(16 * scale) + 2), cv2.FONT_HERSHEY_SIMPLEX, scale, (255, 255, 255), 1,
+                cv2.LINE_AA)  # fmt: skip
+    return out
+
+
+def compose_frames(run_dir: str | Path) -> tuple[list[np.ndarray], list[str]]:
+    """Frames ``[H, 2W (or 3W), 3]`` uint8 RGB: render | ground truth | ground truth with the mask overlaid.
+
+    The scene is found through the run's ``config.json``; renders and ground truth pair by name.
+    """
+    run_dir = Path(run_dir)
+    cfg_path = run_dir / "config.json"
+    if not cfg_path.is_file():
+        raise UserError(f"{run_dir}: no config.json; give a run folder written by `wtbench run`")
+    scene = Path(json.loads(cfg_path.read_text())["scene"])
+    meta_path = scene / "cameras.json"
+    if not meta_path.is_file():
+        raise UserError(f"{meta_path}: missing; the run's scene has moved (config.json names {scene})")
+    frames, names = [], []
+    for fr in json.loads(meta_path.read_text()).get("test_frames", []):
+        name = Path(fr["file"]).stem
+        render = run_dir / "renders" / f"{name}.png"
+        if not render.is_file():
+            raise UserError(f"{render}: missing render; finish the run with `wtbench run` first")
+        pred, gt = read_image(render), read_image(scene / fr["file"])
+        if pred.shape != gt.shape:
+            raise UserError(f"{render}: size {pred.shape[:2]} differs from the ground truth's {gt.shape[:2]}")
+        panels = [_label(pred, "render"), _label(gt, "ground truth")]
+        if fr.get("mask"):
+            m = read_mask(scene / fr["mask"])
+            tint = gt.copy()
+            tint[m] = (0.5 * gt[m] + 0.5 * np.array([255, 64, 64])).astype(np.uint8)
+            panels.append(_label(tint, "mask"))
+        frames.append(np.concatenate(panels, axis=1))
+        names.append(name)
+    if not frames:
+        raise UserError(f"{meta_path}: lists no test frames")
+    return frames, names
+
+
+def write_video(frames: list[np.ndarray], out: str | Path, fps: float = 10.0) -> Path:
+    """Write RGB uint8 frames to an mp4 (OpenCV mp4v) through a temporary file renamed at the end."""
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    h, w = frames[0].shape[:2]
+    # Even sizes keep every mp4 decoder happy.
+    h2, w2 = h - h % 2, w - w % 2
+    fd, tmp = tempfile.mkstemp(prefix=f".{out.stem}.", suffix=".mp4", dir=out.parent)
+    os.close(fd)
+    try:
+        vw = cv2.VideoWriter(tmp, cv2.VideoWriter_fourcc(*"mp4v"), fps, (w2, h2))
+        if not vw.isOpened():
+            raise UserError(f"{out}: OpenCV cannot write mp4 here; write PNG frames instead")
+        for f in frames:
+            vw.write(cv2.cvtColor(np.ascontiguousarray(f[:h2, :w2]), cv2.COLOR_RGB2BGR))
+        vw.release()
+        os.replace(tmp, out)
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+    return out
