@@ -63,6 +63,9 @@ class BaseConfig(CommonConfig):
 
     steps: int = 4000
     """Photometric-fit steps (NVIDIA-LS root: 4000)."""
+    ablate: tuple[str, ...] = ()
+    """Ablated stages (``--ablate``): ``ba`` and/or ``sw``; kept in sync with ``ablate_ba``/``ablate_sw``
+    (either spelling works). Subclasses widen the choice through :meth:`ablation_names`."""
     ablate_ba: bool = False
     """Skip the tracklet bundle adjustment (ablation row "w/o BA")."""
     ablate_sw: bool = False
@@ -93,6 +96,20 @@ class BaseConfig(CommonConfig):
     """Checkpoint period of the warm-up and photometric stages."""
     log_every: int = 100
     """Progress period (when not on a terminal)."""
+
+    @classmethod
+    def ablation_names(cls) -> tuple[str, ...]:
+        """Names accepted by ``--ablate``, in display order."""
+        return ("ba", "sw")
+
+    def __post_init__(self) -> None:
+        allowed = self.ablation_names()
+        bad = [a for a in self.ablate if a not in allowed]
+        if bad:
+            raise UserError(f"--ablate {bad[0]}: choose among {', '.join(allowed)}")
+        names = set(self.ablate) | {n for n, on in (("ba", self.ablate_ba), ("sw", self.ablate_sw)) if on}
+        self.ablate = tuple(a for a in allowed if a in names)
+        self.ablate_ba, self.ablate_sw = "ba" in names, "sw" in names
 
 
 def paper_config() -> BaseConfig:

@@ -64,9 +64,6 @@ ABLATIONS = ("ba", "sw", "tpt", "sac")
 class WorldTreeConfig(BaseConfig):
     """WorldTree settings: the Base method's (root) plus the tree's. ``steps`` is the root's photometric fit."""
 
-    ablate: tuple[str, ...] = ()
-    """Ablated components among ``ba``, ``sw``, ``tpt`` (root only), ``sac`` (no ancestors); ``ba``/``sw``
-    also set ``ablate_ba``/``ablate_sw`` (and those set them here), so either spelling works."""
     depth: int = 2
     """Deepest tree layer (0 = the root only; the paper: 2)."""
     chain_length: int | None = None
@@ -89,13 +86,13 @@ class WorldTreeConfig(BaseConfig):
     ancestors_optimised: int = 2
     """The nearest this many ancestors train with a node; deeper ones are frozen."""
 
+    @classmethod
+    def ablation_names(cls) -> tuple[str, ...]:
+        """``ba``, ``sw`` as in Base, plus ``tpt`` (root only) and ``sac`` (no ancestors)."""
+        return ABLATIONS
+
     def __post_init__(self) -> None:
-        bad = [a for a in self.ablate if a not in ABLATIONS]
-        if bad:
-            raise UserError(f"--ablate {bad[0]}: choose among {', '.join(ABLATIONS)}")
-        names = set(self.ablate) | {n for n, on in (("ba", self.ablate_ba), ("sw", self.ablate_sw)) if on}
-        self.ablate = tuple(a for a in ABLATIONS if a in names)
-        self.ablate_ba, self.ablate_sw = "ba" in names, "sw" in names
+        super().__post_init__()
         if self.depth < 0:
             raise UserError(f"--depth {self.depth}: must be >= 0 (0 = the root only)")
         if self.chain_length is not None and self.chain_length < 0:
