@@ -19,16 +19,19 @@ def register(app: typer.Typer) -> None:
             Path("demo"), "--out", "-o", help="Folder for the raw scene, scene and runs."
         ),
         methods: list[str] = typer.Option(
-            ["static"], "--method", "-m", help="Methods to run (repeatable); see `wtbench run --list`."
+            ["worldtree"], "--method", "-m", help="Methods to run (repeatable); see `wtbench run --list`."
         ),
-        steps: int = typer.Option(24, "--steps", help="Time steps of the generated capture."),
-        size: str = typer.Option("160x90", "--size", help="Image size WxH of the generated capture."),
+        steps: int = typer.Option(40, "--steps", help="Time steps of the generated capture."),
+        size: str = typer.Option("320x180", "--size", help="Image size WxH of the generated capture."),
         device: str = typer.Option("auto", "--device", help="auto, cpu, cuda or cuda:N."),
+        preset: str = typer.Option("quick", "--preset", help="Method preset (quick: minutes on a CPU)."),
     ) -> None:
-        run_demo(out, methods, steps, size, device)
+        run_demo(out, methods, steps, size, device, preset)
 
 
-def run_demo(out: Path, methods: list[str], steps: int, size: str, device: str) -> Path:
+def run_demo(
+    out: Path, methods: list[str], steps: int, size: str, device: str, preset: str = "quick"
+) -> Path:
     """Run the demo pipeline into ``out``; returns the path of the summary CSV."""
     from rich.console import Console
 
@@ -60,15 +63,15 @@ def run_demo(out: Path, methods: list[str], steps: int, size: str, device: str) 
         console.print(f"[bold]2/3[/] scene exists: {scene}")
 
     for m in methods:
-        console.print(f"[bold]3/3[/] wtbench run --method {m} --scene {scene} --preset quick")
+        console.print(f"[bold]3/3[/] wtbench run --method {m} --scene {scene} --preset {preset}")
         execute(
             RunRequest(
                 scene=scene,
                 method=m,
                 runs_dir=out / "runs",
-                preset="quick",
+                preset=preset,
                 device=device,
-                command=f"wtbench demo --method {m}",
+                command=f"wtbench demo --method {m} --preset {preset}",
             )
         )
     csv = out / "table.csv"
