@@ -296,9 +296,13 @@ class BaseMethod:
         self.backend = fit.backend
         return summary
 
+    def _test_render(self, K: torch.Tensor, w2c: torch.Tensor, width: int, height: int, t: int):
+        """Differentiable render used by test-pose refinement (WorldTree renders through its tree)."""
+        return self.fit_state.render(K, w2c, width, height, t)
+
     def _test_pose(self) -> None:
-        s, fit = self.scene, self.fit_state
-        self.sim3 = align_sim3(s.w2cs, fit.cameras(), self.cfg.test_pose.align_rotation)
+        s = self.scene
+        self.sim3 = align_sim3(s.w2cs, self.fit_state.cameras(), self.cfg.test_pose.align_rotation)
         if s.test_images.shape[0] == 0:
             return
         start = self.sim3.apply_w2c(s.test_w2c)
@@ -306,7 +310,7 @@ class BaseMethod:
         times = [min(int(t), s.num_frames - 1) for t in s.test_times.tolist()]
 
         def render_fn(t: int, w2c: torch.Tensor):
-            return fit.render(s.test_K, w2c, W, H, t)
+            return self._test_render(s.test_K, w2c, W, H, t)
 
         res = refine_test_poses(render_fn, start, s.test_images, times, self.cfg.test_pose)
         self.test_poses = {int(t): res.w2cs[k] for k, t in enumerate(s.test_times.tolist())}

@@ -38,7 +38,6 @@ from worldtree.errors import UserError
 from worldtree.render import rasterize
 from worldtree.scene import Scene
 from worldtree.stages.photometric import PhotometricConfig, PhotometricFit, project
-from worldtree.stages.testview_pose import align_sim3, refine_test_poses
 from worldtree.strategy import DensifyStrategy
 from worldtree.trainer import TrainContext, Trainer, TrainerConfig, TrainSummary
 from worldtree.tree.build import TreeConfig, TreeResult, grow_tree, node_output, read_node_input
@@ -493,21 +492,11 @@ class WorldTreeMethod(BaseMethod):
         t0 = time.perf_counter()
         self._grow()
         self.stage_s["tree"] = self.stage_s.get("tree", 0.0) + time.perf_counter() - t0
-        s = self.scene
-        self.sim3 = align_sim3(s.w2cs, self.fit_state.cameras(), self.cfg.test_pose.align_rotation)
-        if s.test_images.shape[0] == 0:
-            return
-        start = self.sim3.apply_w2c(s.test_w2c)
-        W, H = s.test_images.shape[2], s.test_images.shape[1]
-        times = [min(int(t), s.num_frames - 1) for t in s.test_times.tolist()]
+        super()._test_pose()
 
-        def render_fn(t: int, w2c: torch.Tensor):
-            return self.render_out(s.test_K, w2c, W, H, t)
-
-        res = refine_test_poses(render_fn, start, s.test_images, times, self.cfg.test_pose)
-        self.test_poses = {int(t): res.w2cs[k] for k, t in enumerate(s.test_times.tolist())}
-        self.info["test_pose_l1_before"] = res.loss_before
-        self.info["test_pose_l1_after"] = res.loss_after
+    def _test_render(self, K: torch.Tensor, w2c: torch.Tensor, width: int, height: int, t: int):
+        """Test-pose refinement renders through the tree (deepest covering node and its chain)."""
+        return self.render_out(K, w2c, width, height, t)
 
     @torch.no_grad()
     def render(self, K: torch.Tensor, w2c: torch.Tensor, width: int, height: int, time: int) -> torch.Tensor:
