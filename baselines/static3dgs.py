@@ -27,7 +27,14 @@ from worldtree.optim import ConstantLR, ExponentialLR, GroupedAdam
 from worldtree.render import rasterize
 from worldtree.scene import Scene
 from worldtree.strategy import DensifyStrategy
-from worldtree.trainer import StepOutput, TrainContext, Trainer, TrainerConfig, TrainSummary
+from worldtree.trainer import (
+    DensifiedGaussianTrainable,
+    StepOutput,
+    TrainContext,
+    Trainer,
+    TrainerConfig,
+    TrainSummary,
+)
 
 POINTS_FILE = "points3d.npy"
 
@@ -127,7 +134,7 @@ def load_points(root: Path) -> tuple[torch.Tensor, torch.Tensor | None] | None:
     return t[:, :3], (t[:, 3:].clamp(0, 1) if arr.shape[1] == 6 else None)
 
 
-class StaticGaussians:
+class StaticGaussians(DensifiedGaussianTrainable):
     """The static baseline for one scene; implements :class:`baselines.registry.Method` and
     :class:`worldtree.trainer.Trainable`."""
 
@@ -193,10 +200,9 @@ class StaticGaussians:
         return GroupedAdam(dict(self.gaussians.params.items()), schedules)
 
     # ------------------------------------------------------------------ Trainable
-    def _next_frame(self) -> int:
-        if not self.queue:
-            self.queue = torch.randperm(self.scene.num_frames, generator=self.order).tolist()
-        return self.queue.pop()
+    @property
+    def frame_count(self) -> int:
+        return self.scene.num_frames
 
     def _sh_degree_at(self, step: int | None) -> int:
         if step is None or self.cfg.sh_increase_every <= 0:
@@ -223,31 +229,12 @@ class StaticGaussians:
         return StepOutput(loss=loss, scalars=parts, info=out)
 
     def optimizer_step(self, step: int, out: StepOutput) -> dict[str, float]:
-        self.optimizer.step()
-        self.optimizer.zero_grad()
-        self.cfg.strategy.step_post_backward(
-            self.gaussians, self.optimizer, self.strategy_state, step, out.info
-        )
-        self._render_cache = None
-        return {"gaussians": float(len(self.gaussians))}
-
-    def state_dict(self) -> dict[str, Any]:
-        st = self.strategy_state
-        return {
-            "gaussians": {k: v.detach().cpu() for k, v in self.gaussians.params.items()},
-            "optimizer": self.optimizer.state_dict(),
-            "strategy": {k: (v.cpu() if isinstance(v, torch.Tensor) else v) for k, v in st.items()},
-            "queue": list(self.queue),
-        }
+        scalars = super().optimizer_step(step, out)
+        self._render_cache = None  # parameters changed
+        return scalars
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
-        self.gaussians.load_params(state["gaussians"])
-        self.optimizer = self._make_optimizer()
-        self.optimizer.load_state_dict(state["optimizer"])
-        self.strategy_state = {
-            k: (v.to(self.device) if isinstance(v, torch.Tensor) else v) for k, v in state["strategy"].items()
-        }
-        self.queue = [int(i) for i in state["queue"]]
+        super().load_state_dict(state)
         self._render_cache = None
 
     # ------------------------------------------------------------------ Method

@@ -61,6 +61,48 @@ class Trainable(Protocol):
     def load_state_dict(self, state: dict[str, Any]) -> None: ...
 
 
+class DensifiedGaussianTrainable:
+    """Shared :class:`Trainable` plumbing for one densified Gaussian set trained on shuffled frames.
+
+    A subclass provides ``gaussians`` (GaussianSet), ``optimizer`` (GroupedAdam), ``strategy_state`` (dict),
+    ``queue`` (list of frame indices), ``order`` (torch.Generator), ``cfg.strategy`` (DensifyStrategy),
+    ``frame_count`` (training frames) and ``_make_optimizer()``; it writes ``training_step`` itself.
+    """
+
+    def _next_frame(self) -> int:
+        # Every frame once per epoch, in a seeded order that a checkpoint restores (the queue is saved).
+        if not self.queue:
+            self.queue = torch.randperm(self.frame_count, generator=self.order).tolist()
+        return self.queue.pop()
+
+    def optimizer_step(self, step: int, out: StepOutput) -> dict[str, float]:
+        self.optimizer.step()
+        self.optimizer.zero_grad()
+        self.cfg.strategy.step_post_backward(
+            self.gaussians, self.optimizer, self.strategy_state, step, out.info
+        )
+        return {"gaussians": float(len(self.gaussians))}
+
+    def state_dict(self) -> dict[str, Any]:
+        st = self.strategy_state
+        return {
+            "gaussians": {k: v.detach().cpu() for k, v in self.gaussians.params.items()},
+            "optimizer": self.optimizer.state_dict(),
+            "strategy": {k: (v.cpu() if isinstance(v, torch.Tensor) else v) for k, v in st.items()},
+            "queue": list(self.queue),
+        }
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        self.gaussians.load_params(state["gaussians"])
+        self.optimizer = self._make_optimizer()
+        self.optimizer.load_state_dict(state["optimizer"])
+        dev = self.gaussians.means.device
+        self.strategy_state = {
+            k: (v.to(dev) if isinstance(v, torch.Tensor) else v) for k, v in state["strategy"].items()
+        }
+        self.queue = [int(i) for i in state["queue"]]
+
+
 @dataclass
 class TrainerConfig:
     """Settings of the loop itself (the method's settings live in its own config)."""

@@ -18,7 +18,6 @@ Training runs in :class:`worldtree.trainer.Trainer` (checkpoints, resume, progre
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any
 
 import torch
 import torch.nn.functional as F
@@ -29,7 +28,7 @@ from worldtree.losses import ssim_map
 from worldtree.optim import ConstantLR, ExponentialLR, GroupedAdam
 from worldtree.render import rasterize
 from worldtree.strategy import DensifyStrategy
-from worldtree.trainer import StepOutput
+from worldtree.trainer import DensifiedGaussianTrainable, StepOutput
 
 SSIM_WINDOW = 11
 
@@ -153,7 +152,7 @@ def lift_static_points(images, depth, static, Ks, w2cs, stride, max_points, gene
     return P, C
 
 
-class StaticWarmup:
+class StaticWarmup(DensifiedGaussianTrainable):
     """Trainable static warm-up; after :class:`worldtree.trainer.Trainer` runs it, :attr:`gaussians` holds
     the background.
 
@@ -210,10 +209,9 @@ class StaticWarmup:
         }
         return GroupedAdam(dict(self.gaussians.params.items()), schedules)
 
-    def _next_frame(self) -> int:
-        if not self.queue:
-            self.queue = torch.randperm(self.images.shape[0], generator=self.order).tolist()
-        return self.queue.pop()
+    @property
+    def frame_count(self) -> int:
+        return int(self.images.shape[0])
 
     def frame_loss(self, i: int, out) -> tuple[torch.Tensor, dict[str, float]]:
         """Masked loss of render ``out`` against frame ``i`` (see the module docstring)."""
@@ -258,30 +256,3 @@ class StaticWarmup:
         loss, parts = self.frame_loss(i, out)
         self.cfg.strategy.step_pre_backward(self.gaussians, self.optimizer, self.strategy_state, step, out)
         return StepOutput(loss=loss, scalars=parts, info=out)
-
-    def optimizer_step(self, step: int, out: StepOutput) -> dict[str, float]:
-        self.optimizer.step()
-        self.optimizer.zero_grad()
-        self.cfg.strategy.step_post_backward(
-            self.gaussians, self.optimizer, self.strategy_state, step, out.info
-        )
-        return {"gaussians": float(len(self.gaussians))}
-
-    def state_dict(self) -> dict[str, Any]:
-        st = self.strategy_state
-        return {
-            "gaussians": {k: v.detach().cpu() for k, v in self.gaussians.params.items()},
-            "optimizer": self.optimizer.state_dict(),
-            "strategy": {k: (v.cpu() if isinstance(v, torch.Tensor) else v) for k, v in st.items()},
-            "queue": list(self.queue),
-        }
-
-    def load_state_dict(self, state: dict[str, Any]) -> None:
-        dev = self.images.device
-        self.gaussians.load_params(state["gaussians"])
-        self.optimizer = self._make_optimizer()
-        self.optimizer.load_state_dict(state["optimizer"])
-        self.strategy_state = {
-            k: (v.to(dev) if isinstance(v, torch.Tensor) else v) for k, v in state["strategy"].items()
-        }
-        self.queue = [int(i) for i in state["queue"]]
