@@ -36,7 +36,9 @@ def register(app: typer.Typer) -> None:
 
 def sweep(scenes, grid, method, runs_dir, preset, device, steps, seed, lpips_weights, dry_run) -> None:
     """Resolve scenes and grid, run them, print a summary and write RUNS_DIR/sweep-<grid>.json."""
-    from benchmarks.commands.run import _command_line
+    import warnings
+
+    from benchmarks.commands.run import _command_line, _one_line_warning
     from benchmarks.runs import RunRequest, execute
     from benchmarks.sweep import find_scenes, grid_points, run_sweep, write_report
 
@@ -65,7 +67,9 @@ def sweep(scenes, grid, method, runs_dir, preset, device, steps, seed, lpips_wei
             command=cmd,
         )
 
-    outcomes = run_sweep(found, points, make_request, execute)
+    with warnings.catch_warnings():
+        warnings.showwarning = _one_line_warning
+        outcomes = run_sweep(found, points, make_request, execute)
     report = runs_dir / f"sweep-{grid}.json"
     cfg = {"method": method, "preset": preset, "device": device, "overrides": overrides, "scenes": found}
     write_report(report, grid, outcomes, cfg)
