@@ -37,7 +37,7 @@ from worldtree.atomic import atomic_write_bytes, atomic_write_json
 from worldtree.errors import UserError
 from worldtree.render import rasterize
 from worldtree.scene import Scene
-from worldtree.stages.photometric import PhotometricConfig, PhotometricFit, project
+from worldtree.stages.photometric import PhotometricConfig, PhotometricFit
 from worldtree.strategy import DensifyStrategy
 from worldtree.trainer import TrainContext, Trainer, TrainerConfig, TrainSummary
 from worldtree.tree.build import TreeConfig, TreeResult, grow_tree, node_output, read_node_input
@@ -201,29 +201,9 @@ class NodeFit(PhotometricFit):
             return own
         return tuple(torch.cat([a, b]) for a, b in zip(own, anc, strict=True))
 
-    def track_loss(self, i: int) -> torch.Tensor | None:
-        """The root's track loss, with the ancestors' Gaussians coloured by their pixel in frame ``j`` too."""
-        if self.tracks is None or self.T < 2 or self.tracks.shape[1] == 0:
-            return None
-        j = int(torch.randint(0, self.T - 1, (1,), generator=self.pairs))
-        j = j + 1 if j >= i else j
-        both = self.track_vis[i] & self.track_vis[j]
-        if int(both.sum()) == 0:
-            return None
-        H, W = self.images.shape[1:3]
-        means_j = self.gaussians_at(j)[0]
-        uv_j = project(means_j, self.Ks[j], self.camera(j))
-        col = torch.cat([uv_j, torch.ones_like(uv_j[:, :1])], 1)
-        out = self.render(self.Ks[i], self.camera(i), W, H, i, colors=col)
-        flow = out.rgb[..., :2] / out.alpha.clamp_min(1e-6)[..., None]
-        p_i = self.tracks[i, both]
-        col_i = p_i[:, 0].round().long().clamp(0, W - 1)
-        row_i = p_i[:, 1].round().long().clamp(0, H - 1)
-        ok = out.alpha[row_i, col_i].detach() > 0.5
-        if int(ok.sum()) == 0:
-            return None
-        err = (flow[row_i, col_i] - self.tracks[j, both]).norm(dim=-1).clamp(max=self.cfg.track_clamp_px)
-        return err[ok].mean()
+    def track_means_at(self, j: int) -> torch.Tensor:
+        """The root's track loss also colours the ancestors' Gaussians by their pixel in frame ``j``."""
+        return self.gaussians_at(j)[0]
 
     def _next_frame(self) -> int:
         self._frame = super()._next_frame()

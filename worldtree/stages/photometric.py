@@ -274,6 +274,11 @@ class PhotometricFit:
         return out
 
     # ------------------------------------------------------------------ losses
+    def track_means_at(self, j: int) -> torch.Tensor:
+        """``[N, 3]`` means of every rendered Gaussian at frame ``j``, in render order (static, dynamic)."""
+        mj, _ = self.dynamic.at(self.scaffold, j, self.cache)
+        return torch.cat([self.static.means, mj])
+
     def track_loss(self, i: int) -> torch.Tensor | None:
         """Clamped pixel error of the rendered correspondence map from frame ``i`` to a random frame."""
         if self.tracks is None or self.T < 2 or self.tracks.shape[1] == 0:
@@ -284,9 +289,7 @@ class PhotometricFit:
         if int(both.sum()) == 0:
             return None
         H, W = self.images.shape[1:3]
-        mj, _ = self.dynamic.at(self.scaffold, j, self.cache)
-        pts_j = torch.cat([self.static.means, mj])
-        uv_j = project(pts_j, self.Ks[j], self.camera(j))
+        uv_j = project(self.track_means_at(j), self.Ks[j], self.camera(j))
         col = torch.cat([uv_j, torch.ones_like(uv_j[:, :1])], 1)
         out = self.render(self.Ks[i], self.camera(i), W, H, i, colors=col)
         flow = out.rgb[..., :2] / out.alpha.clamp_min(1e-6)[..., None]  # [H, W, 2] predicted pixel in j
