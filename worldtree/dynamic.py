@@ -98,19 +98,9 @@ class DynamicGaussians(GaussianSet):
 
     @classmethod
     def load(cls, path, device: torch.device | str = "cpu") -> DynamicGaussians:
-        from pathlib import Path
-
         from worldtree.errors import UserError
 
-        path = Path(path)
-        if not path.is_file():
-            raise UserError(f"{path}: no such model file")
-        try:
-            data = torch.load(path, map_location=device, weights_only=True)
-        except Exception as e:  # torch raises several types for corrupt files
-            raise UserError(
-                f"{path}: not a readable Gaussian model ({type(e).__name__}); re-run training"
-            ) from e
+        data = cls.read_params(path, device)
         if "t_ref" not in data:
             raise UserError(f"{path}: a static Gaussian file (no t_ref); expected dynamic Gaussians")
         return cls(data)

@@ -255,19 +255,23 @@ class GaussianSet(nn.Module):
         torch.save({k: v.detach().cpu() for k, v in self.params.items()}, buf)
         atomic_write_bytes(path, buf.getvalue())
 
-    @classmethod
-    def load(cls, path: str | Path, device: torch.device | str = "cpu") -> GaussianSet:
-        """Read a file written by :meth:`save`."""
+    @staticmethod
+    def read_params(path: str | Path, device: torch.device | str = "cpu") -> dict[str, torch.Tensor]:
+        """The parameter tensors of a file written by :meth:`save` (a clear error for a missing/corrupt file)."""
         path = Path(path)
         if not path.is_file():
             raise UserError(f"{path}: no such model file")
         try:
-            data = torch.load(path, map_location=device, weights_only=True)
+            return torch.load(path, map_location=device, weights_only=True)
         except Exception as e:  # torch raises several types for corrupt files
             raise UserError(
                 f"{path}: not a readable Gaussian model ({type(e).__name__}); re-run training"
             ) from e
-        return cls(data)
+
+    @classmethod
+    def load(cls, path: str | Path, device: torch.device | str = "cpu") -> GaussianSet:
+        """Read a file written by :meth:`save`."""
+        return cls(cls.read_params(path, device))
 
     def load_params(self, state: Mapping[str, torch.Tensor]) -> None:
         """Replace every parameter by ``state``'s (shapes may differ: density control changes N)."""
