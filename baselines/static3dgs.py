@@ -23,7 +23,7 @@ from worldtree.atomic import atomic_write_json
 from worldtree.errors import UserError
 from worldtree.gaussians import GaussianSet
 from worldtree.losses import photometric_loss
-from worldtree.optim import ConstantLR, ExponentialLR, GroupedAdam
+from worldtree.optim import ConstantLR, GroupedAdam, gaussian_schedules
 from worldtree.render import rasterize
 from worldtree.scene import Scene
 from worldtree.strategy import DensifyStrategy
@@ -188,13 +188,10 @@ class StaticGaussians(DensifiedGaussianTrainable):
 
     def _make_optimizer(self) -> GroupedAdam:
         c = self.cfg
-        schedules = {
-            "means": ExponentialLR(c.lr_means * self.extent, c.lr_means_final * self.extent, max(c.steps, 1)),
-            "quats": ConstantLR(c.lr_quats),
-            "log_scales": ConstantLR(c.lr_scales),
-            "opacity_logits": ConstantLR(c.lr_opacity),
-            "sh0": ConstantLR(c.lr_sh0),
-        }
+        e = self.extent
+        schedules = gaussian_schedules(
+            c.lr_means * e, c.lr_means_final * e, c.steps, c.lr_quats, c.lr_scales, c.lr_opacity, c.lr_sh0
+        )
         if "shN" in self.gaussians.params:
             schedules["shN"] = ConstantLR(c.lr_shN)
         return GroupedAdam(dict(self.gaussians.params.items()), schedules)

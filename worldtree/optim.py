@@ -85,6 +85,27 @@ class CosineLR:
 Schedule = Callable[[int], float]
 
 
+def gaussian_schedules(
+    lr_means: float,
+    lr_means_final: float,
+    steps: int,
+    lr_quats: float,
+    lr_scales: float,
+    lr_opacity: float,
+    lr_sh0: float,
+) -> dict[str, ConstantLR | ExponentialLR]:
+    """Schedules of a Gaussian set's parameter groups as in 3DGS: positions decay exponentially from
+    ``lr_means`` to ``lr_means_final`` over ``steps`` (already scaled by the scene extent); the rest are
+    constant."""
+    return {
+        "means": ExponentialLR(lr_means, lr_means_final, max(steps, 1)),
+        "quats": ConstantLR(lr_quats),
+        "log_scales": ConstantLR(lr_scales),
+        "opacity_logits": ConstantLR(lr_opacity),
+        "sh0": ConstantLR(lr_sh0),
+    }
+
+
 class GroupedAdam:
     """``torch.optim.Adam`` with one group per named tensor and a learning-rate schedule per group.
 

@@ -8,7 +8,7 @@ import pytest
 import torch
 from torch import nn
 
-from worldtree.optim import ConstantLR, CosineLR, ExponentialLR, GroupedAdam
+from worldtree.optim import ConstantLR, CosineLR, ExponentialLR, GroupedAdam, gaussian_schedules
 
 
 def test_exponential_schedule_closed_form():
@@ -77,3 +77,13 @@ def test_replace_param_moves_state_rows():
 def test_missing_schedule_is_an_error():
     with pytest.raises(ValueError, match="no learning-rate schedule"):
         GroupedAdam({"x": nn.Parameter(torch.zeros(1))}, {})
+
+
+def test_gaussian_schedules_3dgs_groups():
+    s = gaussian_schedules(1.6e-4, 1.6e-6, 100, 1e-3, 5e-3, 0.05, 2.5e-3)
+    assert set(s) == {"means", "quats", "log_scales", "opacity_logits", "sh0"}
+    # Positions decay log-linearly from the first to the final rate; the midpoint is their geometric mean.
+    assert s["means"](0) == pytest.approx(1.6e-4)
+    assert s["means"](100) == pytest.approx(1.6e-6)
+    assert s["means"](50) == pytest.approx(math.sqrt(1.6e-4 * 1.6e-6))
+    assert [s[k](77) for k in ("quats", "log_scales", "opacity_logits", "sh0")] == [1e-3, 5e-3, 0.05, 2.5e-3]

@@ -31,7 +31,7 @@ from worldtree.gaussians import GaussianSet
 from worldtree.losses import ssim
 from worldtree.motion.regularizers import MotionLossConfig, motion_losses
 from worldtree.motion.scaffold import Scaffold
-from worldtree.optim import ConstantLR, ExponentialLR, GroupedAdam
+from worldtree.optim import ConstantLR, GroupedAdam, gaussian_schedules
 from worldtree.render import rasterize
 from worldtree.stages.cameras import apply_delta
 from worldtree.strategy import DensifyStrategy
@@ -205,15 +205,10 @@ class PhotometricFit:
     # ------------------------------------------------------------------ set-up
     def _gauss_schedules(self, gs: GaussianSet) -> dict:
         c = self.cfg
-        s = {
-            "means": ExponentialLR(
-                c.lr_means * self.extent, 0.01 * c.lr_means * self.extent, max(c.steps, 1)
-            ),
-            "quats": ConstantLR(c.lr_quats),
-            "log_scales": ConstantLR(c.lr_scales),
-            "opacity_logits": ConstantLR(c.lr_opacity),
-            "sh0": ConstantLR(c.lr_sh0),
-        }
+        e = self.extent
+        s = gaussian_schedules(
+            c.lr_means * e, 0.01 * c.lr_means * e, c.steps, c.lr_quats, c.lr_scales, c.lr_opacity, c.lr_sh0
+        )
         if "skin_corr" in gs.params:
             s["skin_corr"] = ConstantLR(c.lr_skin_corr)
         return s

@@ -25,7 +25,7 @@ import torch.nn.functional as F
 from worldtree.errors import UserError
 from worldtree.gaussians import GaussianSet
 from worldtree.losses import ssim_map
-from worldtree.optim import ConstantLR, ExponentialLR, GroupedAdam
+from worldtree.optim import GroupedAdam, gaussian_schedules
 from worldtree.render import rasterize
 from worldtree.strategy import DensifyStrategy
 from worldtree.trainer import DensifiedGaussianTrainable, StepOutput
@@ -198,15 +198,10 @@ class StaticWarmup(DensifiedGaussianTrainable):
 
     def _make_optimizer(self) -> GroupedAdam:
         c = self.cfg
-        schedules = {
-            "means": ExponentialLR(
-                c.lr_means * self.extent, 0.01 * c.lr_means * self.extent, max(c.steps, 1)
-            ),
-            "quats": ConstantLR(c.lr_quats),
-            "log_scales": ConstantLR(c.lr_scales),
-            "opacity_logits": ConstantLR(c.lr_opacity),
-            "sh0": ConstantLR(c.lr_sh0),
-        }
+        e = self.extent
+        schedules = gaussian_schedules(
+            c.lr_means * e, 0.01 * c.lr_means * e, c.steps, c.lr_quats, c.lr_scales, c.lr_opacity, c.lr_sh0
+        )
         return GroupedAdam(dict(self.gaussians.params.items()), schedules)
 
     @property
