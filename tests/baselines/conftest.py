@@ -2,25 +2,15 @@
 
 from __future__ import annotations
 
-import importlib.util
 from pathlib import Path
 
 import pytest
 
 
-def load_scene_fixture_module():
-    """Import tests/baselines/scene_fixture.py by path (tests run with --import-mode=importlib)."""
-    path = Path(__file__).with_name("scene_fixture.py")
-    spec = importlib.util.spec_from_file_location("wt_tests_scene_fixture", path)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
-
-
 @pytest.fixture(scope="session")
-def tiny_scene(tmp_path_factory) -> Path:
+def tiny_scene(tmp_path_factory, write_tiny_scene) -> Path:
     """A 64x36, 6-frame scene folder in the docs/scene_format.md layout."""
-    return load_scene_fixture_module().write_tiny_scene(tmp_path_factory.mktemp("scene") / "tiny")
+    return write_tiny_scene(tmp_path_factory.mktemp("scene") / "tiny")
 
 
 @pytest.fixture(autouse=True)

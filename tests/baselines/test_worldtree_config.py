@@ -6,7 +6,6 @@ from __future__ import annotations
 import dataclasses
 import subprocess
 import sys
-from pathlib import Path
 
 import pytest
 from typer.testing import CliRunner
@@ -68,17 +67,6 @@ def test_run_tags_differ_per_configuration():
     assert run_tag("quick", {"steps": 5}) == "quick-steps5"
 
 
-def _scene(tmp_path: Path) -> Path:
-    import importlib.util
-
-    spec = importlib.util.spec_from_file_location(
-        "wt_tests_scene_fixture_cfg", Path(__file__).with_name("scene_fixture.py")
-    )
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod.write_tiny_scene(tmp_path / "tiny")
-
-
 @pytest.mark.parametrize(
     "method,extra,needle",
     [
@@ -87,8 +75,8 @@ def _scene(tmp_path: Path) -> Path:
         ("worldtree", ["--split", "median"], "--split median"),
     ],
 )
-def test_cli_refuses_bad_options_before_running(tmp_path, method, extra, needle):
-    scene = _scene(tmp_path)
+def test_cli_refuses_bad_options_before_running(tmp_path, method, extra, needle, write_tiny_scene):
+    scene = write_tiny_scene(tmp_path / "tiny")
     args = [
         "run",
         "--method",
@@ -105,8 +93,8 @@ def test_cli_refuses_bad_options_before_running(tmp_path, method, extra, needle)
     assert not any((tmp_path / "runs").rglob("config.json"))
 
 
-def test_cli_option_error_is_one_line(tmp_path):
-    scene = _scene(tmp_path)
+def test_cli_option_error_is_one_line(tmp_path, write_tiny_scene):
+    scene = write_tiny_scene(tmp_path / "tiny")
     out = subprocess.run(
         [sys.executable, "-m", "benchmarks.cli", "run", "--method", "worldtree", "--scene", str(scene),
          "--preset", "smoke", "--chain-length", "-1", "-o", str(tmp_path / "runs")],

@@ -3,7 +3,6 @@ the default tree, ``--ablate sac`` and ``--ablate tpt`` (against the Base method
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import pickle
 import shutil
@@ -25,23 +24,15 @@ FRAMES = 26
 INTERVALS = {1: [0, 25], 2: [0, 11], 3: [12, 25], 4: [0, 4], 5: [5, 11], 6: [12, 17], 7: [18, 25]}
 
 
-def _scene_module():
-    path = Path(__file__).with_name("scene_fixture.py")
-    spec = importlib.util.spec_from_file_location("wt_tests_scene_fixture_wt", path)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
-
-
 def _wtbench(*args: str) -> None:
     res = CliRunner().invoke(app, ["run", *args])
     assert res.exit_code == 0, res.output
 
 
 @pytest.fixture(scope="module")
-def runs(tmp_path_factory):
+def runs(tmp_path_factory, write_tiny_scene):
     tmp = tmp_path_factory.mktemp("wt_runs")
-    scene = _scene_module().write_tiny_scene(tmp / "tiny26", frames=FRAMES)
+    scene = write_tiny_scene(tmp / "tiny26", frames=FRAMES)
     out = tmp / "runs"
     common = ["--scene", str(scene), "-o", str(out), "--preset", "smoke", "--device", "cpu"]
     _wtbench("--method", "worldtree", *common)

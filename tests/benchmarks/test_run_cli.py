@@ -4,7 +4,6 @@ one-line errors for bad input."""
 from __future__ import annotations
 
 import dataclasses
-import importlib.util
 import json
 import subprocess
 import sys
@@ -22,17 +21,9 @@ from benchmarks.runs import RunRequest, execute, run_tag
 from worldtree.errors import UserError
 
 
-def _scene_module():
-    path = Path(__file__).parents[1] / "baselines" / "scene_fixture.py"
-    spec = importlib.util.spec_from_file_location("wt_tests_scene_fixture_run", path)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
-
-
 @pytest.fixture(scope="module")
-def scene(tmp_path_factory) -> Path:
-    return _scene_module().write_tiny_scene(tmp_path_factory.mktemp("s") / "tiny")
+def scene(tmp_path_factory, write_tiny_scene) -> Path:
+    return write_tiny_scene(tmp_path_factory.mktemp("s") / "tiny")
 
 
 @pytest.fixture(autouse=True)
@@ -120,12 +111,12 @@ def test_interrupted_run_resumes_from_checkpoint(scene, tmp_path, small_quick, m
         (["--method", "static", "--scene", ".", "--preset", "huge"], "has presets paper, quick"),
     ],
 )
-def test_bad_input_is_one_line_error(tmp_path, extra, needle):
+def test_bad_input_is_one_line_error(tmp_path, extra, needle, write_tiny_scene):
     scene_dir = tmp_path / "empty_scene"
     scene_dir.mkdir()
     extra = [str(scene_dir) if a == "." else a for a in extra]
     if "--preset" in extra:  # needs a scene that loads as far as the preset check
-        _scene_module().write_tiny_scene(scene_dir, frames=1)
+        write_tiny_scene(scene_dir, frames=1)
     out = subprocess.run(
         [sys.executable, "-m", "benchmarks.cli", "run", *extra, "-o", str(tmp_path / "runs")],
         capture_output=True,

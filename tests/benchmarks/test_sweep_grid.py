@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import subprocess
 import sys
@@ -73,18 +72,10 @@ def test_sweep_goes_on_past_a_failed_run(tmp_path):
     assert out[0].error == "RuntimeError: exploded"
 
 
-def _tiny_scene(root: Path) -> Path:
-    path = Path(__file__).parents[1] / "baselines" / "scene_fixture.py"
-    spec = importlib.util.spec_from_file_location("wt_tests_scene_fixture_sweep", path)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod.write_tiny_scene(root, frames=2)
-
-
-def test_cli_reports_failures_and_exits_nonzero(tmp_path):
+def test_cli_reports_failures_and_exits_nonzero(tmp_path, write_tiny_scene):
     # The static method refuses tree options, so every run of the depth grid fails: the sweep must try
     # all five, report each, write the JSON report and exit 1.
-    scene = _tiny_scene(tmp_path / "scenes" / "tiny")
+    scene = write_tiny_scene(tmp_path / "scenes" / "tiny", frames=2)
     out = subprocess.run(
         [sys.executable, "-m", "benchmarks.cli", "sweep", "--scenes", str(scene.parent), "--grid", "depth",
          "--method", "static", "--preset", "quick", "-o", str(tmp_path / "runs")],

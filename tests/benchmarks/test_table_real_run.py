@@ -4,10 +4,8 @@ on the tiny analytic scene), so that the reader cannot drift from the writer."""
 from __future__ import annotations
 
 import dataclasses
-import importlib.util
 import json
 import math
-from pathlib import Path
 
 import pandas as pd
 import pytest
@@ -20,23 +18,15 @@ from benchmarks.results import HARNESS_METRICS, collect_runs
 from benchmarks.runs import RunRequest, execute
 
 
-def _scene_module():
-    path = Path(__file__).parents[1] / "baselines" / "scene_fixture.py"
-    spec = importlib.util.spec_from_file_location("wt_tests_scene_fixture_table", path)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
-
-
 @pytest.fixture
-def real_run(tmp_path, monkeypatch):
+def real_run(tmp_path, monkeypatch, write_tiny_scene):
     spec = get_method("static")
     quick = spec.presets["quick"]
     monkeypatch.setitem(spec.presets, "quick", lambda: dataclasses.replace(quick(), init_num_points=200))
     before = torch.get_num_threads()
     torch.set_num_threads(1)
     try:
-        scene = _scene_module().write_tiny_scene(tmp_path / "scenes" / "tiny")
+        scene = write_tiny_scene(tmp_path / "scenes" / "tiny")
         req = RunRequest(
             scene=scene,
             method="static",

@@ -2,10 +2,8 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import shutil
-from pathlib import Path
 
 import cv2
 import numpy as np
@@ -18,17 +16,9 @@ from worldtree.errors import UserError
 from worldtree.imageio import read_image
 
 
-def _tiny_scene(root: Path) -> Path:
-    path = Path(__file__).parents[1] / "baselines" / "scene_fixture.py"
-    spec = importlib.util.spec_from_file_location("wt_tests_scene_fixture_video", path)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod.write_tiny_scene(root, frames=4)
-
-
 @pytest.fixture
-def run_dir(tmp_path):
-    scene = _tiny_scene(tmp_path / "scene")
+def run_dir(tmp_path, write_tiny_scene):
+    scene = write_tiny_scene(tmp_path / "scene", frames=4)
     run = tmp_path / "run"
     (run / "renders").mkdir(parents=True)
     (run / "config.json").write_text(json.dumps({"scene": str(scene)}))
