@@ -125,3 +125,16 @@ def test_run_cli_exit_codes(capsys):
         finally:
             sys.argv = sys_argv
     assert "error: --kind bad: use good" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("argv", [["prep", "scene", "--no-such-option"], ["run", "--steps", "many"]])
+def test_usage_errors_are_one_message_not_a_traceback(argv):
+    """An unknown option or a bad value exits 2 with click's usage message and no traceback."""
+    import subprocess
+    import sys
+
+    code = "import sys; from benchmarks.cli import main; sys.argv = ['wtbench', *sys.argv[1:]]; main()"
+    res = subprocess.run([sys.executable, "-c", code, *argv], capture_output=True, text=True, timeout=120)
+    assert res.returncode == 2, res.stderr
+    assert "Traceback" not in res.stderr
+    assert "Error:" in res.stderr

@@ -24,15 +24,16 @@ def run_cli(app) -> None:
     except KeyboardInterrupt:
         print("interrupted: re-run the same command to resume from the last checkpoint", file=sys.stderr)
         raise SystemExit(130) from None
-    except Exception as e:  # click's usage errors arrive here with standalone_mode=False
-        import click
-
-        if isinstance(e, click.exceptions.Exit):
-            raise SystemExit(e.exit_code) from None
-        if isinstance(e, click.ClickException):
+    except Exception as e:
+        # Usage errors arrive here with standalone_mode=False. Recent typer releases vendor their own copy of
+        # click, so the exception classes are matched by behaviour, not by click's class objects.
+        exit_code = getattr(e, "exit_code", None)
+        if callable(getattr(e, "show", None)) and isinstance(exit_code, int):
             e.show()
-            raise SystemExit(e.exit_code) from None
-        if isinstance(e, click.exceptions.Abort):
+            raise SystemExit(exit_code) from None
+        if type(e).__name__ == "Exit" and isinstance(exit_code, int):
+            raise SystemExit(exit_code) from None
+        if type(e).__name__ == "Abort":
             print("aborted", file=sys.stderr)
             raise SystemExit(1) from None
         raise
