@@ -102,6 +102,8 @@ def describe_configuration(record: Mapping[str, Any]) -> str:
     ``chain_length`` as ``chain=K``; ``split`` as ``split=S``. Each of the last four is looked up at the
     record's top level, then in ``record["config"]``, then in ``record["config"]["tree"]``.
     ``{"preset": "quick", "config": {"ablate": ["sw", "ba"], "depth": 3}}`` -> ``"quick -ba -sw depth=3"``.
+    Then ``sets`` (``--set KEY=VALUE``, sorted) and ``imported_priors`` (``--masks`` etc.) as ``name=folder``
+    (the path's last part), so runs that differ only there never share a row.
     A record with none of these keys gives ``"default"``.
     """
     parts: list[str] = []
@@ -116,6 +118,12 @@ def describe_configuration(record: Mapping[str, Any]) -> str:
         v = _lookup(record, key)
         if v is not None and not isinstance(v, Mapping | list):
             parts.append(f"{name}={v}")
+    sets = record.get("sets")
+    if isinstance(sets, list):
+        parts += sorted(str(x) for x in sets)
+    priors = record.get("imported_priors")
+    if isinstance(priors, Mapping):
+        parts += [f"{k}={Path(str(priors[k])).name}" for k in sorted(priors)]
     return " ".join(parts) if parts else "default"
 
 

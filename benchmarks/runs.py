@@ -1,9 +1,10 @@
 """Run folders: the layout of one method's run on one scene, its bookkeeping, and executing it end to end.
 
 Layout (``RUNS_DIR/<scene>/<method>/<tag>/``, ``tag`` = preset plus overrides, e.g. ``quick`` or
-``quick-steps200-seed1``)::
+``quick-steps200-seed1``, and ``-set<8 hex>`` when ``--set`` or imported priors change the config)::
 
-    config.json     resolved typed config, preset, overrides, seed, scene, tool version
+    config.json     resolved typed config, preset, overrides, options, sets, imported priors, seed, scene,
+                    tool version
     command.txt     the command line that made the run
     checkpoints/    periodic atomic checkpoints (model + optimiser + density-control state + RNG states)
     model/          final model: gaussians.pt (GaussianSet.load), gaussians.ply, model.json
@@ -34,6 +35,7 @@ import numpy as np
 import torch
 
 import worldtree
+from benchmarks.config_overrides import apply_overrides, sets_digest, split_assignment
 from worldtree.atomic import atomic_write_json, atomic_write_text
 from worldtree.errors import UserError
 from worldtree.imageio import write_image
@@ -41,6 +43,14 @@ from worldtree.imageio import write_image
 TUNABLE = ("steps", "seed", "downscale")
 # Method options of `wtbench run` (set only on methods whose config has the field), in tag order.
 METHOD_OPTIONS = ("ablate", "depth", "chain_length", "split", "sequential")
+# Imported-prior options of `wtbench run` -> the PriorsConfig field each sets (priors.<field>), and what the
+# path must be ("dir", "file" or "any"; as `wtbench prep` reads them, docs/priors.md).
+PRIOR_OPTIONS: dict[str, tuple[str, str]] = {
+    "masks": ("masks_source", "dir"),
+    "tracks": ("tracks_source", "file"),
+    "depth_maps": ("depth_source", "any"),
+    "flow": ("flow_source", "dir"),
+}
 
 
 @dataclass(frozen=True)
@@ -93,10 +103,17 @@ class RunFolder:
         return self.done.is_file()
 
 
-def run_tag(preset: str, overrides: dict[str, Any], options: dict[str, Any] | None = None) -> str:
+def run_tag(
+    preset: str,
+    overrides: dict[str, Any],
+    options: dict[str, Any] | None = None,
+    sets: list[str] | None = None,
+) -> str:
     """Folder name of a configuration: the preset, then ``-<field><value>`` per override in a fixed order,
     then the method options: ``-no<name>`` per ablation, ``-depth<D>``, ``-chain<K>``, ``-split<S>``, ``-seq``
-    (e.g. ``quick-steps200-noba-nosac-depth3``)."""
+    (e.g. ``quick-steps200-noba-nosac-depth3``), then ``-set<8 hex>`` when ``sets`` (``KEY=VALUE`` strings,
+    imported priors included) are given: :func:`benchmarks.config_overrides.sets_digest`, the same for the
+    same settings in any order."""
     parts = [preset] + [f"{k}{overrides[k]}" for k in TUNABLE if k in overrides]
     opts = options or {}
     parts += [f"no{a}" for a in sorted(set(opts.get("ablate") or ()))]
@@ -105,6 +122,8 @@ def run_tag(preset: str, overrides: dict[str, Any], options: dict[str, Any] | No
             parts.append(f"{name}{opts[key]}")
     if opts.get("sequential"):
         parts.append("seq")
+    if sets:
+        parts.append("set" + sets_digest(sets))
     return "-".join(parts)
 
 
@@ -188,6 +207,12 @@ class RunRequest:
     """Write TensorBoard scalars into the run folder."""
     force: bool = False
     """Delete an existing run folder (finished or not) and start again."""
+    sets: list[str] = field(default_factory=list)
+    """``KEY=VALUE`` assignments to any config field (``--set``, :mod:`benchmarks.config_overrides`), applied
+    after overrides and options; recorded verbatim in config.json."""
+    priors: dict[str, str] = field(default_factory=dict)
+    """Imported priors: ``PRIOR_OPTIONS`` name (masks, tracks, depth_maps, flow) -> path; each sets its
+    ``priors.<...>_source`` field (a method without ``priors`` refuses them)."""
     tag: str | None = None
     """Run-folder name; default: preset plus overrides."""
     progress: bool = True
@@ -209,6 +234,8 @@ def _config_record(spec, cfg, req: RunRequest) -> dict[str, Any]:
         "preset": req.preset,
         "overrides": dict(req.overrides),
         "options": dict(req.options),
+        "sets": list(req.sets),
+        "imported_priors": dict(req.priors),
         "config": dataclasses.asdict(cfg),
         "seed": cfg.seed,
         "scene": str(req.scene.resolve()),
@@ -247,14 +274,8 @@ def execute(req: RunRequest) -> RunResult:
     if not root.is_dir():
         raise UserError(f"--scene {root}: no such folder; give a scene folder written by `nvls build`")
     view = native_test_view(root)
-    cfg = spec.config(req.preset)
-    for k, v in req.overrides.items():
-        if k not in TUNABLE:
-            raise UserError(f"override {k!r} is not one of {', '.join(TUNABLE)}")
-        if k in ("steps", "downscale") and v < 1:
-            raise UserError(f"--{k} {v}: must be at least 1")
-    cfg = dataclasses.replace(cfg, **req.overrides, **_method_options(cfg, spec.name, req.options))
-    tag = req.tag or run_tag(req.preset, req.overrides, req.options)
+    cfg, sets = resolve_config(spec, req)
+    tag = req.tag or run_tag(req.preset, req.overrides, req.options, sets)
     folder = RunFolder(Path(req.runs_dir) / root.name / spec.name / tag)
 
     record = _config_record(spec, cfg, req)
@@ -322,6 +343,68 @@ def execute(req: RunRequest) -> RunResult:
         folder.done, {"finished": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()), "mean": mean}
     )
     return RunResult(folder, skipped=False, mean=mean)
+
+
+def resolve_config(spec, req: RunRequest) -> tuple[Any, list[str]]:
+    """The config of ``req``: ``spec``'s preset, then the overrides, the method options, and last the
+    ``--set`` assignments with the imported priors (as ``priors.<field>=<absolute path>``). Returns the config
+    and every assignment applied (they name the run folder). A ``--set`` key also given by its own option
+    (``--steps``, ``--depth``, ``--masks``...) is refused rather than silently preferring one."""
+    cfg = spec.config(req.preset)
+    for k, v in req.overrides.items():
+        if k not in TUNABLE:
+            raise UserError(f"override {k!r} is not one of {', '.join(TUNABLE)}")
+        if k in ("steps", "downscale") and v < 1:
+            raise UserError(f"--{k} {v}: must be at least 1")
+    cfg = dataclasses.replace(cfg, **req.overrides, **_method_options(cfg, spec.name, req.options))
+    prior_sets = _prior_sets(cfg, spec.name, req.priors)
+    flags = {k: "--" + k.replace("_", "-") for k in (*req.overrides, *req.options)}
+    flags |= {f"priors.{PRIOR_OPTIONS[k][0]}": "--" + k.replace("_", "-") for k in req.priors}
+    for item in req.sets:
+        key, _ = split_assignment(item)
+        if key in flags:
+            raise UserError(f"--set {item}: {key} is also given by {flags[key]}; keep one of them")
+    sets = list(req.sets) + prior_sets
+    cfg = apply_overrides(cfg, sets)
+    for k in ("steps", "downscale"):  # as the --steps/--downscale check above, for --set steps=0
+        if getattr(cfg, k) < 1:
+            raise UserError(f"--set {k}={getattr(cfg, k)}: must be at least 1")
+    return cfg, sets
+
+
+def resolve_prior_paths(priors: dict[str, Any]) -> dict[str, str]:
+    """``{option: path}`` (``PRIOR_OPTIONS`` names; None values dropped) with each path made absolute; a
+    missing path, or a file where a folder is needed (or the reverse), is a :class:`UserError` naming the
+    option."""
+    out: dict[str, str] = {}
+    for name, value in priors.items():
+        if value is None:
+            continue
+        if name not in PRIOR_OPTIONS:
+            raise UserError(f"prior {name!r} is not one of {', '.join(PRIOR_OPTIONS)}")
+        flag = "--" + name.replace("_", "-")
+        path = Path(value).expanduser().resolve()
+        kind = PRIOR_OPTIONS[name][1]
+        if not path.exists():
+            raise UserError(f"{flag} {value}: no such file or folder; see docs/priors.md for the layout")
+        if kind == "dir" and not path.is_dir():
+            raise UserError(f"{flag} {value}: not a folder; give the folder holding the files")
+        if kind == "file" and not path.is_file():
+            raise UserError(f"{flag} {value}: not a file; give one .npy/.npz/.pt file")
+        out[name] = str(path)
+    return out
+
+
+def _prior_sets(cfg, method: str, priors: dict[str, Any]) -> list[str]:
+    """The imported priors as ``priors.<field>=<absolute path>`` assignments, in ``PRIOR_OPTIONS`` order."""
+    given = [k for k, v in priors.items() if v is not None]
+    if given and "priors" not in {f.name for f in dataclasses.fields(cfg)}:
+        flag = "--" + given[0].replace("_", "-")
+        raise UserError(
+            f"{flag}: method {method!r} uses no 2D priors; drop it or use --method base or --method worldtree"
+        )
+    paths = resolve_prior_paths(priors)
+    return [f"priors.{PRIOR_OPTIONS[k][0]}={paths[k]}" for k in PRIOR_OPTIONS if k in paths]
 
 
 def _method_options(cfg, method: str, options: dict[str, Any]) -> dict[str, Any]:

@@ -3,6 +3,8 @@
 A grid is a list of :class:`GridPoint` (method options such as ablations, depth, chain length). The runner
 turns every (scene, point) pair into a :class:`benchmarks.runs.RunRequest`; runs that already finished are
 skipped by :func:`benchmarks.runs.execute` itself, and a failing run is recorded and the sweep goes on.
+Settings common to the whole grid (``--set KEY=VALUE``, imported priors) are not grid points: `wtbench sweep`
+puts them into every request (``RunRequest.sets`` / ``RunRequest.priors``), so they name every run folder.
 """
 
 from __future__ import annotations

@@ -9,6 +9,14 @@ from pathlib import Path
 
 import typer
 
+# Help of the imported-prior options, worded as `wtbench prep`'s options for the same files.
+PRIOR_HELP = {
+    "masks": "Folder of dynamic masks (one per frame) replacing EPI masks; sets priors.masks_source.",
+    "tracks": "CoTracker .npy/.npz/.pt file of tracks to import; sets priors.tracks_source.",
+    "depth_maps": "Depth file/folder to import (prep's --depth PATH); sets priors.depth_source.",
+    "flow": "Folder of <i>_<j>.flo/.npy flow to import; sets priors.flow_source.",
+}
+
 
 def register(app: typer.Typer) -> None:
     @app.command(
@@ -44,6 +52,17 @@ def register(app: typer.Typer) -> None:
         sequential: bool = typer.Option(
             False, "--sequential", help="worldtree: train each layer's nodes one after another."
         ),
+        set_: list[str] | None = typer.Option(
+            None,
+            "--set",
+            metavar="KEY=VALUE",
+            help="Change any config field, e.g. photometric.lambda_depth=0.1 or priors.epi.threshold_px=1.0 "
+            "(dotted path, value parsed by the field's type); repeatable. See docs/running.md.",
+        ),
+        masks: Path | None = typer.Option(None, "--masks", help=PRIOR_HELP["masks"]),
+        tracks: Path | None = typer.Option(None, "--tracks", help=PRIOR_HELP["tracks"]),
+        depth_maps: Path | None = typer.Option(None, "--depth-maps", help=PRIOR_HELP["depth_maps"]),
+        flow: Path | None = typer.Option(None, "--flow", help=PRIOR_HELP["flow"]),
         lpips_weights: Path | None = typer.Option(
             None, "--lpips-weights", help="Folder holding alexnet-owt-7be5be79.pth and alex.pth."
         ),
@@ -54,7 +73,7 @@ def register(app: typer.Typer) -> None:
             False, "--list", help="List the registered methods and presets, then exit."
         ),
     ) -> None:
-        from benchmarks.runs import RunRequest, execute
+        from benchmarks.runs import RunRequest, execute, resolve_prior_paths
         from worldtree.errors import UserError
 
         if list_:
@@ -68,6 +87,10 @@ def register(app: typer.Typer) -> None:
             k: v for k, v in (("steps", steps), ("seed", seed), ("downscale", downscale)) if v is not None
         }
         options = _options(ablate, depth, chain_length, split, sequential)
+        sets = list(set_ or [])
+        priors = resolve_prior_paths(
+            {"masks": masks, "tracks": tracks, "depth_maps": depth_maps, "flow": flow}
+        )
         req = RunRequest(
             scene=scene,
             method=method,
@@ -76,12 +99,25 @@ def register(app: typer.Typer) -> None:
             device=device,
             overrides=overrides,
             options=options,
+            sets=sets,
+            priors=priors,
             lpips_weights=lpips_weights,
             tensorboard=tensorboard,
             force=force,
             tag=tag,
             command=_command_line(
-                method, scene, runs_dir, preset, device, overrides, lpips_weights, tensorboard, tag, options
+                method,
+                scene,
+                runs_dir,
+                preset,
+                device,
+                overrides,
+                lpips_weights,
+                tensorboard,
+                tag,
+                options,
+                sets=sets,
+                priors=priors,
             ),
         )
         with warnings.catch_warnings():
@@ -106,8 +142,9 @@ def _options(ablate, depth, chain_length, split, sequential) -> dict:
 
 
 def _command_line(
-    method, scene, runs_dir, preset, device, overrides, lpips_weights, tensorboard, tag, options=None
-) -> str:
+    method, scene, runs_dir, preset, device, overrides, lpips_weights, tensorboard, tag, options=None,
+    sets=None, priors=None,
+) -> str:  # fmt: skip
     """The command in canonical form (every resolved option), so that it can be pasted to repeat the run
     however it was invoked (shell, script, or in-process)."""
     parts = ["wtbench", "run", "--method", method, "--scene", str(scene), "-o", str(runs_dir)]
@@ -123,6 +160,10 @@ def _command_line(
             parts.append(flag)
         else:
             parts += [flag, str(v)]
+    for item in sets or ():
+        parts += ["--set", item]
+    for k, v in (priors or {}).items():
+        parts += ["--" + k.replace("_", "-"), str(v)]
     if lpips_weights is not None:
         parts += ["--lpips-weights", str(lpips_weights)]
     if tensorboard:

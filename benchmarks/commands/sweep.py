@@ -6,6 +6,8 @@ from pathlib import Path
 
 import typer
 
+from benchmarks.commands.run import PRIOR_HELP
+
 
 def register(app: typer.Typer) -> None:
     @app.command(
@@ -29,32 +31,84 @@ def register(app: typer.Typer) -> None:
         lpips_weights: Path | None = typer.Option(
             None, "--lpips-weights", help="Folder holding alexnet-owt-7be5be79.pth and alex.pth."
         ),
+        set_: list[str] | None = typer.Option(
+            None,
+            "--set",
+            metavar="KEY=VALUE",
+            help="Change any config field in every run, e.g. photometric.lambda_depth=0.1; repeatable "
+            "(as `wtbench run --set`).",
+        ),
+        masks: Path | None = typer.Option(None, "--masks", help=PRIOR_HELP["masks"]),
+        tracks: Path | None = typer.Option(None, "--tracks", help=PRIOR_HELP["tracks"]),
+        depth_maps: Path | None = typer.Option(None, "--depth-maps", help=PRIOR_HELP["depth_maps"]),
+        flow: Path | None = typer.Option(None, "--flow", help=PRIOR_HELP["flow"]),
         dry_run: bool = typer.Option(False, "--dry-run", help="List the runs and exit."),
     ) -> None:
-        sweep(scenes, grid, method, runs_dir, preset, device, steps, seed, lpips_weights, dry_run)
+        from benchmarks.runs import resolve_prior_paths
+
+        priors = resolve_prior_paths(
+            {"masks": masks, "tracks": tracks, "depth_maps": depth_maps, "flow": flow}
+        )
+        sweep(
+            scenes, grid, method, runs_dir, preset, device, steps, seed, lpips_weights, dry_run,
+            sets=list(set_ or []), priors=priors,
+        )  # fmt: skip
 
 
-def sweep(scenes, grid, method, runs_dir, preset, device, steps, seed, lpips_weights, dry_run) -> None:
-    """Resolve scenes and grid, run them, print a summary and write RUNS_DIR/sweep-<grid>.json."""
+def sweep(
+    scenes,
+    grid,
+    method,
+    runs_dir,
+    preset,
+    device,
+    steps,
+    seed,
+    lpips_weights,
+    dry_run,
+    sets=None,
+    priors=None,
+) -> None:
+    """Resolve scenes and grid, run them, print a summary and write RUNS_DIR/sweep-<grid>.json. ``sets``
+    (``KEY=VALUE``) and ``priors`` (``benchmarks.runs.PRIOR_OPTIONS`` name -> path) go to every run; they are
+    checked against the method's config once, before the first run."""
     import warnings
 
+    from baselines.registry import get_method
     from benchmarks.commands.run import _command_line, _one_line_warning
-    from benchmarks.runs import RunRequest, execute
+    from benchmarks.config_overrides import split_assignment
+    from benchmarks.runs import RunRequest, execute, resolve_config
     from benchmarks.sweep import find_scenes, grid_points, run_sweep, write_report
+    from worldtree.errors import UserError
 
+    sets, priors = list(sets or []), dict(priors or {})
     found = find_scenes(scenes)
     points = grid_points(grid)
+    overrides = {k: v for k, v in (("steps", steps), ("seed", seed)) if v is not None}
+    grid_keys = {k for p in points for k in p.options}
+    for item in sets:
+        key = split_assignment(item)[0]
+        if key in grid_keys:
+            raise UserError(f"--set {item}: the {grid} grid sets {key} itself; drop the --set")
+    if sets or priors:
+        # A bad key or path would fail every run of the grid alike: refuse it once, up front.
+        probe = RunRequest(
+            scene=Path("."), method=method, preset=preset, overrides=overrides, sets=sets, priors=priors
+        )
+        resolve_config(get_method(method), probe)
     if dry_run:
         for s in found:
             for p in points:
-                print(f"{s.name}: {p.label}  {p.options}")
+                extra = f"  set {sets}" if sets else ""
+                extra += f"  priors {priors}" if priors else ""
+                print(f"{s.name}: {p.label}  {p.options}{extra}")
         return
-    overrides = {k: v for k, v in (("steps", steps), ("seed", seed)) if v is not None}
 
     def make_request(scene: Path, pt) -> RunRequest:
         cmd = _command_line(
-            method, scene, runs_dir, preset, device, overrides, lpips_weights, False, None, pt.options
-        )
+            method, scene, runs_dir, preset, device, overrides, lpips_weights, False, None, pt.options,
+            sets=sets, priors=priors,
+        )  # fmt: skip
         return RunRequest(
             scene=scene,
             method=method,
@@ -63,6 +117,8 @@ def sweep(scenes, grid, method, runs_dir, preset, device, steps, seed, lpips_wei
             device=device,
             overrides=overrides,
             options=dict(pt.options),
+            sets=list(sets),
+            priors=dict(priors),
             lpips_weights=lpips_weights,
             command=cmd,
         )
@@ -71,7 +127,15 @@ def sweep(scenes, grid, method, runs_dir, preset, device, steps, seed, lpips_wei
         warnings.showwarning = _one_line_warning
         outcomes = run_sweep(found, points, make_request, execute)
     report = runs_dir / f"sweep-{grid}.json"
-    cfg = {"method": method, "preset": preset, "device": device, "overrides": overrides, "scenes": found}
+    cfg = {
+        "method": method,
+        "preset": preset,
+        "device": device,
+        "overrides": overrides,
+        "sets": sets,
+        "imported_priors": priors,
+        "scenes": found,
+    }
     write_report(report, grid, outcomes, cfg)
     counts = {s: sum(o.status == s for o in outcomes) for s in ("done", "skipped", "failed")}
     print(

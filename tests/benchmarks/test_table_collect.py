@@ -98,6 +98,8 @@ def test_configuration_label_rules():
     assert describe_configuration(rec) == "paper -tpt -sac"  # top level first; paper order
     assert describe_configuration({"config": {"ablate": ["zz", "-sw", "ba"], "depth": None}}) == "-ba -sw -zz"
     assert describe_configuration({"config": "not a dict", "overrides": None}) == "default"
+    rec = {"preset": "quick", "sets": ["z.b=2", "a.c=1"], "imported_priors": {"masks": "/data/sam2/masks"}}
+    assert describe_configuration(rec) == "quick a.c=1 z.b=2 masks=masks"  # sets sorted, then priors
 
 
 def test_cost_metrics_fallbacks():

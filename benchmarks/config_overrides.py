@@ -1,0 +1,232 @@
+"""``--set KEY=VALUE``: change any typed field of a method's config dataclass from the command line.
+
+``KEY`` is a dotted path through nested config dataclasses (``photometric.lambda_depth``,
+``priors.epi.threshold_px``); ``VALUE`` is parsed by the field's annotated type:
+
+===========================  ==========================================================================
+annotation                   accepted ``VALUE``
+===========================  ==========================================================================
+``int`` / ``float``          a Python number (``3``, ``30_000``, ``1e-3``); NaN is refused
+``bool``                     ``true/false``, ``1/0``, ``yes/no``, ``on/off`` (any case)
+``str`` / ``Path``           the text as given
+``X | None``                 ``none`` or ``null`` (any case) for None, otherwise as ``X``
+``Literal[...]``             one of the choices
+``tuple[X, ...]``            comma-separated ``X`` values (empty: the empty tuple)
+``tuple[X, Y, Z]``           exactly that many comma-separated values
+===========================  ==========================================================================
+
+A nested dataclass is never replaced as a whole: name one of its fields. The config is rebuilt with
+:func:`dataclasses.replace` from the innermost dataclass outwards (frozen dataclasses are not mutated), so
+every ``__post_init__`` on the path validates the new values again.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import difflib
+import hashlib
+import math
+import types
+import typing
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+from worldtree.errors import UserError
+
+_TRUE = ("true", "1", "yes", "on")
+_FALSE = ("false", "0", "no", "off")
+_NONE = ("none", "null")
+
+
+def split_assignment(item: str) -> tuple[str, str]:
+    """``"a.b = 1"`` -> ``("a.b", "1")``: the key without spaces and the value with surrounding spaces
+    stripped; a missing ``=`` or an empty key is a :class:`UserError`."""
+    key, sep, value = item.partition("=")
+    key = key.strip()
+    if not sep or not key:
+        raise UserError(f"--set {item!r}: expected KEY=VALUE, e.g. --set photometric.lambda_depth=0.1")
+    if any(not part.isidentifier() for part in key.split(".")):
+        raise UserError(f"--set {item!r}: KEY must be dotted field names, e.g. priors.epi.threshold_px")
+    return key, value.strip()
+
+
+def canonical_sets(items: Sequence[str]) -> list[str]:
+    """The assignments as sorted ``KEY=VALUE`` strings (spaces around key and value dropped); the same
+    settings given in any order give the same list. A key given twice is a :class:`UserError` (with sorting,
+    "the last one wins" would depend on the order)."""
+    pairs = [split_assignment(s) for s in items]
+    seen: set[str] = set()
+    for key, _ in pairs:
+        if key in seen:
+            raise UserError(f"--set {key}=...: given more than once; keep one")
+        seen.add(key)
+    return sorted(f"{k}={v}" for k, v in pairs)
+
+
+def sets_digest(items: Sequence[str]) -> str:
+    """8 hex digits of the sha256 of :func:`canonical_sets` joined by newlines (names the run folder)."""
+    text = "\n".join(canonical_sets(items))
+    return hashlib.sha256(text.encode("utf-8")).hexdigest()[:8]
+
+
+def apply_overrides(cfg: Any, items: Sequence[str]) -> Any:
+    """A copy of the config dataclass ``cfg`` with every ``KEY=VALUE`` of ``items`` applied, in order.
+
+    Each assignment replaces the field through :func:`dataclasses.replace` at every level of its dotted path,
+    so frozen dataclasses work and ``__post_init__`` checks run again; their :class:`UserError`,
+    ``ValueError`` or ``TypeError`` comes back as a :class:`UserError` naming the assignment. An unknown key,
+    a value that does not parse as the field's type, or a key naming a whole nested dataclass is a
+    :class:`UserError` naming the key.
+    """
+    canonical_sets(items)  # refuses malformed items and keys given twice, before any work
+    for item in items:
+        key, raw = split_assignment(item)
+        try:
+            cfg = _replace_path(cfg, key.split("."), key, raw)
+        except UserError as e:
+            if str(e).startswith("--set "):
+                raise
+            raise UserError(f"--set {key}={raw}: {e}") from e
+        except (ValueError, TypeError) as e:
+            raise UserError(f"--set {key}={raw}: rejected: {e}") from e
+    return cfg
+
+
+def field_types(cls: type) -> dict[str, Any]:
+    """Resolved annotations of the init fields of dataclass ``cls`` (string annotations included)."""
+    try:
+        hints = typing.get_type_hints(cls)
+    except Exception as e:  # an annotation naming something not importable at run time
+        raise UserError(f"{cls.__name__}: field types do not resolve ({e}); --set cannot change it") from e
+    return {f.name: hints[f.name] for f in dataclasses.fields(cls) if f.init}
+
+
+def _replace_path(obj: Any, path: list[str], key: str, raw: str, done: tuple[str, ...] = ()) -> Any:
+    """``obj`` with the field at ``path`` (below the already walked ``done``) set to ``raw`` parsed."""
+    types_ = field_types(type(obj))
+    name = path[0]
+    here = ".".join((*done, name))
+    if name not in types_:
+        where = ".".join(done) or type(obj).__name__
+        raise UserError(f"--set {key}: {where} has no field {name!r}{_suggest(name, types_)}")
+    current = getattr(obj, name)
+    if len(path) > 1:
+        if not dataclasses.is_dataclass(current):
+            raise UserError(
+                f"--set {key}: {here} is a single value ({_describe(types_[name])}), not a group of settings"
+            )
+        return dataclasses.replace(obj, **{name: _replace_path(current, path[1:], key, raw, (*done, name))})
+    if dataclasses.is_dataclass(current):
+        sub = sorted(field_types(type(current)))
+        raise UserError(
+            f"--set {key}: {here} is a group of settings ({type(current).__name__}), not one value; "
+            f"set one of its fields, e.g. {here}.{sub[0]}=VALUE (fields: {', '.join(sub)})"
+        )
+    return dataclasses.replace(obj, **{name: parse_value(types_[name], raw, key)})
+
+
+def _suggest(name: str, types_: dict[str, Any]) -> str:
+    close = difflib.get_close_matches(name, list(types_), n=1)
+    hint = f" (did you mean {close[0]!r}?)" if close else ""
+    return f"{hint}; fields: {', '.join(sorted(types_))}"
+
+
+def parse_value(tp: Any, raw: str, key: str = "value") -> Any:
+    """``raw`` parsed as annotation ``tp`` (see the module doc); a :class:`UserError` naming ``key``, the
+    expected type and ``raw`` when it does not parse."""
+    try:
+        return _parse(tp, raw)
+    except _BadValue:
+        raise UserError(f"--set {key}={raw}: expected {_describe(tp)}, got {raw!r}") from None
+
+
+class _BadValue(Exception):
+    pass
+
+
+def _is_union(tp: Any) -> bool:
+    return typing.get_origin(tp) in (typing.Union, types.UnionType)
+
+
+def _parse(tp: Any, raw: str) -> Any:
+    origin = typing.get_origin(tp)
+    if tp is type(None):
+        if raw.lower() in _NONE:
+            return None
+        raise _BadValue
+    if _is_union(tp):
+        args = typing.get_args(tp)
+        if type(None) in args and raw.lower() in _NONE:
+            return None
+        for arm in (a for a in args if a is not type(None)):
+            try:
+                return _parse(arm, raw)
+            except _BadValue:
+                continue
+        raise _BadValue
+    if origin is typing.Literal:
+        for choice in typing.get_args(tp):
+            if str(choice) == raw or (isinstance(choice, bool) and raw.lower() == str(choice).lower()):
+                return choice
+        raise _BadValue
+    if origin is tuple:
+        args = typing.get_args(tp)
+        items = [s.strip() for s in raw.split(",")] if raw.strip() else []
+        if len(args) == 2 and args[1] is Ellipsis:
+            return tuple(_parse(args[0], s) for s in items)
+        if not args or len(items) != len(args):
+            raise _BadValue
+        return tuple(_parse(a, s) for a, s in zip(args, items, strict=True))
+    if tp is bool:
+        low = raw.lower()
+        if low in _TRUE:
+            return True
+        if low in _FALSE:
+            return False
+        raise _BadValue
+    if tp is int:
+        try:
+            return int(raw)
+        except ValueError:
+            raise _BadValue from None
+    if tp is float:
+        try:
+            out = float(raw)
+        except ValueError:
+            raise _BadValue from None
+        if math.isnan(out):
+            raise _BadValue
+        return out
+    if tp is str:
+        return raw
+    if tp is Path:
+        if not raw:
+            raise _BadValue
+        return Path(raw)
+    if tp is Any:
+        return raw
+    raise UserError(f"fields of type {_describe(tp)} cannot be set from the command line")
+
+
+def _describe(tp: Any) -> str:
+    """The type as the user should write it: ``float``, ``int or none``, ``one of depth, disparity``..."""
+    origin = typing.get_origin(tp)
+    if _is_union(tp):
+        args = typing.get_args(tp)
+        arms = [_describe(a) for a in args if a is not type(None)]
+        if type(None) in args:
+            arms.append("none")
+        return " or ".join(arms)
+    if origin is typing.Literal:
+        return "one of " + ", ".join(str(c) for c in typing.get_args(tp))
+    if origin is tuple:
+        args = typing.get_args(tp)
+        if len(args) == 2 and args[1] is Ellipsis:
+            return f"comma-separated {_describe(args[0])} values"
+        return f"{len(args)} comma-separated values ({', '.join(_describe(a) for a in args)})"
+    if tp is bool:
+        return "true/false (also 1/0, yes/no)"
+    if tp is Path:
+        return "a path"
+    return getattr(tp, "__name__", str(tp))
