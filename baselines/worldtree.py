@@ -274,6 +274,7 @@ def train_node(payload: dict, ctx: NodeContext) -> dict:
         camera_start_step=steps + 1,  # cameras are optimised at the root only
         static_strategy=_NO_DENSIFY,
         dynamic_strategy=_NO_DENSIFY,
+        node_densify_every=0,  # density control (Gaussians and scaffold nodes) only at the root
     )
     tracks = data["tracks"][sl] if data["tracks"].shape[1] else None
     vis = data["track_vis"][sl] if tracks is not None else None

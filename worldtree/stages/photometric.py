@@ -17,6 +17,11 @@ weights of MoSca, REFERENCE section 2)
 - cameras: a pose delta per frame (frame 0 fixed) whose learning rate is 0 before ``camera_start_step``.
 
 Density control runs on the static and the dynamic set separately (their own :class:`DensifyStrategy`).
+Scaffold nodes are densified too (``node_densify_*``): every ``node_densify_every`` steps inside
+``[node_densify_start, node_densify_stop]``, dynamic Gaussians farther than ``scaffold.cfg.densify_dist_units``
+from every node at their reference frame get new nodes (:func:`worldtree.motion.scaffold.densify`, at most
+``densify_max_new`` = 32 per call as in the paper's appendix). Dynamic Gaussians that grew or moved away from
+the tracks' nodes are then skinned to a node that can move them, instead of being held by the identity mix.
 """
 
 from __future__ import annotations
@@ -30,7 +35,7 @@ from worldtree.dynamic import DynamicGaussians
 from worldtree.gaussians import GaussianSet
 from worldtree.losses import ssim
 from worldtree.motion.regularizers import MotionLossConfig, motion_losses
-from worldtree.motion.scaffold import Scaffold
+from worldtree.motion.scaffold import Scaffold, densify
 from worldtree.optim import ConstantLR, GroupedAdam, gaussian_schedules
 from worldtree.render import rasterize
 from worldtree.stages.cameras import apply_delta
@@ -90,6 +95,12 @@ class PhotometricConfig:
         default_factory=lambda: DensifyStrategy(refine_start=500, refine_stop=3000, reset_every=0)
     )
     """Density control of the dynamic Gaussians."""
+    node_densify_start: int = 500
+    """First step at which scaffold nodes may be added (with the Gaussians' density control)."""
+    node_densify_stop: int = 3000
+    """No node is added after this step."""
+    node_densify_every: int = 500
+    """Period of node densification (0 = never; tree children never densify, as in the paper)."""
     reattach_every: int = 100
     """Skinning neighbourhoods are recomputed this often (and after every density change)."""
     backend: str = "auto"
@@ -97,13 +108,17 @@ class PhotometricConfig:
 
 
 def quick_photometric_config() -> PhotometricConfig:
-    """CPU-friendly: 600 steps, cameras from step 300, density control every 100 steps between 100 and 450."""
+    """CPU-friendly: 600 steps, cameras from step 300, density control (Gaussians and scaffold nodes) every 100
+    steps between 100 and 450."""
     strat = DensifyStrategy(
         refine_start=100, refine_stop=450, refine_every=100, reset_every=0, max_gaussians=20_000
     )
     return PhotometricConfig(
         steps=600,
         camera_start_step=300,
+        node_densify_start=100,
+        node_densify_stop=450,
+        node_densify_every=100,
         static_strategy=strat,
         dynamic_strategy=DensifyStrategy(**vars(strat)),
     )
@@ -352,9 +367,50 @@ class PhotometricFit:
                 self.dynamic, self.dyn_opt, self.dyn_state, step, _View(render, slice(n_s, n_s + before))
             )
         changed = len(self.dynamic) != before or (step % self.cfg.dynamic_strategy.refine_every == 0)
+        changed = self._densify_nodes(step) > 0 or changed
         if changed or (self.cfg.reattach_every > 0 and step % self.cfg.reattach_every == 0):
             self.cache = self.dynamic.attach(self.scaffold)
-        return {"static": float(len(self.static)), "dynamic": float(len(self.dynamic))}
+        return {
+            "static": float(len(self.static)),
+            "dynamic": float(len(self.dynamic)),
+            "nodes": float(self.scaffold.M),
+        }
+
+    def _densify_nodes(self, step: int) -> int:
+        """Add scaffold nodes for far dynamic Gaussians when scheduled; returns the number added."""
+        c = self.cfg
+        if (
+            c.node_densify_every <= 0
+            or not c.node_densify_start <= step <= c.node_densify_stop
+            or step % c.node_densify_every != 0
+            or len(self.dynamic) == 0
+        ):
+            return 0
+        with torch.no_grad():
+            points = self.dynamic.means.detach()
+        new, added = densify(self.scaffold, points, self.dynamic.t_ref)
+        if added == 0:
+            return 0
+        self._swap_scaffold(new)
+        return added
+
+    def _swap_scaffold(self, new: Scaffold) -> None:
+        """Put a scaffold with more nodes (appended along dim 1) in place; Adam moments of the kept nodes
+        follow them and the new nodes start from zero moments."""
+        old_m = self.scaffold.M
+        pairs = (("node_pos", new.pos), ("node_quat", new.quat), ("node_sigma", new.sigma_logit))
+
+        def grow(value: torch.Tensor, like: torch.Tensor) -> torch.Tensor:
+            out = torch.zeros_like(like)
+            if like.dim() == 1:  # radii [M]
+                out[:old_m] = value
+            else:  # trajectories [T, M, C]
+                out[:, :old_m] = value
+            return out
+
+        for name, param in pairs:
+            self.other_opt.replace_param(name, param, lambda _k, v, like=param: grow(v, like))
+        self.scaffold = new
 
     def state_dict(self) -> dict[str, Any]:
         def cpu(d):

@@ -157,3 +157,66 @@ def test_scaffold_fit_smooths_noise_and_keeps_observations():
     assert hist and all(np.isfinite(h["motion"]) for h in hist)
     assert err1 < err0, (err0, err1)  # closer to the smooth truth than the noisy observations were
     assert err1 < 0.03  # and nowhere near diverging
+
+
+def test_scaffold_nodes_are_densified_for_far_dynamic_gaussians():
+    imgs, depth, Ks, w2cs, static, dyn, scf = scene()
+    # A second cluster of dynamic Gaussians 0.8 units from every node (the 5-unit threshold is 0.2 here).
+    far = dyn.means.detach()[:20] + torch.tensor([0.8, 0.0, 0.0])
+    both = DynamicGaussians.from_points_at(
+        torch.cat([dyn.means.detach(), far]), torch.full((80, 3), 0.5), torch.full((80,), 2), 0.9, skin_k=scf.K
+    )
+    off = DensifyStrategy(refine_start=1000, refine_stop=1000, reset_every=0)
+    cfg = PhotometricConfig(
+        steps=6, camera_start_step=100, track_every=0, static_strategy=off, dynamic_strategy=off,
+        node_densify_start=2, node_densify_stop=4, node_densify_every=2,
+    )  # fmt: skip
+    fit = PhotometricFit(cfg, imgs, depth, Ks, w2cs, static, both, scf, None, None, extent=1.0)
+    M0 = fit.scaffold.M
+    for step in (1, 2):
+        out = fit.training_step(step)
+        out.loss.backward()
+        if step == 2:  # Adam's first moment after this step, for the nodes that exist now
+            m1 = fit.other_opt.optimizer.state[fit.scaffold.pos]["exp_avg"]
+            moments = 0.9 * m1 + 0.1 * fit.scaffold.pos.grad
+        fit.optimizer_step(step, out)
+    M1 = fit.scaffold.M
+    assert M0 < M1 <= M0 + scf.cfg.densify_max_new
+    # Each new node sits on a dynamic Gaussian at its reference frame, and the far cluster got nodes.
+    new_at_ref = fit.scaffold.pos.detach()[2, M0:]
+    assert float(torch.cdist(new_at_ref, both.means.detach()).min(1).values.max()) < 1e-3
+    assert float(torch.cdist(far, new_at_ref).min(1).values.max()) < 0.2
+    # Adam moments follow the kept nodes; new nodes start from zero; the optimiser holds the new tensors.
+    st = fit.other_opt.optimizer.state[fit.scaffold.pos]
+    torch.testing.assert_close(st["exp_avg"][:, :M0], moments)
+    assert float(st["exp_avg"][:, M0:].abs().sum()) == 0.0
+    assert fit.other_opt.group("node_pos")["params"][0] is fit.scaffold.pos
+    # Far Gaussians are now attached to one of the new nodes (before, to a node 0.8 units away).
+    cache = fit.dynamic.attach(fit.scaffold)
+    assert bool((cache.attach[60:] >= M0).all())
+    # Training goes on with finite losses and gradients on the new nodes; a checkpoint round trip keeps M.
+    for step in range(3, 7):
+        out = fit.training_step(step)
+        assert torch.isfinite(out.loss)
+        out.loss.backward()
+        assert torch.isfinite(fit.scaffold.pos.grad).all()
+        fit.optimizer_step(step, out)
+    assert fit.scaffold.M >= M1
+    state = fit.state_dict()
+    fit2 = PhotometricFit(cfg, imgs, depth, Ks, w2cs, static, both, scf, None, None, extent=1.0)
+    fit2.load_state_dict(state)
+    assert fit2.scaffold.M == fit.scaffold.M
+    torch.testing.assert_close(fit2.scaffold.pos.detach(), fit.scaffold.pos.detach())
+
+
+def test_node_densification_off_keeps_the_scaffold():
+    imgs, depth, Ks, w2cs, static, dyn, scf = scene()
+    off = DensifyStrategy(refine_start=1000, refine_stop=1000, reset_every=0)
+    cfg = PhotometricConfig(steps=4, track_every=0, static_strategy=off, dynamic_strategy=off, node_densify_every=0)
+    far = DynamicGaussians.from_points_at(
+        dyn.means.detach() + torch.tensor([0.8, 0.0, 0.0]), torch.full((60, 3), 0.5), torch.full((60,), 2), 0.9,
+        skin_k=scf.K,
+    )  # fmt: skip
+    fit = PhotometricFit(cfg, imgs, depth, Ks, w2cs, static, far, scf, None, None, extent=1.0)
+    Trainer(TrainerConfig(steps=4, checkpoint_every=0), fit, progress=False).fit(resume=False)
+    assert fit.scaffold.M == scf.M
