@@ -374,6 +374,7 @@ class BaseMethod:
             "num_gaussians": n_s + n_d,
             "num_static": n_s,
             "num_dynamic": n_d,
+            "scaffold_nodes_final": fit.scaffold.M if fit is not None else 0,
             "backend": self.backend,
             "stages_s": dict(self.stage_s),
             "ablate_ba": self.cfg.ablate_ba,
