@@ -1,7 +1,8 @@
 """`nvls`: build, check and describe NVIDIA-LS scenes; generate synthetic raw rigs.
 
 A thin layer over the library: :func:`nvidia_ls.build.build_scene`, :func:`nvidia_ls.synth.write_raw_scene`,
-:func:`nvidia_ls.manifest.verify_scene`, :func:`nvidia_ls.info.describe_scene`.
+:func:`nvidia_ls.manifest.verify_scene`, :func:`nvidia_ls.info.describe_scene`,
+:func:`nvidia_ls.gt_priors.write_gt_priors`.
 """
 
 from __future__ import annotations
@@ -123,6 +124,34 @@ def synth(
         path = write_raw_scene(
             out_dir, cfg, force=force, progress=lambda d, n: status.update(f"rendering camera {d}/{n}")
         )
+    console.print(f"wrote {path}", highlight=False)
+
+
+@app.command(
+    "gt-priors",
+    help="Write exact priors (dynamic masks, depth, point tracks) of a scene built from an `nvls synth` capture.",
+)
+def gt_priors(
+    raw_dir: Path = typer.Argument(..., help="Raw capture written by `nvls synth` (holds gt/)."),
+    scene_dir: Path = typer.Argument(..., help="Scene folder `nvls build` made from RAW_DIR."),
+    out: Path | None = typer.Option(None, "--out", help="Output folder (default: SCENE_DIR/gt_priors)."),
+    track_stride: int = typer.Option(8, help="Spacing in pixels of the grid of track query points."),
+    seed_every: int = typer.Option(4, help="Seed query points in every K-th training frame."),
+    force: bool = typer.Option(False, "--force", help="Replace an existing output folder."),
+) -> None:
+    from rich.progress import Progress
+
+    from nvidia_ls.gt_priors import GtPriorsConfig, write_gt_priors
+
+    cfg = GtPriorsConfig(track_stride=track_stride, seed_every=seed_every, force=force)
+    console = _console()
+    with Progress(console=console, transient=True) as prog:
+        task = prog.add_task("render", total=None)
+
+        def progress(stage: str, done: int, total: int) -> None:
+            prog.update(task, description=stage, completed=done, total=total)
+
+        path = write_gt_priors(raw_dir, scene_dir, out, cfg, progress=progress)
     console.print(f"wrote {path}", highlight=False)
 
 

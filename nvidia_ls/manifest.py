@@ -17,10 +17,10 @@ MANIFEST_SCHEMA = 1
 
 
 def scene_files(scene: Path) -> list[str]:
-    """Relative paths (POSIX) of every file in the scene except the manifest, sorted."""
-    return sorted(
-        p.relative_to(scene).as_posix() for p in scene.rglob("*") if p.is_file() and p.name != MANIFEST
-    )
+    """Relative paths (POSIX) of every file in the scene except the manifest and derived folders, sorted."""
+    rels = (p.relative_to(scene) for p in scene.rglob("*") if p.is_file() and p.name != MANIFEST)
+    # gt_priors/ is written after the build by `nvls gt-priors`; it is not part of the scene's record.
+    return sorted(r.as_posix() for r in rels if r.parts[0] != "gt_priors")
 
 
 def hash_files(scene: str | Path) -> dict[str, str]:

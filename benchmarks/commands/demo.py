@@ -2,7 +2,8 @@
 
 generate a raw 12-camera capture -> `nvls build` -> `wtbench run` (each registered demo method, quick
 preset) -> `wtbench table` (CSV of the test-view scores). Every stage is skipped when its output already exists, so
-re-running the command resumes where it stopped.
+re-running the command resumes where it stopped. With ``--gt-priors`` the methods that use 2D priors get the
+scene's exact masks, tracks and depth (`nvls gt-priors`) instead of the classical ones.
 """
 
 from __future__ import annotations
@@ -25,19 +26,36 @@ def register(app: typer.Typer) -> None:
         size: str = typer.Option("320x180", "--size", help="Image size WxH of the generated capture."),
         device: str = typer.Option("auto", "--device", help="auto, cpu, cuda or cuda:N."),
         preset: str = typer.Option("quick", "--preset", help="Method preset (quick: minutes on a CPU)."),
+        gt_priors: bool = typer.Option(
+            False,
+            "--gt-priors",
+            help="Give methods the scene's exact masks, tracks and depth (`nvls gt-priors`; stand-in for "
+            "network priors) instead of classical priors.",
+        ),
     ) -> None:
-        run_demo(out, methods, steps, size, device, preset)
+        run_demo(out, methods, steps, size, device, preset, gt_priors=gt_priors)
 
 
 def run_demo(
-    out: Path, methods: list[str], steps: int, size: str, device: str, preset: str = "quick"
+    out: Path,
+    methods: list[str],
+    steps: int,
+    size: str,
+    device: str,
+    preset: str = "quick",
+    gt_priors: bool = False,
 ) -> Path:
-    """Run the demo pipeline into ``out``; returns the path of the summary CSV."""
+    """Run the demo pipeline into ``out``; returns the path of the summary CSV.
+
+    With ``gt_priors`` the exact priors are written to ``SCENE/gt_priors`` (once) and imported by every
+    method whose config has 2D priors; the others run as usual.
+    """
     from rich.console import Console
 
     from benchmarks.commands.table import export_tables
     from benchmarks.runs import RunRequest, execute
     from nvidia_ls.build import BuildConfig, build_scene, parse_size
+    from nvidia_ls.gt_priors import GtPriorsConfig, write_gt_priors
     from nvidia_ls.synth import SynthConfig, write_raw_scene
     from worldtree.errors import UserError
 
@@ -62,8 +80,23 @@ def run_demo(
     else:
         console.print(f"[bold]2/3[/] scene exists: {scene}")
 
+    priors: dict[str, str] = {}
+    if gt_priors:
+        gt_dir = scene / "gt_priors"
+        if not (gt_dir / "gt_priors.json").is_file():
+            console.print(f"[bold]2b[/] nvls gt-priors {raw} {scene}")
+            write_gt_priors(raw, scene, gt_dir, GtPriorsConfig(force=True))
+        else:
+            console.print(f"[bold]2b[/] exact priors exist: {gt_dir}")
+        priors = {"masks": str(gt_dir / "masks"), "tracks": str(gt_dir / "tracks.npz"),
+                  "depth_maps": str(gt_dir / "depth")}  # fmt: skip
+
     for m in methods:
-        console.print(f"[bold]3/3[/] wtbench run --method {m} --scene {scene} --preset {preset}")
+        given = priors if priors and _uses_priors(m, preset) else {}
+        flags = "".join(f" --{k.replace('_', '-')} {v}" for k, v in given.items())
+        if priors and not given:
+            console.print(f"  {m} uses no 2D priors: --gt-priors does not apply to it")
+        console.print(f"[bold]3/3[/] wtbench run --method {m} --scene {scene} --preset {preset}{flags}")
         execute(
             RunRequest(
                 scene=scene,
@@ -71,10 +104,21 @@ def run_demo(
                 runs_dir=out / "runs",
                 preset=preset,
                 device=device,
-                command=f"wtbench demo --method {m} --preset {preset}",
+                priors=given,
+                command=f"wtbench demo --method {m} --preset {preset}" + (" --gt-priors" if given else ""),
             )
         )
     csv = out / "table.csv"
     console.print(f"wtbench table {out / 'runs'} -o {csv}")
     export_tables([out / "runs"], csv)
     return csv
+
+
+def _uses_priors(method: str, preset: str) -> bool:
+    """Whether ``method``'s config has 2D priors (imported priors are refused by the others)."""
+    import dataclasses
+
+    from baselines.registry import get_method
+
+    cfg = get_method(method).config(preset)
+    return "priors" in {f.name for f in dataclasses.fields(cfg)}

@@ -6,8 +6,9 @@
   the classical depth.
 - Tracks: CoTracker's layout, positions ``[T, N, 2]`` (pixels) + visibility ``[T, N]`` (bool or probability,
   > 0.5 visible); a leading batch axis of 1 is accepted. ``.npz``/``.pt`` with keys ``tracks`` + ``visibility``
-  (or ``pred_tracks`` + ``pred_visibility``); ``.npy`` holding ``[T, N, 3]`` (x, y, visibility) or ``[T, N, 2]``
-  (all visible).
+  (or ``pred_tracks`` + ``pred_visibility``) and optionally ``image_size`` [W, H] (the size the positions refer
+  to; other working sizes of the same aspect are rescaled); ``.npy`` holding ``[T, N, 3]`` (x, y, visibility)
+  or ``[T, N, 2]`` (all visible).
 - Flow: a folder of ``<i>_<j>.flo`` (Middlebury) or ``<i>_<j>.npy`` ``[H, W, 2]``, flow from frame i to j.
 - Masks: a folder of one mask image per frame (sorted by name), white = dynamic.
 
@@ -188,12 +189,24 @@ def _load_tracks_obj(path: Path):
     raise UserError(f"--tracks {path}: unsupported suffix {path.suffix!r}; use .npy, .npz or .pt")
 
 
+def _tracks_image_size(value, path: Path) -> tuple[int, int] | None:
+    """``image_size`` entry of a tracks file as ``(W0, H0)``, or None when absent."""
+    if value is None:
+        return None
+    size = np.asarray(value).reshape(-1)
+    if size.size != 2 or not np.all(np.isfinite(size)) or np.any(size < 1) or np.any(size != np.round(size)):
+        raise UserError(f"{path}: image_size {size.tolist()}; expected [W, H] in whole pixels")
+    return int(size[0]), int(size[1])
+
+
 def read_tracks(
     source: str | Path, num_frames: int, height: int, width: int
 ) -> tuple[np.ndarray, np.ndarray]:
     """CoTracker-layout tracks: (``xy`` [T,N,2] float32 pixels, ``visible`` [T,N] bool), validated.
 
-    Points outside the image (CoTracker predicts them) are marked not visible.
+    Points outside the image (CoTracker predicts them) are marked not visible. A dict file (.npz/.pt) may
+    name the size its positions refer to, ``image_size`` = [W0, H0]; when it differs from ``width x height``
+    (e.g. the run's --downscale) positions are rescaled as ``(x + 0.5) * width / W0 - 0.5`` (y likewise).
     """
     path = Path(source)
     if not path.is_file():
@@ -207,6 +220,7 @@ def read_tracks(
                 f"{path}: keys {sorted(obj)}; expected 'tracks' and 'visibility' (or pred_tracks/pred_visibility)"
             )
         xy, vis = np.asarray(obj[tk]), np.asarray(obj[vk])
+        src_size = _tracks_image_size(obj.get("image_size"), path)
     else:
         arr = np.asarray(obj)
         if arr.ndim == 4 and arr.shape[0] == 1:
@@ -217,6 +231,7 @@ def read_tracks(
             )
         xy = arr[..., :2]
         vis = arr[..., 2] if arr.shape[-1] == 3 else np.ones(arr.shape[:2])
+        src_size = None
     if xy.ndim == 4 and xy.shape[0] == 1:
         xy = xy[0]  # CoTracker's batch axis
     if vis.ndim == 4 and vis.shape[0] == 1:
@@ -238,6 +253,17 @@ def read_tracks(
     xy = xy.astype(np.float32)
     if not np.all(np.isfinite(xy)):
         raise UserError(f"{path}: track positions contain NaN or Inf; clean them before import")
+    if src_size is not None and src_size != (width, height):
+        w0, h0 = src_size
+        if abs(w0 / h0 - width / height) > 0.01 * (width / height):
+            raise UserError(
+                f"{path}: image_size {w0}x{h0} has another aspect ratio than the {width}x{height} frames; "
+                "track the scene's own images (SCENE/images)"
+            )
+        # Pixel centres at integers (OpenCV): the pixel edge -0.5 stays at -0.5 under the resize.
+        xy = np.stack(
+            [(xy[..., 0] + 0.5) * (width / w0) - 0.5, (xy[..., 1] + 0.5) * (height / h0) - 0.5], -1
+        ).astype(np.float32)
     if vis.dtype == bool:
         visible = vis.copy()
     else:
