@@ -63,6 +63,12 @@ class PhotometricConfig:
     """Track errors are clamped at this many pixels."""
     motion: MotionLossConfig = field(default_factory=MotionLossConfig)
     """ARAP / velocity / acceleration weights."""
+    motion_window: int = 0
+    """Frames of the scaffold the motion regularisers see per step: a window of this many consecutive frames
+    at a start drawn from (seed, step), so resumes repeat it (0 = every frame). Their cost grows with frames
+    x nodes x neighbours and dominates a CPU step once the scaffold has hundreds of nodes; every term is a mean,
+    so a window's value estimates the full-length one (frames near the ends are drawn a little less often).
+    Keep it above the largest ARAP shift (4)."""
     camera_start_step: int = 1500
     """Cameras are optimised from this step on (NVIDIA-LS: 1500)."""
     lr_cam_rot: float = 1e-4
@@ -109,13 +115,14 @@ class PhotometricConfig:
 
 def quick_photometric_config() -> PhotometricConfig:
     """CPU-friendly: 600 steps, cameras from step 300, density control (Gaussians and scaffold nodes) every 100
-    steps between 100 and 450."""
+    steps between 100 and 450, motion regularisers on a 12-frame window per step."""
     strat = DensifyStrategy(
         refine_start=100, refine_stop=450, refine_every=100, reset_every=0, max_gaussians=20_000
     )
     return PhotometricConfig(
         steps=600,
         camera_start_step=300,
+        motion_window=12,
         node_densify_start=100,
         node_densify_stop=450,
         node_densify_every=100,
@@ -207,6 +214,7 @@ class PhotometricFit:
         self.extent = float(extent)
         self.T = images.shape[0]
         self.cam_xi = torch.zeros(max(self.T - 1, 0), 6, device=images.device, requires_grad=True)
+        self.seed = int(seed)
         self.order = torch.Generator().manual_seed(seed)
         self.pairs = torch.Generator().manual_seed(seed + 1)
         self.queue: list[int] = []
@@ -334,10 +342,22 @@ class PhotometricFit:
                 loss = loss + c.lambda_track * lt
                 parts["track_px"] = float(lt.detach())
         if self.scaffold.M > 0:
-            ml = motion_losses(self.scaffold.pos, self.scaffold.quat, self.scaffold.arap_graphs(), c.motion)
+            w = self._motion_window(step)
+            ml = motion_losses(
+                self.scaffold.pos[w], self.scaffold.quat[w], self.scaffold.arap_graphs(), c.motion
+            )
             loss = loss + ml.total
             parts["motion"] = float(ml.total.detach())
         return loss, parts, out
+
+    def _motion_window(self, step: int) -> slice:
+        """Frames the motion regularisers see at ``step`` (``motion_window``; a function of seed and step)."""
+        w = self.cfg.motion_window
+        if w <= 0 or w >= self.T:
+            return slice(None)
+        g = torch.Generator().manual_seed(self.seed * 1_000_003 + int(step))
+        a = int(torch.randint(0, self.T - w + 1, (1,), generator=g))
+        return slice(a, a + w)
 
     # ------------------------------------------------------------------ Trainable
     def _next_frame(self) -> int:
