@@ -16,11 +16,16 @@ MANIFEST = "manifest.json"
 MANIFEST_SCHEMA = 1
 
 
+DERIVED_FOLDERS = ("priors", "gt_priors")
+"""Top-level scene folders written after the build (the priors cache of `wtbench prep`/`run`, and
+`nvls gt-priors`): not part of the scene's record, so `nvls verify` ignores them."""
+
+
 def scene_files(scene: Path) -> list[str]:
-    """Relative paths (POSIX) of every file in the scene except the manifest and derived folders, sorted."""
+    """Relative paths (POSIX) of every file in the scene except the manifest and :data:`DERIVED_FOLDERS`,
+    sorted."""
     rels = (p.relative_to(scene) for p in scene.rglob("*") if p.is_file() and p.name != MANIFEST)
-    # gt_priors/ is written after the build by `nvls gt-priors`; it is not part of the scene's record.
-    return sorted(r.as_posix() for r in rels if r.parts[0] != "gt_priors")
+    return sorted(r.as_posix() for r in rels if r.parts[0] not in DERIVED_FOLDERS)
 
 
 def hash_files(scene: str | Path) -> dict[str, str]:

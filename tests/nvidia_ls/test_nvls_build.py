@@ -92,6 +92,18 @@ def test_verify_passes_then_fails_on_tampering(built_gt, tmp_path):
     assert "cameras.json: checksum differs" in problems
 
 
+def test_verify_ignores_the_priors_cache_but_not_other_extra_files(built_gt, tmp_path):
+    scene = tmp_path / "with_cache"
+    shutil.copytree(built_gt, scene)
+    # `wtbench prep` / `wtbench run` cache priors under SCENE/priors; `nvls gt-priors` writes SCENE/gt_priors.
+    for rel in ("priors/x2/depth-0123/all.npz", "gt_priors/masks/00000.png"):
+        (scene / rel).parent.mkdir(parents=True, exist_ok=True)
+        (scene / rel).write_bytes(b"derived")
+    assert verify_scene(scene) == []
+    (scene / "images" / "stray.png").write_bytes(b"x")
+    assert any("images/stray.png: not listed" in p for p in verify_scene(scene))
+
+
 def test_verify_reports_count_mismatch(built_gt, tmp_path):
     bad = tmp_path / "bad2"
     shutil.copytree(built_gt, bad)
