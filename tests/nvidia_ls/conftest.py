@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from nvidia_ls.build import BuildConfig, build_scene
+from nvidia_ls.gt_priors import camera_centres, umeyama
 from nvidia_ls.synth import SynthConfig, write_raw_scene
 
 # The end-to-end rig: 12 cameras, enough time steps for a background model, small enough for CI.
@@ -39,22 +40,6 @@ def tiny_raw(tmp_path_factory):
         tmp_path_factory.mktemp("tiny") / "Tiny",
         SynthConfig(cameras=4, steps=6, width=64, height=36, supersample=1),
     )
-
-
-def umeyama(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
-    """Least-squares similarity (Umeyama 1991) with ``dst ~ s R src + t``; ``src, dst``: ``[N, 3]``."""
-    mu_s, mu_d = src.mean(0), dst.mean(0)
-    a, b = src - mu_s, dst - mu_d
-    U, S, Vt = np.linalg.svd(b.T @ a / len(src))
-    D = np.eye(3)
-    D[2, 2] = np.sign(np.linalg.det(U) * np.linalg.det(Vt))
-    R = U @ D @ Vt
-    s = float(np.trace(np.diag(S) @ D) / (a**2).sum(axis=1).mean())
-    return s, R, mu_d - s * R @ mu_s
-
-
-def camera_centres(w2cs: np.ndarray) -> np.ndarray:
-    return np.stack([-w[:3, :3].T @ w[:3, 3] for w in w2cs])
 
 
 def pose_errors(w2c_est: np.ndarray, w2c_gt: np.ndarray, look_depth: float) -> tuple[float, float]:
