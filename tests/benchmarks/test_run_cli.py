@@ -7,41 +7,15 @@ import dataclasses
 import json
 import subprocess
 import sys
-from pathlib import Path
 
 import pandas as pd
 import pytest
-import torch
 from typer.testing import CliRunner
 
-from baselines.registry import get_method
 from baselines.static3dgs import StaticGaussians
 from benchmarks.cli import app
 from benchmarks.runs import RunRequest, execute, run_tag
 from worldtree.errors import UserError
-
-
-@pytest.fixture(scope="module")
-def scene(tmp_path_factory, write_tiny_scene) -> Path:
-    return write_tiny_scene(tmp_path_factory.mktemp("s") / "tiny")
-
-
-@pytest.fixture(autouse=True)
-def one_thread():
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
-
-
-@pytest.fixture
-def small_quick(monkeypatch):
-    """The quick preset with few points and a checkpoint every 2 steps (the registry entry, patched)."""
-    spec = get_method("static")
-    quick = spec.presets["quick"]
-    monkeypatch.setitem(
-        spec.presets, "quick", lambda: dataclasses.replace(quick(), init_num_points=200, checkpoint_every=2)
-    )
 
 
 def test_run_twice_skips_and_layout(scene, tmp_path, small_quick):

@@ -12,7 +12,6 @@ from pathlib import Path
 from types import SimpleNamespace
 
 import pytest
-import torch
 from typer.testing import CliRunner
 
 import benchmarks.runs
@@ -21,29 +20,6 @@ from benchmarks.cli import app
 from benchmarks.commands.sweep import sweep
 from benchmarks.runs import RunRequest, resolve_config, run_tag
 from worldtree.errors import UserError
-
-
-@pytest.fixture(scope="module")
-def scene(tmp_path_factory, write_tiny_scene) -> Path:
-    return write_tiny_scene(tmp_path_factory.mktemp("s") / "tiny")
-
-
-@pytest.fixture(autouse=True)
-def one_thread():
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
-
-
-@pytest.fixture
-def small_quick(monkeypatch):
-    """The static quick preset with few points (the registry entry, patched)."""
-    spec = get_method("static")
-    quick = spec.presets["quick"]
-    monkeypatch.setitem(
-        spec.presets, "quick", lambda: dataclasses.replace(quick(), init_num_points=200, checkpoint_every=2)
-    )
 
 
 def test_set_reaches_config_names_folder_and_repeats(scene, tmp_path, small_quick):
