@@ -9,6 +9,14 @@ import torch
 torch.set_num_threads(1)
 
 
+@pytest.fixture(autouse=True)
+def one_torch_thread():
+    """Every test starts and ends on one thread: runs and trainers set torch's thread count from their config."""
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(1)
+
+
 @pytest.fixture(scope="session")
 def write_tiny_scene():
     """``write_tiny_scene(root, width=64, height=36, frames=6) -> Path`` from tests/baselines/scene_fixture.py

@@ -11,14 +11,3 @@ import pytest
 def tiny_scene(tmp_path_factory, write_tiny_scene) -> Path:
     """A 64x36, 6-frame scene folder in the docs/scene_format.md layout."""
     return write_tiny_scene(tmp_path_factory.mktemp("scene") / "tiny")
-
-
-@pytest.fixture(autouse=True)
-def one_torch_thread():
-    """Tiny images train several times faster on one thread than on two busy shared cores."""
-    import torch
-
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)

@@ -1,4 +1,4 @@
-"""Fixtures shared by the `wtbench run` tests: a tiny scene, one torch thread, a cheap static quick preset."""
+"""Fixtures shared by the `wtbench run` tests: a tiny scene and a cheap static quick preset."""
 
 from __future__ import annotations
 
@@ -6,7 +6,6 @@ import dataclasses
 from pathlib import Path
 
 import pytest
-import torch
 
 from baselines.registry import get_method
 
@@ -14,15 +13,6 @@ from baselines.registry import get_method
 @pytest.fixture(scope="module")
 def scene(tmp_path_factory, write_tiny_scene) -> Path:
     return write_tiny_scene(tmp_path_factory.mktemp("s") / "tiny")
-
-
-@pytest.fixture(autouse=True)
-def one_thread():
-    """Runs set torch's thread count from their config; restore the suite's single thread after each test."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
 
 
 @pytest.fixture
