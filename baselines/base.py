@@ -21,7 +21,6 @@ is then a static one, and every stage still runs.
 from __future__ import annotations
 
 import dataclasses
-import io
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -31,7 +30,7 @@ import torch
 
 from baselines.registry import CommonConfig, MethodSpec, register_method
 from baselines.static3dgs import scene_extent
-from worldtree.atomic import atomic_write_bytes, atomic_write_json
+from worldtree.atomic import atomic_write_json
 from worldtree.dynamic import DynamicGaussians
 from worldtree.errors import UserError
 from worldtree.motion.lift import fill_gaps, lift_tracks
@@ -54,6 +53,7 @@ from worldtree.stages.testview_pose import (
     refine_test_poses,
 )
 from worldtree.strategy import DensifyStrategy
+from worldtree.torchfile import load_torch, save_torch
 from worldtree.trainer import TrainContext, Trainer, TrainerConfig, TrainSummary
 
 
@@ -201,7 +201,10 @@ class BaseMethod:
         s = self.scene
         path = ckpt / "ba.pt" if ckpt is not None else None
         if path is not None and path.is_file():
-            d = torch.load(path, map_location=self.device, weights_only=True)
+            d = load_torch(
+                path, self.device, missing="no BA result",
+                unreadable="unreadable BA result ({error}); delete it to run BA again",
+            )  # fmt: skip
             return BAResult(d["w2cs"], d["depth_scale"], d["track_ids"], d["points"], d["before"], d["after"])
         ba_cfg = dataclasses.replace(self.cfg.ba, enabled=self.cfg.ba.enabled and not self.cfg.ablate_ba)
         res = bundle_adjust(
@@ -209,13 +212,11 @@ class BaseMethod:
             depth_conf=P["depth_conf"].float(),
         )  # fmt: skip
         if path is not None:
-            buf = io.BytesIO()
-            torch.save(
+            save_torch(
+                path,
                 {"w2cs": res.w2cs.cpu(), "depth_scale": res.depth_scale.cpu(), "track_ids": res.track_ids.cpu(),
                  "points": res.points.cpu(), "before": res.reproj_px_before, "after": res.reproj_px_after},
-                buf,
             )  # fmt: skip
-            atomic_write_bytes(path, buf.getvalue())
         return res
 
     def _warmup(self, depth, dynamic, w2cs, extent, ctx: TrainContext) -> tuple[Any, TrainSummary]:
@@ -341,13 +342,11 @@ class BaseMethod:
         fit.static.save(folder / "static_gaussians.pt")
         fit.static.write_ply(folder / "static_gaussians.ply")
         fit.dynamic.save(folder / "dynamic_gaussians.pt")
-        buf = io.BytesIO()
-        torch.save(
+        save_torch(
+            folder / "scaffold_cameras.pt",
             {"scaffold": fit.scaffold.to_state(), "w2cs": fit.cameras().cpu(),
              "test_poses": {k: v.cpu() for k, v in self.test_poses.items()}},
-            buf,
         )  # fmt: skip
-        atomic_write_bytes(folder / "scaffold_cameras.pt", buf.getvalue())
         atomic_write_json(
             folder / "model.json",
             {

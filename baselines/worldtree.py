@@ -22,7 +22,6 @@ method); ``sac`` grows the tree but every node trains and renders without ancest
 from __future__ import annotations
 
 import dataclasses
-import io
 import pickle
 import time
 from dataclasses import dataclass
@@ -39,6 +38,7 @@ from worldtree.render import rasterize
 from worldtree.scene import Scene
 from worldtree.stages.photometric import PhotometricConfig, PhotometricFit
 from worldtree.strategy import DensifyStrategy
+from worldtree.torchfile import save_torch
 from worldtree.trainer import TrainContext, Trainer, TrainerConfig, TrainSummary
 from worldtree.tree.build import TreeConfig, TreeResult, grow_tree, node_output, read_node_input
 from worldtree.tree.inherit import InheritConfig
@@ -366,9 +366,7 @@ class WorldTreeMethod(BaseMethod):
             "tracks": self._data["tracks"].detach().float().cpu().contiguous(),
             "track_vis": self._data["track_vis"].detach().cpu().contiguous(),
         }
-        buf = io.BytesIO()
-        torch.save(data, buf)
-        atomic_write_bytes(tree_dir / "context.pt", buf.getvalue())
+        save_torch(tree_dir / "context.pt", data)
         ncfg = NodeTrainConfig(
             photometric=c.photometric,
             layer_steps=c.layer_steps,

@@ -7,7 +7,6 @@ Files are read with ``weights_only=True``: payloads hold tensors, numbers, strin
 
 from __future__ import annotations
 
-import io
 import random
 import re
 from pathlib import Path
@@ -16,8 +15,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from worldtree.atomic import atomic_write_bytes
-from worldtree.errors import UserError
+from worldtree.torchfile import load_torch, save_torch
 
 _NAME = re.compile(r"^ckpt_(\d+)\.pt$")
 
@@ -83,10 +81,8 @@ def latest_checkpoint(folder: str | Path) -> Path | None:
 
 def save_checkpoint(folder: str | Path, step: int, payload: dict[str, Any], keep: int = 2) -> Path:
     """Write ``payload`` (plus ``step``) atomically as ``folder/ckpt_<step>.pt``; keep the newest ``keep``."""
-    buf = io.BytesIO()
-    torch.save({**payload, "step": int(step)}, buf)
     path = checkpoint_path(folder, step)
-    atomic_write_bytes(path, buf.getvalue())
+    save_torch(path, {**payload, "step": int(step)})
     if keep > 0:
         for _, old in list_checkpoints(folder)[:-keep]:
             old.unlink(missing_ok=True)
@@ -95,12 +91,9 @@ def save_checkpoint(folder: str | Path, step: int, payload: dict[str, Any], keep
 
 def load_checkpoint(path: str | Path, map_location: torch.device | str = "cpu") -> dict[str, Any]:
     """Read a checkpoint written by :func:`save_checkpoint`."""
-    path = Path(path)
-    try:
-        return torch.load(path, map_location=map_location, weights_only=True)
-    except FileNotFoundError as e:
-        raise UserError(f"{path}: no such checkpoint") from e
-    except Exception as e:  # torch raises several types for a damaged file
-        raise UserError(
-            f"{path}: unreadable checkpoint ({type(e).__name__}); delete it to resume from the one before"
-        ) from e
+    return load_torch(
+        path,
+        map_location,
+        missing="no such checkpoint",
+        unreadable="unreadable checkpoint ({error}); delete it to resume from the one before",
+    )

@@ -26,6 +26,7 @@ from torch import nn
 
 from worldtree.atomic import atomic_write_bytes
 from worldtree.errors import UserError
+from worldtree.torchfile import load_torch, save_torch
 
 # Degree-0 real spherical harmonic, 1 / (2 sqrt(pi)); the PLY files of 3DGS viewers use this convention.
 SH_C0 = 0.28209479177387814
@@ -249,24 +250,17 @@ class GaussianSet(nn.Module):
     # ------------------------------------------------------------------ persistence
     def save(self, path: str | Path) -> None:
         """Write the raw parameters to ``path`` (a ``torch.save`` dict of CPU tensors), atomically."""
-        import io
-
-        buf = io.BytesIO()
-        torch.save({k: v.detach().cpu() for k, v in self.params.items()}, buf)
-        atomic_write_bytes(path, buf.getvalue())
+        save_torch(path, {k: v.detach().cpu() for k, v in self.params.items()})
 
     @staticmethod
     def read_params(path: str | Path, device: torch.device | str = "cpu") -> dict[str, torch.Tensor]:
         """The parameter tensors of a file written by :meth:`save` (a clear error for a missing/corrupt file)."""
-        path = Path(path)
-        if not path.is_file():
-            raise UserError(f"{path}: no such model file")
-        try:
-            return torch.load(path, map_location=device, weights_only=True)
-        except Exception as e:  # torch raises several types for corrupt files
-            raise UserError(
-                f"{path}: not a readable Gaussian model ({type(e).__name__}); re-run training"
-            ) from e
+        return load_torch(
+            path,
+            device,
+            missing="no such model file",
+            unreadable="not a readable Gaussian model ({error}); re-run training",
+        )
 
     @classmethod
     def load(cls, path: str | Path, device: torch.device | str = "cpu") -> GaussianSet:

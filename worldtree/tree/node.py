@@ -9,18 +9,16 @@ atomically and readable with ``weights_only=True``.
 
 from __future__ import annotations
 
-import io
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import torch
 
 import worldtree
-from worldtree.atomic import atomic_write_bytes
 from worldtree.dynamic import DynamicGaussians
-from worldtree.errors import UserError
 from worldtree.gaussians import GaussianSet
 from worldtree.motion.scaffold import Scaffold, SkinCache
+from worldtree.torchfile import load_torch, save_torch
 from worldtree.tree.sac import AncestorCopy, _cpu, chain_gaussians_at
 from worldtree.tree.tpt import Interval, depth_of
 
@@ -128,19 +126,14 @@ class NodeState:
 
 def save_payload(path: str | Path, payload) -> None:
     """``torch.save`` ``payload`` to ``path`` through a temporary file and a rename."""
-    buf = io.BytesIO()
-    torch.save(payload, buf)
-    atomic_write_bytes(path, buf.getvalue())
+    save_torch(path, payload)
 
 
 def load_payload(path: str | Path, device: torch.device | str = "cpu"):
     """Read a file written by :func:`save_payload` (tensors onto ``device``; plain data only)."""
-    path = Path(path)
-    if not path.is_file():
-        raise UserError(f"{path}: no such node state file; re-run the tree stage")
-    try:
-        return torch.load(path, map_location=device, weights_only=True)
-    except Exception as e:  # torch raises several types for corrupt files
-        raise UserError(
-            f"{path}: not a readable node state ({type(e).__name__}); delete it and re-run"
-        ) from e
+    return load_torch(
+        path,
+        device,
+        missing="no such node state file; re-run the tree stage",
+        unreadable="not a readable node state ({error}); delete it and re-run",
+    )
