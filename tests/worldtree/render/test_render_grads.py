@@ -109,32 +109,17 @@ def test_means2d_grad_is_the_screen_space_gradient(make_scene, backend):
     with torch.no_grad():
         proj = project_gaussians(p["means"], p["quats"], p["log_scales"], p["K"], p["w2c"], w, h)
         eps = 1e-6
+
+        def loss_at(m):
+            args = (proj.conics, p["opacities"], p["colors"], proj.depths, proj.radii, p["background"], w, h)
+            return rasterize_reference(m, *args)[0].sum()
+
         for i in range(5):
             for c in range(2):
                 m = proj.means2d.clone()
                 m[i, c] += eps
-                lp = rasterize_reference(
-                    m,
-                    proj.conics,
-                    p["opacities"],
-                    p["colors"],
-                    proj.depths,
-                    proj.radii,
-                    p["background"],
-                    w,
-                    h,
-                )[0].sum()
+                lp = loss_at(m)
                 m[i, c] -= 2 * eps
-                lm = rasterize_reference(
-                    m,
-                    proj.conics,
-                    p["opacities"],
-                    p["colors"],
-                    proj.depths,
-                    proj.radii,
-                    p["background"],
-                    w,
-                    h,
-                )[0].sum()
+                lm = loss_at(m)
                 fd = (lp - lm) / (2 * eps)
                 assert abs(float(out.means2d.grad[i, c]) - float(fd)) < 1e-5 * max(1.0, abs(float(fd)))
