@@ -29,7 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from nvidia_ls.raycast import cast
-from nvidia_ls.synth import SynthConfig, SynthScene, make_scene
+from nvidia_ls.synth import SynthConfig, SynthScene, make_scene, pixel_rays
 from nvidia_ls.undistort import scale_intrinsics
 from nvidia_ls.writer import save_image
 from worldtree import __version__
@@ -179,16 +179,6 @@ class FrameView:
     object_id: np.ndarray
 
 
-def _camera_rays(K: np.ndarray, w2c: np.ndarray, q: np.ndarray):
-    """World origin ``[3]``, unit world directions ``[M, 3]``, z per unit length ``[M]`` through raw pixels
-    ``q`` ``[M, 2]`` of the generator camera ``K, w2c``."""
-    pix = np.concatenate([q, np.ones((len(q), 1))], 1)
-    dc = pix @ np.linalg.inv(K).T
-    dc /= np.linalg.norm(dc, axis=1, keepdims=True)
-    R = w2c[:3, :3]
-    return -R.T @ w2c[:3, 3], dc @ R, dc[:, 2]
-
-
 class _Renderer:
     """Casts the generator's scene through a camera's rays; the static set is traced once per camera."""
 
@@ -200,7 +190,7 @@ class _Renderer:
         """Frame of rig camera ``cam`` (1-based) at time ``t``; ``q``: ``[H, W, 2]`` raw pixel of each pixel."""
         H, W = q.shape[:2]
         if cam not in self._static:
-            o, d, zf = _camera_rays(K, w2c, q.reshape(-1, 2))
+            o, d, zf = pixel_rays(K, w2c, q.reshape(-1, 2))
             dist, _, oid = cast(self.scene.static, [None] * len(self.scene.static), o, d)
             self._static[cam] = (o, d, zf, dist, oid)
         o, d, zf, dist, oid = self._static[cam]

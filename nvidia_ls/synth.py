@@ -282,19 +282,24 @@ def make_scene(cfg: SynthConfig) -> SynthScene:
     return SynthScene(cfg, Ks, w2cs, static, objects)
 
 
+def pixel_rays(K: np.ndarray, w2c: np.ndarray, pix: np.ndarray):
+    """Rays of camera ``K, w2c`` (OpenCV) through pixel positions ``pix`` ``[..., 2]``: world origin ``[3]``,
+    unit world directions ``[..., 3]`` and z per unit length ``[...]`` (float64)."""
+    hom = np.concatenate([pix, np.ones(pix.shape[:-1] + (1,))], axis=-1)
+    dc = hom @ np.linalg.inv(K).T
+    dc = dc / np.linalg.norm(dc, axis=-1, keepdims=True)
+    R = w2c[:3, :3]
+    return -R.T @ w2c[:3, 3], dc @ R, dc[..., 2]
+
+
 def _rays(K: np.ndarray, w2c: np.ndarray, width: int, height: int, ss: int):
     """World origin ``[3]``, unit directions ``[H*ss, W*ss, 3]`` and z-per-unit-length ``[H*ss, W*ss]``."""
     offs = (np.arange(ss) + 0.5) / ss - 0.5  # sub-pixel offsets around each pixel centre
     xs = (np.arange(width)[:, None] + offs[None, :]).reshape(-1)
     ys = (np.arange(height)[:, None] + offs[None, :]).reshape(-1)
     u, v = np.meshgrid(xs, ys)
-    pix = np.stack([u, v, np.ones_like(u)], axis=-1)
-    dc = pix @ np.linalg.inv(K).T
-    norm = np.linalg.norm(dc, axis=-1, keepdims=True)
-    dc = dc / norm
-    R = w2c[:3, :3]
-    origin = -R.T @ w2c[:3, 3]
-    return origin, (dc @ R).astype(np.float32), dc[..., 2].astype(np.float32)
+    origin, dirs, zfac = pixel_rays(K, w2c, np.stack([u, v], axis=-1))
+    return origin, dirs.astype(np.float32), zfac.astype(np.float32)
 
 
 def _trace(prims, poses, origin, dirs, zfac):
