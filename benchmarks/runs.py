@@ -351,24 +351,23 @@ def resolve_config(spec, req: RunRequest) -> tuple[Any, list[str]]:
     and every assignment applied (they name the run folder). A ``--set`` key also given by its own option
     (``--steps``, ``--depth``, ``--masks``...) is refused rather than silently preferring one."""
     cfg = spec.config(req.preset)
-    for k, v in req.overrides.items():
+    for k in req.overrides:
         if k not in TUNABLE:
             raise UserError(f"override {k!r} is not one of {', '.join(TUNABLE)}")
-        if k in ("steps", "downscale") and v < 1:
-            raise UserError(f"--{k} {v}: must be at least 1")
     cfg = dataclasses.replace(cfg, **req.overrides, **_method_options(cfg, spec.name, req.options))
     prior_sets = _prior_sets(cfg, spec.name, req.priors)
-    flags = {k: "--" + k.replace("_", "-") for k in (*req.overrides, *req.options)}
-    flags |= {f"priors.{PRIOR_OPTIONS[k][0]}": "--" + k.replace("_", "-") for k in req.priors}
+    flags = {k: option_flag(k) for k in (*req.overrides, *req.options)}
+    flags |= {f"priors.{PRIOR_OPTIONS[k][0]}": option_flag(k) for k in req.priors}
     for item in req.sets:
         key, _ = split_assignment(item)
         if key in flags:
             raise UserError(f"--set {item}: {key} is also given by {flags[key]}; keep one of them")
     sets = list(req.sets) + prior_sets
     cfg = apply_overrides(cfg, sets)
-    for k in ("steps", "downscale"):  # as the --steps/--downscale check above, for --set steps=0
-        if getattr(cfg, k) < 1:
-            raise UserError(f"--set {k}={getattr(cfg, k)}: must be at least 1")
+    for k in ("steps", "downscale"):  # given by --steps/--downscale or by --set
+        v = getattr(cfg, k)
+        if v < 1:
+            raise UserError(f"{f'--{k} {v}' if k in req.overrides else f'--set {k}={v}'}: must be at least 1")
     return cfg, sets
 
 
@@ -382,7 +381,7 @@ def resolve_prior_paths(priors: dict[str, Any]) -> dict[str, str]:
             continue
         if name not in PRIOR_OPTIONS:
             raise UserError(f"prior {name!r} is not one of {', '.join(PRIOR_OPTIONS)}")
-        flag = "--" + name.replace("_", "-")
+        flag = option_flag(name)
         path = Path(value).expanduser().resolve()
         kind = PRIOR_OPTIONS[name][1]
         if not path.exists():
@@ -395,13 +394,17 @@ def resolve_prior_paths(priors: dict[str, Any]) -> dict[str, str]:
     return out
 
 
+def option_flag(name: str) -> str:
+    """The command-line option of a request field: ``depth_maps`` -> ``--depth-maps``."""
+    return "--" + name.replace("_", "-")
+
+
 def _prior_sets(cfg, method: str, priors: dict[str, Any]) -> list[str]:
     """The imported priors as ``priors.<field>=<absolute path>`` assignments, in ``PRIOR_OPTIONS`` order."""
     given = [k for k, v in priors.items() if v is not None]
     if given and "priors" not in {f.name for f in dataclasses.fields(cfg)}:
-        flag = "--" + given[0].replace("_", "-")
         raise UserError(
-            f"{flag}: method {method!r} uses no 2D priors; drop it or use --method base or --method worldtree"
+            f"{option_flag(given[0])}: method {method!r} uses no 2D priors; drop it or use --method base or --method worldtree"
         )
     paths = resolve_prior_paths(priors)
     return [f"priors.{PRIOR_OPTIONS[k][0]}={paths[k]}" for k in PRIOR_OPTIONS if k in paths]
@@ -415,9 +418,8 @@ def _method_options(cfg, method: str, options: dict[str, Any]) -> dict[str, Any]
         if k not in METHOD_OPTIONS:
             raise UserError(f"option {k!r} is not one of {', '.join(METHOD_OPTIONS)}")
         if k not in names:
-            flag = "--" + k.replace("_", "-")
             raise UserError(
-                f"{flag}: method {method!r} has no such option; drop it or use --method worldtree"
+                f"{option_flag(k)}: method {method!r} has no such option; drop it or use --method worldtree"
             )
         out[k] = tuple(v) if k == "ablate" else v
     return out

@@ -147,12 +147,14 @@ def _command_line(
 ) -> str:  # fmt: skip
     """The command in canonical form (every resolved option), so that it can be pasted to repeat the run
     however it was invoked (shell, script, or in-process)."""
+    from benchmarks.runs import option_flag
+
     parts = ["wtbench", "run", "--method", method, "--scene", str(scene), "-o", str(runs_dir)]
     parts += ["--preset", preset, "--device", device]
     for k, v in overrides.items():
         parts += [f"--{k}", str(v)]
     for k, v in (options or {}).items():
-        flag = "--" + k.replace("_", "-")
+        flag = option_flag(k)
         if k == "ablate":
             for a in v:
                 parts += [flag, a]
@@ -163,7 +165,7 @@ def _command_line(
     for item in sets or ():
         parts += ["--set", item]
     for k, v in (priors or {}).items():
-        parts += ["--" + k.replace("_", "-"), str(v)]
+        parts += [option_flag(k), str(v)]
     if lpips_weights is not None:
         parts += ["--lpips-weights", str(lpips_weights)]
     if tensorboard:
