@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import argparse
 import json
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 
@@ -31,7 +31,6 @@ class ProofRow:
     """"classical" or "exact"."""
     ablate: tuple[str, ...] = ()
     seed: int = 0
-    extra: dict = field(default_factory=dict, compare=False, hash=False)
 
 
 def prepare_scene(out: Path, size: tuple[int, int], steps: int, log=print) -> tuple[Path, Path]:

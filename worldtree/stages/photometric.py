@@ -406,9 +406,7 @@ class PhotometricFit:
             or len(self.dynamic) == 0
         ):
             return 0
-        with torch.no_grad():
-            points = self.dynamic.means.detach()
-        new, added = densify(self.scaffold, points, self.dynamic.t_ref)
+        new, added = densify(self.scaffold, self.dynamic.means.detach(), self.dynamic.t_ref)
         if added == 0:
             return 0
         self._swap_scaffold(new)
