@@ -35,6 +35,7 @@ from worldtree.checkpoint import (
     save_checkpoint,
 )
 from worldtree.errors import UserError
+from worldtree.plateau import PlateauDetector
 
 
 @dataclass
@@ -173,6 +174,8 @@ class Trainer:
         tensorboard_dir: write TensorBoard scalars there (needs the ``tensorboard`` package).
         progress: show progress at all.
         description: label of the progress display.
+        stop: early-stop rule state (:mod:`worldtree.plateau`); the fit ends after the step at which it fires
+            (checkpointed, so a resumed fit does not continue), otherwise at ``cfg.steps``.
     """
 
     def __init__(
@@ -184,6 +187,7 @@ class Trainer:
         tensorboard_dir: str | Path | None = None,
         progress: bool = True,
         description: str = "train",
+        stop: PlateauDetector | None = None,
     ):
         if cfg.steps < 0:
             raise UserError(f"--steps {cfg.steps}: must be >= 0")
@@ -194,6 +198,7 @@ class Trainer:
         self.tensorboard_dir = tensorboard_dir
         self.progress = progress
         self.description = description
+        self.stop = stop
         self._prior_seconds = 0.0
 
     def resume(self) -> int:
@@ -207,6 +212,8 @@ class Trainer:
         self.task.load_state_dict(ckpt["task"])
         restore_rng_state(ckpt["rng"], self.generators)
         self._prior_seconds = float(ckpt.get("train_seconds", 0.0))
+        if self.stop is not None and ckpt.get("plateau") is not None:
+            self.stop.load_state_dict(ckpt["plateau"])
         return int(ckpt["step"])
 
     def save(self, step: int, seconds: float) -> None:
@@ -218,6 +225,7 @@ class Trainer:
             "rng": capture_rng_state(self.generators),
             "version": worldtree.__version__,
             "train_seconds": float(seconds),
+            "plateau": self.stop.state_dict() if self.stop is not None else None,
         }
         save_checkpoint(self.checkpoint_dir, step, payload, keep=self.cfg.keep_checkpoints)
 
@@ -231,6 +239,8 @@ class Trainer:
         last_loss: float | None = None
         t0 = time.perf_counter()
         step = start
+        if self.stop is not None and self.stop.stopped_at is not None:
+            total = start  # resumed after the plateau rule had stopped the fit: nothing left to do
         try:
             for step in range(start + 1, total + 1):
                 out = self.task.training_step(step)
@@ -249,8 +259,11 @@ class Trainer:
                     for k, v in scalars.items():
                         writer.add_scalar(f"{self.description}/{k}", v, step)
                 every = self.cfg.checkpoint_every
-                if step == total or (every > 0 and step % every == 0):
+                done = self.stop is not None and self.stop.update(step, loss_value)
+                if done or step == total or (every > 0 and step % every == 0):
                     self.save(step, self._prior_seconds + time.perf_counter() - t0)
+                if done:
+                    break
         finally:
             report.close()
             if writer is not None:
