@@ -96,7 +96,9 @@ def synth(
     width: int = typer.Option(320, help="Image width."),
     height: int = typer.Option(180, help="Image height."),
     seed: int = typer.Option(0, help="Texture and aiming seed."),
-    motion: str = typer.Option("constant", help="Motion profile: constant | slow_fast."),
+    motion: str = typer.Option(
+        "constant", help="Motion profile: constant | slow_fast | near_static | slow | fast."
+    ),
     objects: int = typer.Option(2, help="Moving objects: 0, 1 or 2."),
     depth: bool = typer.Option(False, "--depth", help="Also write gt/depth/%05d/cam%02d.npy (float32)."),
     layout: str = typer.Option("multiview", help="Raw layout: multiview | camera_folders | videos."),

@@ -32,7 +32,10 @@ from worldtree.atomic import atomic_dir, atomic_write_json
 from worldtree.errors import UserError
 
 FLOOR_Y = 1.0
-MOTIONS = ("constant", "slow_fast")
+MOTIONS = ("constant", "slow_fast", "near_static", "slow", "fast")
+"""Motion profiles: the phase of the objects' loop reached at the last time step (the objects run one loop
+over the clip at ``constant`` speed; ``slow`` a quarter loop, ``fast`` two loops, ``near_static`` 2 % of one,
+so they barely move; ``slow_fast`` one loop, its first half at a quarter of the second's speed)."""
 LAYOUTS = ("multiview", "camera_folders", "videos")
 
 
@@ -51,7 +54,8 @@ class SynthConfig:
     seed: int = 0
     """Seed of textures and of the small per-camera aiming jitter."""
     motion: str = "constant"
-    """Motion profile: "constant" speed, or "slow_fast" (first half 4x slower than the second half)."""
+    """Motion profile (:data:`MOTIONS`): "constant", "slow_fast" (first half 4x slower than the second half),
+    "near_static", "slow" or "fast"."""
     objects: int = 2
     """Number of moving objects (1: a sphere; 2: a sphere and a box)."""
     supersample: int = 2
@@ -118,10 +122,12 @@ class SynthScene:
         return self.cfg.height
 
     def phase(self, time: float) -> float:
-        """Motion phase in [0, 1] at (fractional) time step ``time`` in [0, steps-1]."""
+        """Motion phase (loops done; 1 = one loop at constant speed) at (fractional) time step ``time``
+        in [0, steps-1]."""
         tau = 0.0 if self.cfg.steps <= 1 else float(np.clip(time / (self.cfg.steps - 1), 0.0, 1.0))
-        if self.cfg.motion == "constant":
-            return tau
+        speed = {"constant": 1.0, "near_static": 0.02, "slow": 0.25, "fast": 2.0}.get(self.cfg.motion)
+        if speed is not None:
+            return speed * tau
         # slow_fast: speed 1 on the first half, 4 on the second, integrated and normalised to end at 1.
         slow, fast = 1.0, 4.0
         total = 0.5 * slow + 0.5 * fast

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 
 import numpy as np
+import pytest
 
 from nvidia_ls.synth import FLOOR_Y, SynthConfig, gt_flow, make_scene, render_view, write_raw_scene
 from worldtree.imageio import read_image, read_mask
@@ -78,6 +79,18 @@ def test_slow_fast_profile():
     np.testing.assert_allclose(speed[25:].mean() / speed[:15].mean(), 4.0, rtol=1e-6)
     const = make_scene(SynthConfig(steps=41))
     np.testing.assert_allclose(np.diff([const.phase(t) for t in range(41)]), 1 / 40)
+
+
+@pytest.mark.parametrize(("motion", "loops"), [("near_static", 0.02), ("slow", 0.25), ("fast", 2.0)])
+def test_constant_speed_profiles(motion, loops):
+    sc = make_scene(SynthConfig(steps=41, motion=motion))
+    np.testing.assert_allclose(np.diff([sc.phase(t) for t in range(41)]), loops / 40)
+    # The sphere moves by the loop fraction: near_static barely (< 0.1 world units), fast returns to start.
+    moved = np.linalg.norm(sc.object_pose(0, 40)[:3, 3] - sc.object_pose(0, 0)[:3, 3])
+    if motion == "near_static":
+        assert moved < 0.2
+    if motion == "fast":
+        assert moved < 1e-9
 
 
 def test_written_ground_truth_is_consistent(tmp_path):
