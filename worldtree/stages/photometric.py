@@ -26,11 +26,13 @@ the tracks' nodes are then skinned to a node that can move them, instead of bein
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 from typing import Any
 
 import torch
 
+from worldtree.budget import growth_cap, negligible, render_contributions
 from worldtree.dynamic import DynamicGaussians
 from worldtree.gaussians import GaussianSet
 from worldtree.losses import ssim
@@ -39,7 +41,7 @@ from worldtree.motion.scaffold import Scaffold, densify
 from worldtree.optim import ConstantLR, GroupedAdam, gaussian_schedules
 from worldtree.render import rasterize
 from worldtree.stages.cameras import apply_delta
-from worldtree.strategy import DensifyStrategy
+from worldtree.strategy import DensifyStrategy, remove
 from worldtree.trainer import StepOutput
 
 
@@ -395,6 +397,69 @@ class PhotometricFit:
             "dynamic": float(len(self.dynamic)),
             "nodes": float(self.scaffold.M),
         }
+
+    # ------------------------------------------------------------------ budget and residuals
+    @torch.no_grad()
+    def residuals(self) -> torch.Tensor:
+        """``[T, H, W]`` per-pixel L1 photometric residual (mean over colour channels) of every frame."""
+        H, W = self.images.shape[1:3]
+        out = [
+            (self.render(self.Ks[i], self.camera(i), W, H, i).rgb - self.images[i]).abs().mean(-1)
+            for i in range(self.T)
+        ]
+        return torch.stack(out)
+
+    def mean_error(self) -> float:
+        """Mean L1 photometric error over every pixel of every frame (colour units; non-finite -> inf)."""
+        r = self.residuals()
+        v = float(r.mean())
+        return v if v == v else float("inf")
+
+    def contributions(self) -> torch.Tensor:
+        """``[N]`` contribution (:func:`worldtree.budget.render_contributions`) of every rendered Gaussian over
+        this fit's frames, in render order (static, dynamic, then whatever a subclass appends)."""
+        H, W = self.images.shape[1:3]
+        views = [(i, self.Ks[i], self.cameras_detached(i)) for i in range(self.T)]
+        return render_contributions(self.gaussians_at, views, W, H, self.cfg.backend)
+
+    def cameras_detached(self, i: int) -> torch.Tensor:
+        """``[4, 4]`` current pose of frame ``i`` without gradient."""
+        with torch.no_grad():
+            return self.camera(i).detach()
+
+    def prune_negligible(self, threshold: float) -> dict[str, int]:
+        """Remove the static and dynamic Gaussians whose contribution over this fit's frames is below
+        ``threshold`` (pixels; :mod:`worldtree.budget`); their Adam moments and density statistics go with
+        them. Returns the counts before and after."""
+        return self._prune_with(self.contributions(), threshold)
+
+    def _prune_with(self, contrib: torch.Tensor, thr: float) -> dict[str, int]:
+        n_s, n_d = len(self.static), len(self.dynamic)
+        report = {"static_before": n_s, "dynamic_before": n_d}
+        drop_s = negligible(contrib[:n_s], thr)
+        drop_d = negligible(contrib[n_s : n_s + n_d], thr)
+        if bool(drop_s.any()):
+            remove(self.static, self.static_opt, self.static_state, drop_s)
+        if bool(drop_d.any()):
+            remove(self.dynamic, self.dyn_opt, self.dyn_state, drop_d)
+            self.cache = self.dynamic.attach(self.scaffold)
+        report.update(static_after=len(self.static), dynamic_after=len(self.dynamic))
+        return report
+
+    def set_budget(self, budget: int) -> dict[str, int]:
+        """Cap density control at ``budget`` Gaussians in all, shared by the static and dynamic sets in
+        proportion to their current sizes (never below what a set holds: the cap stops growth only)."""
+        n_s, n_d = len(self.static), len(self.dynamic)
+        total = max(n_s + n_d, 1)
+        cap_s = growth_cap(round(budget * n_s / total), n_s)
+        cap_d = growth_cap(round(budget * n_d / total), n_d)
+        c = self.cfg
+        self.cfg = dataclasses.replace(
+            c,
+            static_strategy=dataclasses.replace(c.static_strategy, max_gaussians=cap_s),
+            dynamic_strategy=dataclasses.replace(c.dynamic_strategy, max_gaussians=cap_d),
+        )
+        return {"budget": int(budget), "static_cap": cap_s, "dynamic_cap": cap_d}
 
     def _densify_nodes(self, step: int) -> int:
         """Add scaffold nodes for far dynamic Gaussians when scheduled; returns the number added."""

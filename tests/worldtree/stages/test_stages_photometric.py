@@ -164,7 +164,11 @@ def test_scaffold_nodes_are_densified_for_far_dynamic_gaussians():
     # A second cluster of dynamic Gaussians 0.8 units from every node (the 5-unit threshold is 0.2 here).
     far = dyn.means.detach()[:20] + torch.tensor([0.8, 0.0, 0.0])
     both = DynamicGaussians.from_points_at(
-        torch.cat([dyn.means.detach(), far]), torch.full((80, 3), 0.5), torch.full((80,), 2), 0.9, skin_k=scf.K
+        torch.cat([dyn.means.detach(), far]),
+        torch.full((80, 3), 0.5),
+        torch.full((80,), 2),
+        0.9,
+        skin_k=scf.K,
     )
     off = DensifyStrategy(refine_start=1000, refine_stop=1000, reset_every=0)
     cfg = PhotometricConfig(
@@ -212,7 +216,9 @@ def test_scaffold_nodes_are_densified_for_far_dynamic_gaussians():
 def test_node_densification_off_keeps_the_scaffold():
     imgs, depth, Ks, w2cs, static, dyn, scf = scene()
     off = DensifyStrategy(refine_start=1000, refine_stop=1000, reset_every=0)
-    cfg = PhotometricConfig(steps=4, track_every=0, static_strategy=off, dynamic_strategy=off, node_densify_every=0)
+    cfg = PhotometricConfig(
+        steps=4, track_every=0, static_strategy=off, dynamic_strategy=off, node_densify_every=0
+    )
     far = DynamicGaussians.from_points_at(
         dyn.means.detach() + torch.tensor([0.8, 0.0, 0.0]), torch.full((60, 3), 0.5), torch.full((60,), 2), 0.9,
         skin_k=scf.K,
@@ -248,4 +254,46 @@ def test_motion_window_regularises_a_seeded_slice_of_frames():
         None, None, extent=1.0,
     )  # fmt: skip
     _, parts, _ = full.frame_losses(0, 1)
-    assert abs(parts["motion"] - float(motion_losses(scf.pos.detach(), scf.quat.detach(), scf.arap_graphs()).total)) < 1e-5
+    assert (
+        abs(
+            parts["motion"]
+            - float(motion_losses(scf.pos.detach(), scf.quat.detach(), scf.arap_graphs()).total)
+        )
+        < 1e-5
+    )
+
+
+def test_prune_negligible_keeps_every_contributing_gaussian():
+    imgs, depth, Ks, w2cs, static, dyn, scf = scene()
+    # 20 static Gaussians behind the camera and 20 nearly transparent ones: nothing any frame sees.
+    g = torch.Generator().manual_seed(3)
+    extra_m = torch.cat([torch.rand(20, 3, generator=g) - torch.tensor([0.5, 0.5, 3.0]),
+                         torch.rand(20, 3, generator=g) * 0.2 + torch.tensor([0.0, 0.0, 3.0])])  # fmt: skip
+    extra_o = torch.cat([torch.full((20,), 0.9), torch.full((20,), 1e-4)])
+    extra = GaussianSet.from_tensors(
+        extra_m, torch.full((40, 3), 0.05), extra_o, torch.rand(40, 3, generator=g)
+    )
+    both = GaussianSet({k: torch.cat([static.params[k], extra.params[k]]) for k in static.params})
+    cfg = PhotometricConfig(steps=10, track_every=0)
+    fit = PhotometricFit(cfg, imgs, depth, Ks, w2cs, both, dyn, scf, None, None, extent=1.0)
+    n_s = len(fit.static)
+    # Brute force: each static Gaussian's total weight per frame from a one-hot red render, largest frame.
+    brute = torch.zeros(n_s)
+    with torch.no_grad():
+        for i in range(T):
+            m, q, ls, o, _ = fit.gaussians_at(i)
+            for k in range(n_s):
+                col = torch.zeros_like(m)
+                col[k, 0] = 1.0
+                w = float(rasterize(m, q, ls, o, col, Ks[i], w2cs[i], W, H).rgb[..., 0].sum())
+                brute[k] = max(brute[k], w)
+    before = fit.residuals().mean()
+    rep = fit.prune_negligible(1.0)
+    kept = int((brute >= 1.0).sum())
+    assert rep["static_before"] == n_s and rep["static_after"] == kept
+    assert rep["static_after"] <= n_s - 40  # the 40 unseen ones went
+    l1 = fit.residuals().mean()
+    assert abs(float(l1 - before)) < 0.01  # what went was negligible
+    caps = fit.set_budget(10)
+    assert caps["static_cap"] == len(fit.static) and caps["dynamic_cap"] == len(fit.dynamic)  # never below
+    assert fit.cfg.static_strategy.max_gaussians == len(fit.static)
