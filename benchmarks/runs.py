@@ -39,6 +39,7 @@ from benchmarks.config_overrides import apply_overrides, sets_digest, split_assi
 from worldtree.atomic import atomic_write_json, atomic_write_text
 from worldtree.errors import UserError
 from worldtree.imageio import write_image
+from worldtree.output_paths import check_output_folder
 
 TUNABLE = ("steps", "seed", "downscale")
 # Method options of `wtbench run` (set only on methods whose config has the field), in tag order.
@@ -260,12 +261,20 @@ def _check_same_config(folder: RunFolder, record: dict[str, Any]) -> None:
 
 
 def execute(req: RunRequest) -> RunResult:
-    """Train, render, score and record one run (resuming or skipping as described in the module doc)."""
+    """Train, render, score and record one run (resuming or skipping as described in the module doc).
+
+    Everything that can be checked is checked before the run folder is touched (method, scene, config,
+    device, the output folder's writability), so a rejected request leaves nothing behind. The run folder
+    is then locked (:class:`worldtree.folder_lock.FolderLock`, held until this function returns) before
+    anything is written or deleted in it: a second writer, ``--force`` included, fails at once naming the
+    holder's PID and host.
+    """
     from baselines.registry import get_method
     from worldtree.checkpoint import seed_everything
     from worldtree.device import pick_device
+    from worldtree.folder_lock import FolderLock
     from worldtree.scene import load_scene
-    from worldtree.trainer import TrainContext, check_tensorboard
+    from worldtree.trainer import check_tensorboard
 
     spec = get_method(req.method)
     if req.tensorboard:
@@ -277,6 +286,28 @@ def execute(req: RunRequest) -> RunResult:
     cfg, sets = resolve_config(spec, req)
     tag = req.tag or run_tag(req.preset, req.overrides, req.options, sets)
     folder = RunFolder(Path(req.runs_dir) / root.name / spec.name / tag)
+    device = pick_device(req.device)
+    check_output_folder(req.runs_dir, "--out")
+    timer = StageTimer()
+
+    def build_method():
+        seed_everything(cfg.seed)  # before building: a method may draw its initial points
+        with timer.stage("load"):
+            scene = load_scene(root, downscale=cfg.downscale)
+        with timer.stage("init"):
+            return spec.build(cfg, scene, device)
+
+    # A finished run is skipped without loading its scene; any other request loads the scene and builds the
+    # method first, so that their errors (a damaged scene, too few frames) come before the folder exists.
+    method = None if (folder.is_done() and not req.force) else build_method()
+    with FolderLock(folder.root, "run folder"):
+        return _execute_locked(req, spec, cfg, folder, root, view, device, timer, method, build_method)
+
+
+def _execute_locked(req, spec, cfg, folder, root, view, device, timer, method, build_method) -> RunResult:
+    """The part of :func:`execute` that runs with the run folder locked. ``method`` is the built method, or
+    None when the run looked finished before locking (``build_method()`` builds it if it no longer is)."""
+    from worldtree.trainer import TrainContext
 
     record = _config_record(spec, cfg, req)
     if req.force and folder.root.exists():
@@ -291,15 +322,10 @@ def execute(req: RunRequest) -> RunResult:
     atomic_write_json(folder.config_json, record)
     atomic_write_text(folder.command_txt, req.command + "\n")
 
-    device = pick_device(req.device)
     if device.type == "cuda":
         torch.cuda.reset_peak_memory_stats(device)
-    seed_everything(cfg.seed)
-    timer = StageTimer()
-    with timer.stage("load"):
-        scene = load_scene(root, downscale=cfg.downscale)
-    with timer.stage("init"):
-        method = spec.build(cfg, scene, device)
+    if method is None:
+        method = build_method()
     with timer.stage("train"):
         ctx = TrainContext(
             checkpoint_dir=folder.checkpoints,

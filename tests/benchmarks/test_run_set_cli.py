@@ -31,7 +31,8 @@ def test_set_reaches_config_names_folder_and_repeats(scene, tmp_path, small_quic
         args += ["--set", s]
     first = runner.invoke(app, args, catch_exceptions=False)
     assert first.exit_code == 0, first.output
-    folders = list((tmp_path / "tiny" / "static").iterdir())
+    # Hidden names are the run folder's lock file beside it (worldtree.folder_lock).
+    folders = [p for p in (tmp_path / "tiny" / "static").iterdir() if not p.name.startswith(".")]
     assert [f.name for f in folders] == [run_tag("quick", {"steps": 2}, None, sets)]
     assert len(folders[0].name) == len("quick-steps2-set") + 8
     folder = folders[0]
