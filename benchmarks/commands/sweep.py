@@ -80,6 +80,8 @@ def sweep(
     from benchmarks.runs import RunRequest, execute, resolve_config
     from benchmarks.sweep import find_scenes, grid_points, run_sweep, write_report
     from worldtree.errors import UserError
+    from worldtree.folder_lock import FolderLock
+    from worldtree.output_paths import check_output_folder
 
     sets, priors = list(sets or []), dict(priors or {})
     found = find_scenes(scenes)
@@ -123,20 +125,16 @@ def sweep(
             command=cmd,
         )
 
-    with warnings.catch_warnings():
+    check_output_folder(runs_dir, "-o")
+    report = runs_dir / f"sweep-{grid}.json"
+    # One sweep per report: a second `wtbench sweep` of the same grid into the same RUNS_DIR stops at once
+    # (each run folder is locked by `wtbench run`'s execute as well).
+    with FolderLock(report, "sweep report"), warnings.catch_warnings():
         warnings.showwarning = _one_line_warning
         outcomes = run_sweep(found, points, make_request, execute)
-    report = runs_dir / f"sweep-{grid}.json"
-    cfg = {
-        "method": method,
-        "preset": preset,
-        "device": device,
-        "overrides": overrides,
-        "sets": sets,
-        "imported_priors": priors,
-        "scenes": found,
-    }
-    write_report(report, grid, outcomes, cfg)
+        write_report(
+            report, grid, outcomes, _report_config(method, preset, device, overrides, sets, priors, found)
+        )
     counts = {s: sum(o.status == s for o in outcomes) for s in ("done", "skipped", "failed")}
     print(
         f"sweep {grid}: {counts['done']} done, {counts['skipped']} already finished, {counts['failed']} failed"
@@ -147,3 +145,16 @@ def sweep(
     print(f"report: {report}; tables: wtbench table {runs_dir} -o table.csv")
     if counts["failed"]:
         raise typer.Exit(1)
+
+
+def _report_config(method, preset, device, overrides, sets, priors, scenes) -> dict:
+    """The sweep's settings as recorded in its report."""
+    return {
+        "method": method,
+        "preset": preset,
+        "device": device,
+        "overrides": overrides,
+        "sets": sets,
+        "imported_priors": priors,
+        "scenes": scenes,
+    }

@@ -92,3 +92,27 @@ def test_a_rejected_run_leaves_no_run_folder(case, scene, tmp_path, small_quick,
     with pytest.raises(UserError, match=needle):
         execute(req)
     assert not runs.exists(), sorted(str(p) for p in runs.rglob("*"))
+
+
+def test_a_second_sweep_into_the_same_report_is_refused(tmp_path, write_tiny_scene):
+    from typer.testing import CliRunner
+
+    from benchmarks.cli import app
+
+    scene = write_tiny_scene(tmp_path / "scenes" / "tiny", frames=2)
+    report = tmp_path / "runs" / "sweep-depth.json"
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join(sys.path))
+    holder = subprocess.Popen(
+        [sys.executable, "-c", HOLD.replace('"run folder"', '"sweep report"'), str(report)],
+        stdout=subprocess.PIPE, env=env, text=True,
+    )  # fmt: skip
+    try:
+        assert holder.stdout.readline().strip() == "held"
+        args = ["sweep", "--scenes", str(scene.parent), "--grid", "depth", "--method", "static"]
+        args += ["--preset", "quick", "-o", str(tmp_path / "runs")]
+        with pytest.raises(UserError, match=rf"sweep report is in use by PID {holder.pid} on "):
+            CliRunner().invoke(app, args, catch_exceptions=False)
+    finally:
+        holder.send_signal(signal.SIGKILL)
+        holder.wait()
+    assert not report.exists() and not (tmp_path / "runs" / "tiny").exists()
