@@ -21,7 +21,7 @@ def test_demo_generates_builds_runs_and_tabulates(tmp_path):
     # --gt-priors: exact priors written once into the scene and imported by a method that uses priors.
     run_demo(tmp_path, ["base"], steps=26, size="128x72", device="cpu", preset="smoke", gt_priors=True)
     assert (scene / "gt_priors" / "gt_priors.json").is_file()
-    runs = list((tmp_path / "runs" / "SynthBalloon" / "base").iterdir())
+    runs = [p for p in (tmp_path / "runs" / "SynthBalloon" / "base").iterdir() if not p.name.startswith(".")]
     assert len(runs) == 1 and "-set" in runs[0].name and (runs[0] / "DONE").is_file()
     record = pd.read_json(runs[0] / "config.json", typ="series")
     assert set(record["imported_priors"]) == {"masks", "tracks", "depth_maps"}
