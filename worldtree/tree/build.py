@@ -20,6 +20,7 @@ import numpy as np
 import torch
 
 from worldtree.atomic import atomic_write_json
+from worldtree.tree.adaptive import AutoSplitConfig
 from worldtree.tree.inherit import InheritConfig, split_state
 from worldtree.tree.node import NodeState
 from worldtree.tree.parallel import LayerReport, LayerRunner, write_input
@@ -41,6 +42,14 @@ class TreeConfig:
     """Split strategy: ``binary``, ``gradient`` (node profiles from training) or ``flow`` (a global profile)."""
     inherit: InheritConfig = InheritConfig()
     """Caps, opacity reset and ancestor policy."""
+    auto: AutoSplitConfig | None = None
+    """``--depth auto``: a node gets children only when its measured split decision says so
+    (:mod:`worldtree.tree.adaptive`), down to ``auto.max_depth``; ``depth`` is then ignored."""
+
+    @property
+    def max_depth(self) -> int:
+        """Deepest layer the tree may reach (``depth``, or ``auto.max_depth`` in auto mode)."""
+        return self.auto.max_depth if self.auto is not None else self.depth
 
     def __post_init__(self) -> None:
         if self.depth < 0:
@@ -64,6 +73,9 @@ class TreeResult:
     """Split decision of every node that has children."""
     stats: dict[int, dict] = field(default_factory=dict)
     """Each trained node's ``stats`` from its function."""
+    decisions: dict[int, dict] = field(default_factory=dict)
+    """Auto mode: every node's split decision (``SplitDecision.to_dict()`` plus ``"applied"``: whether it got
+    children, False e.g. at the depth bound)."""
 
 
 def node_input(state: NodeState, depth: int) -> dict:
@@ -97,6 +109,7 @@ def grow_tree(
     seed: int = 0,
     root_profile: np.ndarray | torch.Tensor | None = None,
     flow: np.ndarray | torch.Tensor | None = None,
+    root_decision: dict | None = None,
 ) -> TreeResult:
     """Build and train the tree below ``root`` (already trained; its chain is empty).
 
@@ -108,6 +121,8 @@ def grow_tree(
         seed: run seed; node ``j`` trains with seed ``seed + j`` and inherits with ``(seed, j)``.
         root_profile: the root's per-frame profile ``[T]`` for the ``gradient`` split.
         flow: global per-frame profile ``[T]`` for the ``flow`` split (:func:`worldtree.tree.split.flow_profile`).
+        root_decision: auto mode: the root's ``SplitDecision.to_dict()``; the children's come from their node
+            function's ``stats["auto_split"]`` (a node without one is a leaf, recorded as such).
     """
     if root.index != 1 or root.chain:
         raise ValueError("grow_tree starts from the root state (index 1, no ancestors)")
@@ -119,10 +134,19 @@ def grow_tree(
     res = TreeResult(tree, {1: root})
     profiles: dict[int, Any] = {1: root_profile}
     flow_np = None if flow is None else np.asarray(torch.as_tensor(flow, dtype=torch.float64).cpu().numpy())
-    for d in range(cfg.depth):
+    decisions: dict[int, dict | None] = {1: root_decision}
+    for d in range(cfg.max_depth + 1):
         new: list[int] = []
         for j in tree.layer(d):
-            if not tree.can_split(j):
+            if cfg.auto is not None:
+                dec = dict(decisions.get(j) or {"split": False, "reason": "no decision reported"})
+                dec["applied"] = bool(dec["split"]) and d < cfg.max_depth and tree.can_split(j)
+                if dec["split"] and not dec["applied"]:
+                    dec["reason"] += f"; not split: depth bound {cfg.max_depth} or under min_len"
+                res.decisions[j] = dec
+                if not dec["applied"]:
+                    continue
+            if d >= cfg.max_depth or not tree.can_split(j):
                 continue
             iv = tree.interval(j)
             prof = profiles.get(j) if cfg.split == "gradient" else None
@@ -146,6 +170,7 @@ def grow_tree(
             res.states[j] = NodeState.from_payload(out["state"])
             profiles[j] = out.get("profile")
             res.stats[j] = dict(out.get("stats") or {})
+            decisions[j] = res.stats[j].get("auto_split")
     atomic_write_json(
         folder / "tree.json",
         {
@@ -154,6 +179,7 @@ def grow_tree(
             "splits": {str(j): {"point": c.point, "fallback": c.fallback} for j, c in res.splits.items()},
             "layers": [r.to_dict() for r in res.layers],
             "stats": {str(j): s for j, s in res.stats.items()},
+            "auto": {str(j): dec for j, dec in res.decisions.items()} if cfg.auto is not None else None,
         },
     )
     return res
