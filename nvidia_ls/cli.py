@@ -157,6 +157,47 @@ def gt_priors(
     console.print(f"wrote {path}", highlight=False)
 
 
+@app.command(
+    "import",
+    help="Turn a scene in the DynamicNeRF layout (images/, poses_bounds.npy, disp/, flow/, motion_masks/, "
+    "v000_tXXX.png test views) or the NVIDIA-LS release layout into a scene folder OUT_DIR/<Scene>/, with its "
+    "network priors under imported/ ready for `wtbench run` (docs/nvidia_ls.md).",
+)
+def import_(
+    source: Path = typer.Argument(..., help="Scene folder holding images/ and poses_bounds.npy."),
+    out_dir: Path = typer.Option(
+        Path("scenes"), "-o", "--out-dir", help="Parent folder of the scene folder."
+    ),
+    layout: str = typer.Option("auto", help="Source layout: auto | dynamicnerf | nvidia-ls."),
+    size: str | None = typer.Option(None, help="Output size WxH (same aspect as the images), e.g. 480x270."),
+    test_row: int | None = typer.Option(
+        None, help="Row of poses_bounds.npy holding the test camera (default 0: frame 0's camera)."
+    ),
+    test_images: Path | None = typer.Option(None, help="Folder of the test views vNNN_tXXX.png."),
+    test_masks: Path | None = typer.Option(None, help="Folder of test-view masks named like the views."),
+    name: str | None = typer.Option(None, help="Scene folder name (default: the source folder's name)."),
+    force: bool = typer.Option(False, "--force", help="Replace an existing scene folder."),
+) -> None:
+    from nvidia_ls.build import parse_size
+    from nvidia_ls.importer import ImportConfig, import_scene, run_args
+
+    cfg = ImportConfig(
+        layout=layout, size=parse_size(size), test_row=test_row, test_images=test_images,
+        test_masks=test_masks, name=name, force=force,
+    )  # fmt: skip
+    console = _console()
+    path = import_scene(source, out_dir, cfg, log=lambda m: console.print(f"[yellow]{m}[/yellow]"))
+    console.print(f"wrote {path}", highlight=False)
+    args = run_args(path)
+    if args:
+        import shlex
+
+        console.print(
+            "run with its priors: " + shlex.join(["wtbench", "run", "--scene", str(path), "--method", "base"] + args),
+            highlight=False, markup=False,
+        )  # fmt: skip
+
+
 @app.command(help="Re-check a built scene against its manifest; exit 1 listing problems.")
 def verify(
     scene: Path = typer.Argument(..., help="Scene folder written by `nvls build`."),

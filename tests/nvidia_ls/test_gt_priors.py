@@ -251,7 +251,8 @@ def test_imported_end_to_end_at_downscale_2(gen):
     assert pri.tracks.shape == (T, N, 2)
     np.testing.assert_allclose(pri.tracks, (z["tracks"] + 0.5) / 2 - 0.5, atol=1e-5)
     assert pri.sources["masks"] == f"imported:{out / 'masks'}"
-    assert pri.sources["tracks"] == f"imported:{out / 'tracks.npz'}"
+    # The rescale is recorded with the source (docs/priors.md).
+    assert pri.sources["tracks"] == f"imported:{out / 'tracks.npz'} [tracks rescaled 64x36 -> 32x18]"
     assert pri.sources["depth"].startswith(f"imported:{out / 'depth'}")
     # Half-size depth of a flat wall region is the full-size depth (INTER_AREA averages equal values).
     full = np.load(out / "depth" / "00000.npy")

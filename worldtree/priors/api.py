@@ -157,13 +157,29 @@ def _classical_depth(imgs, Ks, w2cs, near, far, cfg: PriorsConfig, cache: PriorC
     return depth, conf, key
 
 
-def _depth(imgs, Ks, w2cs, scene, cfg: PriorsConfig, cache, fp, progress):
+def _stored_size(scene) -> tuple[int, int] | None:
+    """``(W, H)`` of the scene's stored images (cameras.json), which imported files without a size of
+    their own refer to; None for a scene that was not loaded from a folder."""
+    root = getattr(scene, "root", None)
+    if root is None or not (Path(root) / "cameras.json").is_file():
+        return None
+    from worldtree.scene import read_cameras_json
+
+    meta = read_cameras_json(root)
+    return int(meta["width"]), int(meta["height"])
+
+
+def _with_notes(source: str, notes: list[str]) -> str:
+    return f"{source} [{'; '.join(notes)}]" if notes else source
+
+
+def _depth(imgs, Ks, w2cs, scene, cfg: PriorsConfig, cache, fp, progress, notes=None):
     """(depth [T,H,W], conf [T,H,W], source, key of the metric depth or None when it is not metric)."""
     T, H, W = imgs.shape[:3]
     if cfg.depth_source == "classical":
         d, c, key = _classical_depth(imgs, Ks, w2cs, scene.near, scene.far, cfg, cache, fp, progress)
         return d, c, "classical", key
-    raw = imported.read_depth(cfg.depth_source, T, H, W, cfg.depth_import)
+    raw = imported.read_depth(cfg.depth_source, T, H, W, cfg.depth_import, notes=notes)
     ref = ref_conf = None
     key = None
     if cfg.depth_import.fit_scale_shift:
@@ -274,23 +290,31 @@ def compute_priors(
     cache = PriorCache(cache_dir)
     fp = inputs_fingerprint(imgs, Ks, w2cs)
 
-    # Read imported tracks, masks and flow first, so a bad file fails before any long computation.
+    # Read imported tracks, masks and flow first, so a bad file fails before any long computation. Each
+    # follows the working size (a run's --downscale); the resizes are recorded in the sources.
+    resized: dict[str, list[str]] = {"tracks": [], "flow": [], "depth": []}
     imported_tracks = None
     if cfg.tracks_source != "classical":
-        imported_tracks = imported.read_tracks(cfg.tracks_source, T, H, W)
+        imported_tracks = imported.read_tracks(
+            cfg.tracks_source, T, H, W, default_size=_stored_size(scene), notes=resized["tracks"]
+        )
     mask = None
     if cfg.masks_source is not None:
         mask = imported.read_masks(cfg.masks_source, T, H, W)
     fields = None
     if cfg.flow_source != "classical":
-        fields = imported.read_flows(cfg.flow_source, T, H, W)
+        fields = imported.read_flows(cfg.flow_source, T, H, W, notes=resized["flow"])
     # Depth first: metric depth and the poses predict where static pixels go, which guides flow and tracks.
-    depth, depth_conf, depth_src, depth_key = _depth(imgs, Ks, w2cs, scene, cfg, cache, fp, progress)
+    depth, depth_conf, depth_src, depth_key = _depth(
+        imgs, Ks, w2cs, scene, cfg, cache, fp, progress, notes=resized["depth"]
+    )
     init = (depth, Ks, w2cs, depth_key) if depth_key is not None else None
     flows, flow_key, flow_src = _flows(imgs, cfg, cache, fp, progress, init, fields)
+    flow_src = _with_notes(flow_src, resized["flow"])
+    depth_src = _with_notes(depth_src, resized["depth"])
     if imported_tracks is not None:
         xy, vis = imported_tracks
-        tracks_src = f"imported:{cfg.tracks_source}"
+        tracks_src = _with_notes(f"imported:{cfg.tracks_source}", resized["tracks"])
     else:
         xy, vis, tracks_src = _tracks(imgs, cfg, cache, fp, progress, init)
     err = _epi_errors(flows, Ks, w2cs, T, cfg, cache, flow_key, progress)
@@ -316,6 +340,7 @@ def compute_priors(
                 "frames": T,
                 "size": [W, H],
                 "sources": sources,
+                "resized": {k: v for k, v in resized.items() if v},
                 "config": config_dict(cfg),
                 "num_tracks": int(xy.shape[1]),
                 "num_dynamic_tracks": int(dynamic.sum()),

@@ -9,7 +9,9 @@
   (or ``pred_tracks`` + ``pred_visibility``) and optionally ``image_size`` [W, H] (the size the positions refer
   to; other working sizes of the same aspect are rescaled); ``.npy`` holding ``[T, N, 3]`` (x, y, visibility)
   or ``[T, N, 2]`` (all visible).
-- Flow: a folder of ``<i>_<j>.flo`` (Middlebury) or ``<i>_<j>.npy`` ``[H, W, 2]``, flow from frame i to j.
+- Flow: a folder of ``<i>_<j>.flo`` (Middlebury) or ``<i>_<j>.npy`` ``[H, W, 2]``, flow from frame i to j;
+  fields of another size but the same aspect ratio (e.g. the scene's full size under a run's --downscale) are
+  resized and their vectors scaled by the size ratio.
 - Masks: a folder of one mask image per frame (sorted by name), white = dynamic.
 
 Every problem raises :class:`worldtree.errors.UserError` naming the file and the fix.
@@ -72,9 +74,16 @@ def _fit_size(arr: np.ndarray, H: int, W: int, path: Path) -> np.ndarray:
 
 
 def read_depth(
-    source: str | Path, num_frames: int, height: int, width: int, cfg: DepthImportConfig
+    source: str | Path,
+    num_frames: int,
+    height: int,
+    width: int,
+    cfg: DepthImportConfig,
+    notes: list[str] | None = None,
 ) -> np.ndarray:
-    """Imported maps as ``[T, H, W]`` float32, still in the file's space (depth or disparity), validated."""
+    """Imported maps as ``[T, H, W]`` float32, still in the file's space (depth or disparity), validated.
+
+    Maps of another size (same aspect) are resized; the first such resize adds a line to ``notes``."""
     src = Path(source)
     if src.is_dir():
         files = sorted(p for p in src.iterdir() if p.is_file() and p.suffix.lower() in DEPTH_SUFFIXES)
@@ -83,11 +92,12 @@ def read_depth(
                 f"{src}: {len(files)} depth files (.npy/.npz/.png), the scene has {num_frames} frames; "
                 "provide one file per training frame"
             )
-        maps = []
+        maps, raw_sizes = [], []
         for p in files:
             a = np.squeeze(_read_depth_file(p, cfg.png_scale))
             if a.ndim != 2:
                 raise UserError(f"{p}: depth map has shape {a.shape}; expected [H, W]")
+            raw_sizes.append(a.shape)
             maps.append(_fit_size(a, height, width, p))
         arr = np.stack(maps)
     elif src.is_file():
@@ -96,9 +106,13 @@ def read_depth(
             arr = arr[None]
         if arr.ndim != 3 or arr.shape[0] != num_frames:
             raise UserError(f"{src}: shape {arr.shape}; expected [T={num_frames}, H, W]")
+        raw_sizes = [a.shape for a in arr]
         arr = np.stack([_fit_size(a, height, width, src) for a in arr])
     else:
         raise UserError(f"--depth {src}: no such file or folder; pass 'classical' or an existing path")
+    other = sorted({(w, h) for h, w in raw_sizes if (h, w) != (height, width)})
+    if notes is not None and other:
+        notes.append(f"depth resized {', '.join(f'{w}x{h}' for w, h in other)} -> {width}x{height}")
     if not np.all(np.isfinite(arr)):
         raise UserError(f"{src}: depth maps contain NaN or Inf; clean them before import")
     if (arr < 0).any():
@@ -200,13 +214,20 @@ def _tracks_image_size(value, path: Path) -> tuple[int, int] | None:
 
 
 def read_tracks(
-    source: str | Path, num_frames: int, height: int, width: int
+    source: str | Path,
+    num_frames: int,
+    height: int,
+    width: int,
+    default_size: tuple[int, int] | None = None,
+    notes: list[str] | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """CoTracker-layout tracks: (``xy`` [T,N,2] float32 pixels, ``visible`` [T,N] bool), validated.
 
     Points outside the image (CoTracker predicts them) are marked not visible. A dict file (.npz/.pt) may
-    name the size its positions refer to, ``image_size`` = [W0, H0]; when it differs from ``width x height``
-    (e.g. the run's --downscale) positions are rescaled as ``(x + 0.5) * width / W0 - 0.5`` (y likewise).
+    name the size its positions refer to, ``image_size`` = [W0, H0]; a file without it refers to
+    ``default_size`` ``(W0, H0)`` (``compute_priors`` passes the scene's stored size), or to ``width x height``
+    when that is None too. When the size differs from ``width x height`` (e.g. the run's --downscale)
+    positions are rescaled as ``(x + 0.5) * width / W0 - 0.5`` (y likewise) and a line is added to ``notes``.
     """
     path = Path(source)
     if not path.is_file():
@@ -232,6 +253,8 @@ def read_tracks(
         xy = arr[..., :2]
         vis = arr[..., 2] if arr.shape[-1] == 3 else np.ones(arr.shape[:2])
         src_size = None
+    if src_size is None:
+        src_size = default_size
     if xy.ndim == 4 and xy.shape[0] == 1:
         xy = xy[0]  # CoTracker's batch axis
     if vis.ndim == 4 and vis.shape[0] == 1:
@@ -264,6 +287,8 @@ def read_tracks(
         xy = np.stack(
             [(xy[..., 0] + 0.5) * (width / w0) - 0.5, (xy[..., 1] + 0.5) * (height / h0) - 0.5], -1
         ).astype(np.float32)
+        if notes is not None:
+            notes.append(f"tracks rescaled {w0}x{h0} -> {width}x{height}")
     if vis.dtype == bool:
         visible = vis.copy()
     else:
@@ -310,13 +335,33 @@ def write_flo(path: str | Path, flow: np.ndarray) -> None:
     atomic_write_bytes(path, head + np.ascontiguousarray(flow, "<f4").tobytes())
 
 
+def resize_flow(flow: np.ndarray, height: int, width: int) -> np.ndarray:
+    """Flow ``[h, w, 2]`` (pixels at ``w x h``) resampled to ``[height, width, 2]`` in pixels of the new size.
+
+    Both grids share the image's edges (pixel centres at integers, ``x' = (x + 0.5) width / w - 0.5``), so a
+    displacement scales by ``width / w`` along x and ``height / h`` along y; the field itself is resampled
+    bilinearly when enlarged and by area averaging when shrunk.
+    """
+    h, w = flow.shape[:2]
+    if (h, w) == (height, width):
+        return flow.astype(np.float32, copy=True)
+    interp = cv2.INTER_AREA if (width < w and height < h) else cv2.INTER_LINEAR
+    out = cv2.resize(np.ascontiguousarray(flow, np.float32), (width, height), interpolation=interp)
+    out[..., 0] *= width / w
+    out[..., 1] *= height / h
+    return out
+
+
 _PAIR = re.compile(r"^(\d+)[_-](\d+)$")
 
 
 def read_flows(
-    source: str | Path, num_frames: int, height: int, width: int
+    source: str | Path, num_frames: int, height: int, width: int, notes: list[str] | None = None
 ) -> dict[tuple[int, int], np.ndarray]:
-    """Flow fields ``{(i, j): [H, W, 2]}`` from a folder of ``<i>_<j>.flo`` / ``<i>_<j>.npy``, validated."""
+    """Flow fields ``{(i, j): [H, W, 2]}`` from a folder of ``<i>_<j>.flo`` / ``<i>_<j>.npy``, validated.
+
+    Fields of another size with the frames' aspect ratio are resized by :func:`resize_flow`; each distinct
+    resize adds a line to ``notes`` (recorded in the priors' sources)."""
     src = Path(source)
     if not src.is_dir():
         raise UserError(f"--flow {src}: not a folder; pass 'classical' or a folder of <i>_<j>.flo/.npy files")
@@ -333,10 +378,21 @@ def read_flows(
         f = read_flo(p) if p.suffix.lower() == ".flo" else np.asarray(_load_array(p, ("flow",)), np.float32)
         if f.ndim == 3 and f.shape[0] == 2 and f.shape[-1] != 2:
             f = np.moveaxis(f, 0, -1)  # [2, H, W] as written by torch code
-        if f.shape != (height, width, 2):
+        if f.ndim != 3 or f.shape[-1] != 2 or min(f.shape[:2]) < 1:
             raise UserError(f"{p}: flow shape {f.shape}; expected [{height}, {width}, 2] for these frames")
         if not np.all(np.isfinite(f)):
             raise UserError(f"{p}: flow contains NaN or Inf; clean it before import")
+        h, w = f.shape[:2]
+        if (h, w) != (height, width):
+            if abs(w / h - width / height) > 0.01 * (width / height):
+                raise UserError(
+                    f"{p}: flow shape {f.shape} has another aspect ratio than the {width}x{height} frames; "
+                    f"expected [{height}, {width}, 2] (or any size of the same aspect)"
+                )
+            f = resize_flow(f, height, width)
+            note = f"flow resized {w}x{h} -> {width}x{height} (vectors scaled)"
+            if notes is not None and note not in notes:
+                notes.append(note)
         out[(i, j)] = f.astype(np.float32)
     if not out:
         raise UserError(f"--flow {src}: no <i>_<j>.flo/.npy files found")

@@ -1,0 +1,449 @@
+"""`nvls import`: a scene prepared for other dynamic-view-synthesis codes -> this project's scene format.
+
+Two source layouts (docs/nvidia_ls.md, "Importing"):
+
+- ``dynamicnerf`` -- the layout DynamicNeRF / NSFF / MoSca ship the NVIDIA short protocol in: ``images/``
+  (training frame t, sorted by name), LLFF ``poses_bounds.npy`` with one row per training frame, MiDaS
+  ``disp/*.npy`` (relative inverse depth), flow ``flow/NNN_fwd.npz`` (frame i -> i+1) / ``NNN_bwd.npz``
+  (i -> i-1) or ``flow_raft/<i>_<j>.npy`` (i -> j), ``motion_masks/`` (one mask per frame, white = moving),
+  and test views ``v000_tXXX.png`` (in ``gt/``, ``gt_images/``, ``test/`` or the scene folder). The test camera
+  is the camera of one training frame (``test_row``, 0 in the 12-frame protocol), so its pose is that row.
+- ``nvidia-ls`` -- the paper's release: ``images/``, ``poses_bounds.npy``, ``gt_images/v001_tXXX.png`` and
+  ``sam_results/masks/v001_tXXX.png``. ``poses_bounds.npy`` may hold one row per training frame plus one for
+  the test camera (row ``test_row``, default 0), or one row per rig camera in id order (camera 1 = test, the
+  frames use cameras 2..N in ping-pong order).
+
+Written: ``images/``, ``gt_images/``, ``masks/`` (when test masks exist), ``cameras.json``, ``poses_bounds.npy``
+(one row per camera id), ``preview.png``, ``manifest.json``, and the network priors found, at the scene's
+size, under ``imported/`` (``disp/`` or ``depth/``, ``flow/<i>_<j>.npy``, ``masks/``) with ``imported.json``
+naming the ``wtbench run`` options that use them. The world frame is the file's (no normalisation).
+"""
+
+from __future__ import annotations
+
+import io
+import re
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from nvidia_ls import llff
+from nvidia_ls.manifest import hash_files, write_manifest
+from nvidia_ls.preview import contact_sheet
+from nvidia_ls.sampling import pingpong
+from nvidia_ls.writer import cameras_document, frame_file, mask_file, save_image, test_file
+from worldtree import __version__
+from worldtree.atomic import atomic_dir, atomic_write_bytes, atomic_write_json
+from worldtree.errors import UserError
+from worldtree.imageio import read_image, read_mask
+from worldtree.priors.imported import _load_array, read_flo, resize_flow
+
+LAYOUTS = ("auto", "dynamicnerf", "nvidia-ls")
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
+IMPORTED = "imported"
+"""Folder of the imported priors inside the written scene."""
+_TEST_NAME = re.compile(r"^v(\d+)_t(\d+)$")
+_FWD_BWD = re.compile(r"^(\d+)_(fwd|bwd)$")
+_PAIR = re.compile(r"^(\d+)[_-](\d+)$")
+
+
+@dataclass(frozen=True)
+class ImportConfig:
+    """Settings of `nvls import` (the CLI's defaults)."""
+
+    layout: str = "auto"
+    """auto | dynamicnerf | nvidia-ls (auto: nvidia-ls when gt_images/ holds v001_* views)."""
+    size: tuple[int, int] | None = None
+    """Output (W, H), same aspect as the images; None keeps the images' size."""
+    test_row: int | None = None
+    """Row of poses_bounds.npy holding the test camera (None: 0, see the module docstring)."""
+    test_images: Path | None = None
+    """Folder of the test views (vNNN_tXXX.png); None looks in the layout's usual places."""
+    test_masks: Path | None = None
+    """Folder of test-view dynamic masks named like the views; None looks in the layout's usual places."""
+    name: str | None = None
+    """Scene folder name (default: the source folder's name)."""
+    force: bool = False
+    """Replace an existing scene folder."""
+
+
+@dataclass
+class _Source:
+    """What was found in the source folder."""
+
+    layout: str
+    images: list[Path]
+    pb: np.ndarray
+    test_views: dict[int, Path]
+    test_masks: dict[int, Path]
+    depth_dir: Path | None
+    depth_kind: str
+    flow: dict[tuple[int, int], Path]
+    motion_masks: list[Path]
+
+
+# ------------------------------------------------------------------------------------------------ reading
+def _images(folder: Path) -> list[Path]:
+    return sorted(p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES)
+
+
+def _views(folder: Path) -> dict[int, Path]:
+    """``{time: path}`` of the ``vNNN_tXXX`` images in ``folder`` (one view index; the lowest if several)."""
+    found: dict[int, dict[int, Path]] = {}
+    for p in _images(folder) if folder.is_dir() else []:
+        m = _TEST_NAME.match(p.stem)
+        if m:
+            found.setdefault(int(m.group(1)), {})[int(m.group(2))] = p
+    return found[min(found)] if found else {}
+
+
+def _detect_layout(root: Path) -> str:
+    if _views(root / "gt_images") and (root / "sam_results").is_dir():
+        return "nvidia-ls"
+    if any((root / d).is_dir() for d in ("disp", "flow", "flow_raft", "motion_masks")):
+        return "dynamicnerf"
+    if _views(root / "gt_images"):
+        return "nvidia-ls"
+    return "dynamicnerf"
+
+
+def _flow_files(root: Path) -> dict[tuple[int, int], Path]:
+    out: dict[tuple[int, int], Path] = {}
+    fdir = root / "flow"
+    if fdir.is_dir():
+        for p in sorted(fdir.iterdir()):
+            m = _FWD_BWD.match(p.stem)
+            if m and p.suffix in (".npz", ".npy"):
+                i = int(m.group(1))
+                out[(i, i + 1) if m.group(2) == "fwd" else (i, i - 1)] = p
+    rdir = root / "flow_raft"
+    if rdir.is_dir():
+        for p in sorted(rdir.iterdir()):
+            m = _PAIR.match(p.stem)
+            if m and p.suffix.lower() in (".npy", ".flo"):
+                out.setdefault((int(m.group(1)), int(m.group(2))), p)
+    return out
+
+
+def scan_source(root: Path, cfg: ImportConfig) -> _Source:
+    """Find the files of a DynamicNeRF / NVIDIA-LS scene folder; raises :class:`UserError` naming what is
+    missing."""
+    if not root.is_dir():
+        raise UserError(f"{root}: no such folder; give a scene folder holding images/ and poses_bounds.npy")
+    if cfg.layout not in LAYOUTS:
+        raise UserError(f"--layout {cfg.layout!r}: choose one of {', '.join(LAYOUTS)}")
+    layout = _detect_layout(root) if cfg.layout == "auto" else cfg.layout
+    if not (root / "images").is_dir() or not _images(root / "images"):
+        raise UserError(f"{root / 'images'}: missing or holds no .png/.jpg; the training frames go there")
+    images = _images(root / "images")
+    pb_path = root / "poses_bounds.npy"
+    if not pb_path.is_file():
+        raise UserError(f"{pb_path}: missing; the LLFF poses of the frames are needed")
+    try:
+        pb = np.load(pb_path, allow_pickle=False)
+    except (ValueError, OSError) as e:
+        raise UserError(f"{pb_path}: not a readable .npy array ({e}); give an LLFF poses_bounds.npy") from e
+    if pb.ndim != 2 or pb.shape[1] != 17 or not np.isfinite(pb).all():
+        raise UserError(
+            f"{pb_path}: shape {pb.shape} or non-finite values; expected finite (N, 17) LLFF rows"
+        )
+
+    if cfg.test_images is not None:
+        views = _views(Path(cfg.test_images))
+        if not views:
+            raise UserError(f"--test-images {cfg.test_images}: no vNNN_tXXX.png/.jpg images there")
+    else:
+        places = ("gt_images",) if layout == "nvidia-ls" else ("gt", "gt_images", "test", ".")
+        views = next((v for v in (_views(root / d) for d in places) if v), {})
+    if cfg.test_masks is not None:
+        tmasks = _views(Path(cfg.test_masks))
+        if not tmasks:
+            raise UserError(f"--test-masks {cfg.test_masks}: no vNNN_tXXX.png masks there")
+    else:
+        places = ("sam_results/masks", "masks", "gt_masks") if layout == "nvidia-ls" else ("gt_masks",)
+        tmasks = next((v for v in (_views(root / d) for d in places) if v), {})
+
+    depth_dir, kind = None, "disparity"
+    for name, k in (("disp", "disparity"), ("depth", "depth")):
+        if (root / name).is_dir():
+            depth_dir, kind = root / name, k
+            break
+    motion = _images(root / "motion_masks") if (root / "motion_masks").is_dir() else []
+    return _Source(layout, images, pb, views, tmasks, depth_dir, kind, _flow_files(root), motion)
+
+
+def _cameras(src: _Source, T: int, test_row: int | None, pb_path: Path):
+    """``(rows of each camera id, camera id of each frame, test camera id, note)`` from the pose rows."""
+    n = src.pb.shape[0]
+    row = 0 if test_row is None else test_row
+    if n == T:
+        if not 0 <= row < n:
+            raise UserError(f"--test-row {row}: {pb_path} has rows 0..{n - 1}")
+        # Camera 1 is the test camera (a copy of the frame's row: the 12-frame protocol's test view is the
+        # camera of training frame 0), frames use cameras 2..T+1.
+        rows = {1: row} | {t + 2: t for t in range(T)}
+        return rows, [t + 2 for t in range(T)], 1, f"one row per frame; test camera = row {row}"
+    if n == T + 1:
+        if not 0 <= row < n:
+            raise UserError(f"--test-row {row}: {pb_path} has rows 0..{n - 1}")
+        others = [r for r in range(n) if r != row]
+        rows = {1: row} | {t + 2: r for t, r in enumerate(others)}
+        return rows, [t + 2 for t in range(T)], 1, f"one row per frame plus the test camera (row {row})"
+    if src.layout == "nvidia-ls" and 2 <= n < T and test_row in (None, 0):
+        rows = {c + 1: c for c in range(n)}
+        return rows, pingpong(list(range(2, n + 1)), T), 1, "one row per rig camera; frames ping-pong 2..N"
+    raise UserError(
+        f"{pb_path}: {n} pose rows for {T} frames; expected {T} (one per frame) or {T + 1} (plus the test "
+        "camera, see --test-row)"
+    )
+
+
+def _read_flow_file(p: Path) -> np.ndarray:
+    f = read_flo(p) if p.suffix.lower() == ".flo" else np.asarray(_load_array(p, ("flow",)), np.float32)
+    f = np.squeeze(f)
+    if f.ndim == 3 and f.shape[0] == 2 and f.shape[-1] != 2:
+        f = np.moveaxis(f, 0, -1)
+    if f.ndim != 3 or f.shape[-1] != 2 or not np.isfinite(f).all():
+        raise UserError(f"{p}: flow of shape {f.shape} (or non-finite); expected finite [H, W, 2]")
+    return f.astype(np.float32)
+
+
+def _check_aspect(shape_hw: tuple[int, int], W: int, H: int, path: Path, what: str) -> None:
+    h, w = shape_hw
+    if abs(w / h - W / H) > 0.01 * W / H:
+        raise UserError(
+            f"{path}: {what} is {w}x{h}, the scene is {W}x{H} (another aspect ratio); re-export it"
+        )
+
+
+def _resize_map(a: np.ndarray, W: int, H: int) -> np.ndarray:
+    h, w = a.shape[:2]
+    if (w, h) == (W, H):
+        return a
+    return cv2.resize(a, (W, H), interpolation=cv2.INTER_AREA if w > W else cv2.INTER_LINEAR)
+
+
+# ------------------------------------------------------------------------------------------------ writing
+def import_scene(
+    source: str | Path, out_dir: str | Path, cfg: ImportConfig = ImportConfig(), log=print
+) -> Path:
+    """Write ``out_dir/<name>/`` in the scene format from a DynamicNeRF / NVIDIA-LS folder ``source``.
+
+    Returns the scene folder. Everything is checked before anything is written, and the folder appears in
+    one rename when complete (:func:`worldtree.atomic.atomic_dir`).
+    """
+    t0 = time.perf_counter()
+    root = Path(source)
+    src = scan_source(root, cfg)
+    T = len(src.images)
+    first = read_image(src.images[0])
+    H0, W0 = first.shape[:2]
+    W, H = cfg.size if cfg.size is not None else (W0, H0)
+    _check_aspect((H0, W0), W, H, src.images[0], "the first image")
+    rows, frame_cams, test_cam, pose_note = _cameras(src, T, cfg.test_row, root / "poses_bounds.npy")
+    pb = src.pb.astype(np.float64)
+    mat = pb[:, :15].reshape(-1, 3, 5)
+    h_file, w_file = mat[:, 0, 4], mat[:, 1, 4]
+    if (h_file <= 0).any() or (w_file <= 0).any() or (mat[:, 2, 4] <= 0).any():
+        raise UserError(f"{root / 'poses_bounds.npy'}: non-positive H, W or focal length in the hwf column")
+    if np.abs(w_file / h_file - W0 / H0).max() > 0.01 * W0 / H0:
+        raise UserError(
+            f"{root / 'poses_bounds.npy'}: stored size {int(w_file[0])}x{int(h_file[0])} has another aspect "
+            f"than the {W0}x{H0} images; give the poses of these images"
+        )
+    bad = pb[:, 15] <= 0
+    if bad.any() or (pb[:, 16] <= pb[:, 15]).any():
+        raise UserError(f"{root / 'poses_bounds.npy'}: near/far bounds must satisfy 0 < near < far")
+    ids = sorted(rows)
+    Ks, w2cs, bounds = llff.llff_to_opencv(pb[[rows[c] for c in ids]], W, H)
+    for k, c in enumerate(ids):
+        R = w2cs[k, :3, :3]
+        if np.abs(R @ R.T - np.eye(3)).max() > 1e-3 or np.linalg.det(R) < 0:
+            raise UserError(f"{root / 'poses_bounds.npy'}: row {rows[c]} is not a rotation; check the file")
+
+    warnings: list[str] = []
+    times = sorted(src.test_views)
+    if times and times != list(range(T)):
+        raise UserError(
+            f"{src.test_views[times[0]].parent}: test views for times {times[:3]}...{times[-1]}, expected one "
+            f"per training time 0..{T - 1}"
+        )
+    if not times:
+        warnings.append(
+            "no test views (vNNN_tXXX.png) found: the scene trains and renders but cannot be scored; "
+            "pass --test-images"
+        )
+    has_tmasks = bool(times) and bool(src.test_masks)
+    if has_tmasks and sorted(src.test_masks) != times:
+        raise UserError(
+            f"{next(iter(src.test_masks.values())).parent}: test masks do not match the views' times"
+        )
+    if src.motion_masks and len(src.motion_masks) != T:
+        raise UserError(
+            f"{root / 'motion_masks'}: {len(src.motion_masks)} masks for {T} frames; one per frame"
+        )
+    depth_files = []
+    if src.depth_dir is not None:
+        depth_files = sorted(p for p in src.depth_dir.iterdir() if p.suffix in (".npy", ".npz"))
+        if len(depth_files) != T:
+            raise UserError(
+                f"{src.depth_dir}: {len(depth_files)} .npy/.npz maps for {T} frames; one per frame"
+            )
+    for (i, j), p in src.flow.items():
+        if not (0 <= i < T and 0 <= j < T) or i == j:
+            raise UserError(f"{p}: flow pair ({i}, {j}) outside frames 0..{T - 1}; remove the file")
+
+    name = cfg.name or root.resolve().name
+    final = Path(out_dir) / name
+    if final.exists() and not cfg.force:
+        raise UserError(f"{final}: exists; pass --force to replace it")
+    record_priors: dict = {}
+    run_args: list[str] = []
+    try:
+        with atomic_dir(final, force=cfg.force) as tmp:
+            thumbs = []
+            keep = set(np.unique(np.round(np.linspace(0, T - 1, min(6, T))).astype(int)).tolist())
+            for t, p in enumerate(src.images):
+                img = read_image(p)
+                if img.shape[:2] != (H0, W0):
+                    raise UserError(f"{p}: {img.shape[1]}x{img.shape[0]}, the first frame is {W0}x{H0}")
+                img = _resize_map(img, W, H)
+                save_image(tmp / frame_file(t), img)
+                if t in keep:
+                    thumbs.append((f"t{t}", img))
+            test_thumbs = []
+            for t in times:
+                img = _resize_map(read_image(src.test_views[t]), W, H)
+                save_image(tmp / test_file(t), img)
+                m = None
+                if has_tmasks:
+                    m = read_mask(src.test_masks[t])
+                    m = cv2.resize(m.astype(np.uint8) * 255, (W, H), interpolation=cv2.INTER_NEAREST) > 127
+                    save_image(tmp / mask_file(t), m)
+                if t in keep:
+                    test_thumbs.append((f"test t{t}", img, m))
+
+            # --- priors, at the scene's size --------------------------------------------------------
+            if depth_files:
+                sub = "disp" if src.depth_kind == "disparity" else "depth"
+                ddir = _mkdir(tmp / IMPORTED / sub)
+                for t, p in enumerate(depth_files):
+                    a = np.squeeze(
+                        np.asarray(_load_array(p, ("disp", "disparity", "depth", "pred")), np.float32)
+                    )
+                    if a.ndim != 2 or not np.isfinite(a).all():
+                        raise UserError(
+                            f"{p}: map of shape {a.shape} (or non-finite); expected finite [H, W]"
+                        )
+                    _check_aspect(a.shape, W, H, p, "the map")
+                    np.save(ddir / f"{t:05d}.npy", _resize_map(a, W, H))
+                record_priors["depth"] = {"path": f"{IMPORTED}/{sub}", "kind": src.depth_kind,
+                                          "source": str(src.depth_dir.resolve())}  # fmt: skip
+                run_args += ["--depth-maps", str((final / IMPORTED / sub).resolve())]
+                run_args += ["--set", f"priors.depth_import.kind={src.depth_kind}"]
+                if src.depth_kind == "disparity":  # relative (MiDaS-like): scale and shift are unknown
+                    run_args += ["--set", "priors.depth_import.fit_scale_shift=true"]
+            if src.flow:
+                fdir = _mkdir(tmp / IMPORTED / "flow")
+                sizes = set()
+                for (i, j), p in sorted(src.flow.items()):
+                    f = _read_flow_file(p)
+                    _check_aspect(f.shape[:2], W, H, p, "the flow")
+                    sizes.add((f.shape[1], f.shape[0]))
+                    np.save(fdir / f"{i:05d}_{j:05d}.npy", resize_flow(f, H, W))
+                record_priors["flow"] = {"path": f"{IMPORTED}/flow", "pairs": len(src.flow),
+                                         "source": str(next(iter(src.flow.values())).parent.resolve()),
+                                         "source_sizes": sorted(sizes)}  # fmt: skip
+                run_args += ["--flow", str((final / IMPORTED / "flow").resolve())]
+            if src.motion_masks:
+                mdir = _mkdir(tmp / IMPORTED / "masks")
+                for t, p in enumerate(src.motion_masks):
+                    m = read_mask(p)
+                    _check_aspect(m.shape, W, H, p, "the mask")
+                    m = cv2.resize(m.astype(np.uint8) * 255, (W, H), interpolation=cv2.INTER_NEAREST) > 127
+                    save_image(mdir / f"{t:05d}.png", m)
+                record_priors["masks"] = {"path": f"{IMPORTED}/masks", "source": str(root / "motion_masks")}
+                run_args += ["--masks", str((final / IMPORTED / "masks").resolve())]
+            if record_priors:
+                atomic_write_json(
+                    tmp / "imported.json", {"priors": record_priors, "wtbench_run_args": run_args}
+                )
+
+            world = {"scale": 1.0, "R": np.eye(3).tolist(), "t": [0.0, 0.0, 0.0], "mode": "none",
+                     "note": "world = scale * R @ source + t (the source's LLFF frame kept as is)"}  # fmt: skip
+            buf = io.BytesIO()
+            np.save(buf, llff.opencv_to_llff(w2cs, Ks, H, W, bounds))
+            atomic_write_bytes(tmp / "poses_bounds.npy", buf.getvalue())
+            atomic_write_json(
+                tmp / "cameras.json",
+                cameras_document(
+                    width=W, height=H, cameras=ids, test_camera=test_cam, Ks=Ks, w2cs=w2cs, bounds=bounds,
+                    frame_cameras=frame_cams, source_times=list(range(T)), has_masks=has_tmasks,
+                    world_transform=world,
+                ),
+            )  # fmt: skip
+            if not times:  # cameras_document lists a test view per time; there are none to list
+                import json
+
+                doc = json.loads((tmp / "cameras.json").read_text())
+                doc["test_frames"] = []
+                atomic_write_json(tmp / "cameras.json", doc)
+            save_image(tmp / "preview.png", contact_sheet(thumbs, test_thumbs))
+            files = hash_files(tmp)
+            cfg_record = {k: (str(v) if isinstance(v, Path) else v) for k, v in asdict(cfg).items()}
+            write_manifest(
+                tmp,
+                {
+                    "tool": "nvls import",
+                    "tool_version": __version__,
+                    "created_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+                    "source": {
+                        "path": str(root.resolve()),
+                        "layout": src.layout,
+                        "time_steps": T,
+                        "width": W0,
+                        "height": H0,
+                    },  # fmt: skip
+                    "source_times": list(range(T)),
+                    "image_size": [W, H],
+                    "test_camera": test_cam,
+                    "camera_order": frame_cams,
+                    "counts": {
+                        "frames": T,
+                        "test_frames": len(times),
+                        "masks": len(times) if has_tmasks else 0,
+                        "cameras": len(ids),
+                    },  # fmt: skip
+                    "poses": {"method": "file", "rows": pose_note},
+                    "masks": {"method": "imported" if has_tmasks else "none"},
+                    "imported_priors": record_priors,
+                    "world_transform": world,
+                    "config": cfg_record,
+                    "timings_s": {"total": round(time.perf_counter() - t0, 3)},
+                    "warnings": warnings,
+                },
+                files,
+            )
+    except FileExistsError:
+        raise UserError(f"{final}: appeared while importing; pass --force to replace it") from None
+    for w in warnings:
+        log(f"warning: {w}")
+    return final
+
+
+def _mkdir(p: Path) -> Path:
+    p.mkdir(parents=True, exist_ok=True)
+    return p
+
+
+def run_args(scene: str | Path) -> list[str]:
+    """The ``wtbench run`` options that use a scene's imported priors (from ``imported.json``; [] if none)."""
+    import json
+
+    path = Path(scene) / "imported.json"
+    if not path.is_file():
+        return []
+    return list(json.loads(path.read_text()).get("wtbench_run_args", []))

@@ -1,0 +1,171 @@
+"""`nvls import`: a generated capture written in the DynamicNeRF layout comes back as a scene whose frames,
+cameras, test views and imported priors equal the generator's exact values; priors follow a run's size."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from nvidia_ls.importer import ImportConfig, import_scene, run_args
+from nvidia_ls.manifest import verify_scene
+from tests.nvidia_ls.dynamicnerf_export import export_dynamicnerf
+from worldtree.errors import UserError
+from worldtree.priors import PriorsConfig, compute_priors
+from worldtree.priors.config import DepthImportConfig
+from worldtree.priors.imported import read_depth, read_flows, read_masks, resize_flow
+from worldtree.priors.synthetic import PlanarScene, PlanarSceneConfig
+from worldtree.scene import load_scene
+
+T = 5
+CFG = PlanarSceneConfig(width=80, height=48, num_frames=T, supersample=1, baseline=0.4)
+
+
+@pytest.fixture(scope="module")
+def exported(tmp_path_factory):
+    root = tmp_path_factory.mktemp("dnerf") / "Planar"
+    return root, export_dynamicnerf(PlanarScene(CFG), root, disp_scale=3.0, disp_shift=0.1)
+
+
+@pytest.fixture(scope="module")
+def imported(exported, tmp_path_factory):
+    root, _ = exported
+    return import_scene(root, tmp_path_factory.mktemp("scenes"), ImportConfig(), log=lambda m: None)
+
+
+def test_frames_cameras_and_test_views_round_trip(exported, imported):
+    _, gt = exported
+    sc = load_scene(imported)
+    np.testing.assert_array_equal(np.round(sc.images.numpy() * 255).astype(np.uint8), gt["rgb"])
+    np.testing.assert_allclose(sc.Ks.numpy(), gt["Ks"], rtol=1e-6, atol=1e-4)
+    np.testing.assert_allclose(sc.w2cs.numpy(), gt["w2cs"], atol=1e-5)
+    # The 12-frame protocol: the test view is frame 0's camera at every time.
+    np.testing.assert_allclose(sc.test_w2c.numpy(), gt["w2cs"][0], atol=1e-5)
+    np.testing.assert_array_equal(np.round(sc.test_images.numpy() * 255).astype(np.uint8), gt["test"])
+    assert sc.test_times.tolist() == list(range(T))
+    assert verify_scene(imported) == []
+
+
+def test_imported_priors_equal_the_exact_ones(exported, imported):
+    _, gt = exported
+    rec = json.loads((imported / "imported.json").read_text())
+    assert rec["priors"]["depth"]["kind"] == "disparity"
+    args = run_args(imported)
+    assert args[args.index("--flow") + 1] == str((imported / "imported" / "flow").resolve())
+    assert "priors.depth_import.fit_scale_shift=true" in args
+    H, W = CFG.height, CFG.width
+    disp = read_depth(imported / "imported" / "disp", T, H, W, DepthImportConfig(kind="disparity"))
+    np.testing.assert_allclose(disp, 3.0 / gt["depth"] + 0.1, rtol=1e-6)
+    flows = read_flows(imported / "imported" / "flow", T, H, W)
+    assert set(flows) == set(gt["flow"]) and len(flows) == 2 * (T - 1)
+    for k, f in gt["flow"].items():
+        np.testing.assert_allclose(flows[k], f, atol=1e-5)
+    np.testing.assert_array_equal(read_masks(imported / "imported" / "masks", T, H, W), gt["mask"])
+
+
+def test_import_at_half_size_scales_intrinsics_and_flow(exported, tmp_path):
+    root, gt = exported
+    out = import_scene(root, tmp_path, ImportConfig(size=(40, 24)), log=lambda m: None)
+    sc = load_scene(out)
+    K = gt["Ks"][0]
+    # Pixel centres at integers: f halves, c' = (c + 0.5) / 2 - 0.5.
+    np.testing.assert_allclose(sc.Ks[0, 0, 0].item(), K[0, 0] / 2, rtol=1e-6)
+    np.testing.assert_allclose(sc.Ks[0, :2, 2].numpy(), (K[:2, 2] + 0.5) / 2 - 0.5, atol=1e-5)
+    # Independent reference: the exact flow of the same scene generated at half size.
+    half = PlanarScene(PlanarSceneConfig(width=40, height=24, num_frames=T, supersample=1, baseline=0.4))
+    ref, valid = half.flow(1, 2)
+    kind = half.render(*half.frame_pose(1), 1)["kind"]
+    got = read_flows(out / "imported" / "flow", T, 24, 40)[(1, 2)]
+    # Area averaging mixes vectors across the square's edge; compare away from it.
+    edge = np.zeros_like(valid)
+    for dy in (-1, 0, 1):
+        for dx in (-1, 0, 1):
+            edge |= np.roll(np.roll(kind, dy, 0), dx, 1) != kind
+    keep = valid & ~edge
+    assert keep.sum() > 300
+    err = np.linalg.norm(got - ref, axis=-1)[keep]
+    # Unscaled vectors would be off by half the flow: a median error above 0.15 px here.
+    assert np.median(np.linalg.norm(ref[keep], axis=-1)) > 0.3
+    assert np.median(err) < 0.05
+
+
+def test_resize_flow_linear_field_closed_form():
+    # A linear field u = a + b x, v = c + d y at 64x32, reduced to 16x8: at new pixel x' the field must equal
+    # the old field at x = (x' + 0.5) * 4 - 0.5, divided by 4 (the displacement shrinks with the image).
+    y, x = np.mgrid[0:32, 0:64].astype(np.float32)
+    f = np.stack([2.0 + 0.5 * x, -1.0 + 0.25 * y], -1).astype(np.float32)
+    got = resize_flow(f, 8, 16)
+    yy, xx = np.mgrid[0:8, 0:16].astype(np.float64)
+    X, Y = (xx + 0.5) * 4 - 0.5, (yy + 0.5) * 4 - 0.5
+    np.testing.assert_allclose(got[..., 0], (2.0 + 0.5 * X) / 4, atol=1e-4)
+    np.testing.assert_allclose(got[..., 1], (-1.0 + 0.25 * Y) / 4, atol=1e-4)
+    up = resize_flow(got, 32, 64)  # enlarging multiplies the vectors back
+    np.testing.assert_allclose(up[8:-8, 8:-8], f[8:-8, 8:-8], atol=1e-3)
+
+
+def test_full_size_priors_follow_a_downscaled_run(imported, tmp_path):
+    """The issue's refusal ("flow shape (48, 80, 2); expected [24, 40, 2]") is gone: full-size flow, depth and
+    masks are resized to the working size under downscale 2 and the resize is recorded."""
+    sc = load_scene(imported, downscale=2)
+    d = imported / "imported"
+    cfg = PriorsConfig(
+        depth_source=str(d / "disp"), depth_import=DepthImportConfig(kind="disparity"),
+        flow_source=str(d / "flow"), masks_source=str(d / "masks"),
+    )  # fmt: skip
+    pri = compute_priors(sc, cfg, tmp_path / "cache")
+    assert pri.depth.shape == (T, 24, 40) and pri.flow[(0, 1)].flow.shape == (24, 40, 2)
+    assert "flow resized 80x48 -> 40x24" in pri.sources["flow"]
+    assert "depth resized 80x48 -> 40x24" in pri.sources["depth"]
+    rec = json.loads((tmp_path / "cache" / "priors.json").read_text())
+    assert rec["resized"]["flow"] == ["flow resized 80x48 -> 40x24 (vectors scaled)"]
+    # Disparity 3/z + 0.1 without a fit inverts to a depth below the true one, never above it.
+    assert np.all(pri.depth > 0)
+
+
+def test_tracks_without_image_size_refer_to_the_stored_size(imported, tmp_path):
+    sc = load_scene(imported, downscale=2)
+    xy = np.tile(np.array([[[10.0, 20.0], [79.0, 47.0]]], np.float32), (T, 1, 1))
+    np.save(tmp_path / "t.npy", xy)
+    cfg = PriorsConfig(
+        depth_source=str(imported / "imported" / "disp"), depth_import=DepthImportConfig(kind="disparity"),
+        flow_source=str(imported / "imported" / "flow"), tracks_source=str(tmp_path / "t.npy"),
+    )  # fmt: skip
+    pri = compute_priors(sc, cfg, None)
+    np.testing.assert_allclose(pri.tracks[0], (xy[0] + 0.5) / 2 - 0.5, atol=1e-6)
+    assert "tracks rescaled 80x48 -> 40x24" in pri.sources["tracks"]
+
+
+def test_bad_sources_fail_with_one_line(exported, tmp_path):
+    root, _ = exported
+    with pytest.raises(UserError, match="no such folder"):
+        import_scene(tmp_path / "nope", tmp_path / "o", ImportConfig())
+    bad = tmp_path / "bad"
+    bad.mkdir()
+    (bad / "images").mkdir()
+    (bad / "images" / "000.png").write_bytes((root / "images" / "000.png").read_bytes())
+    with pytest.raises(UserError, match="poses_bounds.npy: missing"):
+        import_scene(bad, tmp_path / "o", ImportConfig())
+    np.save(bad / "poses_bounds.npy", np.zeros((4, 17)))
+    with pytest.raises(UserError, match="4 pose rows for 1 frames"):
+        import_scene(bad, tmp_path / "o", ImportConfig())
+    with pytest.raises(UserError, match="--layout"):
+        import_scene(root, tmp_path / "o", ImportConfig(layout="llff"))
+    assert not (tmp_path / "o").exists() or not any((tmp_path / "o").iterdir())
+
+
+def test_cli_import_prints_the_run_command(exported, tmp_path):
+    root, _ = exported
+    r = subprocess.run(
+        [sys.executable, "-m", "nvidia_ls.cli", "import", str(root), "-o", str(tmp_path), "--size", "40x24"],
+        capture_output=True, text=True, timeout=300,
+    )  # fmt: skip
+    assert r.returncode == 0, r.stderr
+    assert "wtbench run --scene" in r.stderr and "--flow" in r.stderr
+    r = subprocess.run(
+        [sys.executable, "-m", "nvidia_ls.cli", "import", str(root), "-o", str(tmp_path)],
+        capture_output=True, text=True, timeout=300,
+    )  # fmt: skip
+    assert r.returncode == 2 and r.stderr.strip().startswith("error:") and "--force" in r.stderr
