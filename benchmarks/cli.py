@@ -12,7 +12,7 @@ import typer
 
 from worldtree.errors import run_cli
 
-COMMAND_MODULES = ("eval", "weights", "prep", "run", "sweep", "table", "plot", "video", "demo")
+COMMAND_MODULES = ("eval", "weights", "prep", "run", "sweep", "table", "plot", "video", "report", "demo")
 
 app = typer.Typer(
     name="wtbench",

@@ -22,6 +22,14 @@ def _label(img: np.ndarray, text: str) -> np.ndarray:
     return out
 
 
+def mask_overlay(image: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """``image`` (uint8 RGB ``[H, W, 3]``) with the pixels of ``mask`` (bool ``[H, W]``) tinted red, half and
+    half, so the scored region and the content under it both show."""
+    tint = image.copy()
+    tint[mask] = (0.5 * image[mask] + 0.5 * np.array([255, 64, 64])).astype(np.uint8)
+    return tint
+
+
 def compose_frames(run_dir: str | Path) -> tuple[list[np.ndarray], list[str]]:
     """Frames ``[H, 2W (or 3W), 3]`` uint8 RGB: render | ground truth | ground truth with the mask overlaid.
 
@@ -46,10 +54,7 @@ def compose_frames(run_dir: str | Path) -> tuple[list[np.ndarray], list[str]]:
             raise UserError(f"{render}: size {pred.shape[:2]} differs from the ground truth's {gt.shape[:2]}")
         panels = [_label(pred, "render"), _label(gt, "ground truth")]
         if fr.get("mask"):
-            m = read_mask(scene / fr["mask"])
-            tint = gt.copy()
-            tint[m] = (0.5 * gt[m] + 0.5 * np.array([255, 64, 64])).astype(np.uint8)
-            panels.append(_label(tint, "mask"))
+            panels.append(_label(mask_overlay(gt, read_mask(scene / fr["mask"])), "mask"))
         frames.append(np.concatenate(panels, axis=1))
         names.append(name)
     if not frames:

@@ -37,11 +37,13 @@ def write_run(
     method_stats: dict[str, Any] | None = None,
     protocol: str = "worldtree",
     done: bool = True,
+    scene_dir: Path | None = None,
 ) -> RunFolder:
     """One run folder ``runs_dir/scene/method/tag``; ``means`` fills the mean row (missing columns empty).
 
     timing.json: stages load/init/save_model/render of ``other_stages_s / 4`` each, train ``train_s``
-    (also ``train.wall_s_all_sessions``), eval ``eval_s``.
+    (also ``train.wall_s_all_sessions``), eval ``eval_s``. ``scene_dir``: the scene folder config.json names
+    (default ``/data/<scene>``, which need not exist).
     """
     folder = RunFolder(runs_dir / scene / method / tag)
     folder.root.mkdir(parents=True, exist_ok=True)
@@ -51,7 +53,7 @@ def write_run(
         "overrides": dict(overrides or {}),
         "config": {"seed": seed, "steps": 30, **(config or {})},
         "seed": seed,
-        "scene": str(Path("/data") / scene),
+        "scene": str(scene_dir if scene_dir is not None else Path("/data") / scene),
         "device": "cpu",
         "version": "0.1.0",
     }

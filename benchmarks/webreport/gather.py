@@ -1,0 +1,234 @@
+"""What the report shows of each run folder: its state, its evaluation record, its per-frame scores and where
+its scene's ground truth is.
+
+Every folder :func:`benchmarks.results.find_run_folders` finds is listed, finished or not, with one state:
+
+- ``done``: ``DONE`` present and read into the tables;
+- ``damaged``: ``DONE`` present but the tables could not read it (the collection's note says why);
+- ``running``: no ``DONE`` and a live process holds the run folder's lock (:mod:`worldtree.folder_lock`);
+- ``unfinished``: no ``DONE`` and no live holder: interrupted, failed, or waiting for its turn in a sweep.
+
+Failures that a sweep recorded in its report (``RUNS_DIR/sweep-<grid>.json``) are listed beside them.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import pandas as pd
+
+from benchmarks.results import HARNESS_METRICS, describe_configuration, find_run_folders
+
+STATES = ("done", "running", "unfinished", "damaged")
+
+
+def read_json(path: Path) -> dict[str, Any] | None:
+    """The JSON object in ``path``, or None when it is missing, unreadable or not an object."""
+    try:
+        obj = json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError, UnicodeDecodeError):
+        return None
+    return obj if isinstance(obj, dict) else None
+
+
+def read_frame_scores(csv: Path) -> pd.DataFrame | None:
+    """Per-frame rows of a run's ``metrics.csv`` (the ``mean`` row dropped): index the frame names, columns
+    the :data:`benchmarks.results.HARNESS_METRICS` present, NaN where empty. None when unreadable."""
+    try:
+        table = pd.read_csv(csv, dtype={"frame": str}, keep_default_na=False, na_values=[""])
+    except (OSError, ValueError, pd.errors.ParserError):
+        return None
+    if "frame" not in table.columns:
+        return None
+    table = table[table["frame"] != "mean"].set_index("frame")
+    cols = [m for m in HARNESS_METRICS if m in table.columns]
+    return table[cols].apply(pd.to_numeric, errors="coerce")
+
+
+@dataclass
+class RunEntry:
+    """One run folder as the report lists it."""
+
+    folder: Path
+    rel: str
+    """``scene/method/tag`` under its RUNS_DIR."""
+    scene: str
+    method: str
+    tag: str
+    state: str
+    """One of :data:`STATES`."""
+    detail: str = ""
+    configuration: str = ""
+    seed: int | None = None
+    record: dict[str, Any] = field(default_factory=dict)
+    """The run's ``metrics.json`` (the evaluation record), empty when absent."""
+    scene_dir: Path | None = None
+    """The scene folder named by ``config.json``, when it exists here."""
+    frames: pd.DataFrame | None = None
+    """Per-frame scores (:func:`read_frame_scores`)."""
+    video: Path | None = None
+    """``test_view.mp4`` (written by ``wtbench video``) when present."""
+
+    @property
+    def protocol(self) -> str:
+        """``name vversion`` of the evaluation protocol, or ``unknown``."""
+        p = self.record.get("protocol")
+        if not isinstance(p, dict) or not p.get("name"):
+            return "unknown"
+        return f"{p['name']} v{p['version']}" if p.get("version") else str(p["name"])
+
+    @property
+    def checksums(self) -> dict[str, str]:
+        """sha256 of the scored renders, ground truth and masks, as the evaluation record holds them."""
+        inputs = self.record.get("inputs")
+        if not isinstance(inputs, dict):
+            return {}
+        names = {"pred_sha256": "renders", "gt_sha256": "ground truth", "mask_sha256": "masks"}
+        return {label: str(inputs[k]) for k, label in names.items() if inputs.get(k)}
+
+    def provenance(self) -> str:
+        """One line per fact of the run's record (protocol, checksums, tool version, time), for hover text."""
+        lines = [self.rel, f"protocol: {self.protocol}"]
+        lines += [f"{k} sha256: {v}" for k, v in self.checksums.items()]
+        for key, label in (("tool_version", "tool version"), ("timestamp", "scored")):
+            if self.record.get(key):
+                lines.append(f"{label}: {self.record[key]}")
+        return "\n".join(lines)
+
+
+def _scene_dir(config: dict[str, Any] | None) -> Path | None:
+    scene = (config or {}).get("scene")
+    if not scene:
+        return None
+    path = Path(str(scene))
+    return path if (path / "cameras.json").is_file() else None
+
+
+#: Checkpoint file names (worldtree.checkpoint's ``ckpt_<step>.pt``), matched here so that listing a run's
+#: state does not import torch.
+_CKPT = re.compile(r"^ckpt_(\d+)\.pt$")
+
+
+def _unfinished_detail(folder: Path) -> str:
+    ckpt_dir = folder / "checkpoints"
+    steps = (
+        [int(m.group(1)) for p in ckpt_dir.iterdir() if (m := _CKPT.match(p.name))]
+        if ckpt_dir.is_dir()
+        else []
+    )
+    if steps:
+        return f"no DONE; newest checkpoint at step {max(steps)} (re-run to resume)"
+    return "no DONE and no checkpoint: failed early, interrupted, or not started yet"
+
+
+def gather_runs(runs_dirs: Sequence[str | Path], finished: set[str]) -> list[RunEntry]:
+    """Every run folder under ``runs_dirs`` with its state (module doc). ``finished``: the ``run`` values of
+    the collection's long table (the runs the tables read)."""
+    from worldtree.folder_lock import read_holder
+
+    entries: list[RunEntry] = []
+    seen: set[Path] = set()
+    for d in map(Path, runs_dirs):
+        for run in find_run_folders(d):
+            if run.resolve() in seen:
+                continue
+            seen.add(run.resolve())
+            config = read_json(run / "config.json")
+            if str(run) in finished:
+                state, detail = "done", ""
+            elif (run / "DONE").is_file():
+                state, detail = "damaged", "DONE present but config.json or metrics.csv unreadable"
+            elif _lock_held(run):
+                holder = read_holder(run)
+                state = "running"
+                detail = f"held by {holder.describe()}" if holder else "its lock is held"
+            else:
+                state, detail = "unfinished", _unfinished_detail(run)
+            seed = (config or {}).get("seed")
+            video = run / "test_view.mp4"
+            entries.append(
+                RunEntry(
+                    folder=run,
+                    rel=str(run.relative_to(d)),
+                    scene=run.parent.parent.name,
+                    method=str((config or {}).get("method") or run.parent.name),
+                    tag=run.name,
+                    state=state,
+                    detail=detail,
+                    configuration=describe_configuration(config) if config else "",
+                    seed=seed if isinstance(seed, int) and not isinstance(seed, bool) else None,
+                    record=read_json(run / "metrics.json") or {},
+                    scene_dir=_scene_dir(config),
+                    frames=read_frame_scores(run / "metrics.csv") if state == "done" else None,
+                    video=video if video.is_file() else None,
+                )
+            )
+    return entries
+
+
+def _lock_held(folder: Path) -> bool:
+    from worldtree.folder_lock import is_locked
+
+    try:
+        return is_locked(folder)
+    except OSError:  # a read-only RUNS_DIR cannot be probed; the run is then reported as unfinished
+        return False
+
+
+@dataclass(frozen=True)
+class SweepFailure:
+    """A run a sweep reported as failed."""
+
+    report: str
+    scene: str
+    label: str
+    error: str
+
+
+def sweep_failures(runs_dirs: Sequence[str | Path]) -> list[SweepFailure]:
+    """Failed runs named by the sweep reports ``RUNS_DIR/sweep-*.json`` (unreadable reports are ignored)."""
+    out = []
+    for d in map(Path, runs_dirs):
+        for path in sorted(d.glob("sweep-*.json")):
+            report = read_json(path) or {}
+            for r in report.get("runs") or []:
+                if isinstance(r, dict) and r.get("status") == "failed":
+                    out.append(
+                        SweepFailure(
+                            path.name,
+                            str(r.get("scene", "")),
+                            str(r.get("label", "")),
+                            str(r.get("error") or "no message"),
+                        )  # fmt: skip
+                    )
+    return out
+
+
+def frame_times(scene_dir: Path | None, names: Sequence[str]) -> list[float]:
+    """Time of each test frame ``names`` from the scene's ``cameras.json`` (matched by file stem), else its
+    position in ``names``."""
+    times: dict[str, float] = {}
+    meta = read_json(scene_dir / "cameras.json") if scene_dir is not None else None
+    for fr in (meta or {}).get("test_frames") or []:
+        try:
+            times[Path(fr["file"]).stem] = float(fr["time"])
+        except (KeyError, TypeError, ValueError):
+            continue
+    return [times.get(n, float(i)) for i, n in enumerate(names)]
+
+
+def test_frame_files(scene_dir: Path) -> dict[str, tuple[Path, Path | None]]:
+    """Test frame name -> (ground-truth image, mask or None) of a scene folder (``cameras.json``)."""
+    meta = read_json(scene_dir / "cameras.json") or {}
+    out = {}
+    for fr in meta.get("test_frames") or []:
+        if isinstance(fr, dict) and fr.get("file"):
+            mask = scene_dir / fr["mask"] if fr.get("mask") else None
+            out[Path(fr["file"]).stem] = (scene_dir / fr["file"], mask)
+    return out
+

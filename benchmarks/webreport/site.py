@@ -1,0 +1,506 @@
+"""Build the static report site: index page (wide table, speed-vs-error plots, scenes, run states) and one page
+per scene (its table, per-frame curves, the frame viewer). Layout and rules: docs/report.md.
+
+The site is written into a temporary sibling folder and renamed over ``out`` when complete
+(:func:`worldtree.atomic.atomic_dir`); ``out`` may only be replaced when it is an earlier report (it holds
+:data:`MARKER`).
+"""
+
+from __future__ import annotations
+
+import math
+import re
+import shutil
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+import worldtree
+from benchmarks.results import GROUP_KEYS, HARNESS_METRICS, collect_runs, higher_is_better, select
+from benchmarks.tables import LABELS, WideTable, build_wide, column_marks, format_value, to_csv
+from benchmarks.webreport.gather import (
+    RunEntry,
+    frame_times,
+    gather_runs,
+    sweep_failures,
+    test_frame_files,
+)
+from worldtree.errors import UserError
+
+#: A file every report holds; an existing ``-o`` folder without it is never replaced.
+MARKER = ".wtbench-report"
+#: Metrics drawn over time on the scene pages.
+CURVE_METRICS = ("psnr", "mpsnr")
+#: Cells of a run shown in a hover text before "and N more".
+_HOVER_RUNS = 4
+
+
+@dataclass(frozen=True)
+class ReportOptions:
+    """How the report is made (the options of `wtbench report`)."""
+
+    group_by: tuple[str, ...] = ("method", "configuration")
+    """Row keys of the tables, from :data:`benchmarks.results.GROUP_KEYS`."""
+    protocol: str | None = None
+    """Only this evaluation protocol; None: every protocol found, one table each."""
+    image_width: int = 320
+    """Width (pixels) of the viewer's images; larger images are scaled down."""
+    viewer_frames: int = 24
+    """Test frames in the viewer per scene, evenly spaced; 0 for every frame."""
+    title: str = "worldtree-bench results"
+
+
+def slug(text: str) -> str:
+    """``text`` as a safe file name part (letters, digits, ``._-``; anything else ``_``)."""
+    return re.sub(r"[^A-Za-z0-9._-]", "_", text) or "_"
+
+
+def _key_text(v: Any) -> str:
+    return "" if v is None or pd.isna(v) else str(v)
+
+
+def _data_value(v: float) -> str:
+    """A number for the sorter's ``data-v`` (JavaScript's parseFloat spelling); empty for NaN."""
+    if v is None or math.isnan(v):
+        return ""
+    if math.isinf(v):
+        return "Infinity" if v > 0 else "-Infinity"
+    return repr(float(v))
+
+
+# ---------------------------------------------------------------------------------------------- the table
+
+
+def _table_model(
+    table: WideTable,
+    long: pd.DataFrame,
+    entries: dict[str, RunEntry],
+    scenes: Sequence[str] | None = None,
+    links: dict[str, str] | None = None,
+) -> dict[str, Any]:
+    """What the table template needs: header groups, sortable sub-headers, rows of cells (text, value, rank
+    mark, hover text) and each row's runs. ``scenes``: only these scenes' columns (no mean), for a scene page.
+    ``links``: run folder -> scene page, for the runs listed in each row's details."""
+    keys = list(table.group_by)
+    marks = column_marks(table)
+    long = long.assign(**{g: long[g].map(_key_text) for g in keys})
+    runs_of: dict[tuple, list[str]] = {}
+    for k, grp in long.drop_duplicates("run").groupby([*keys, "scene"], sort=False):
+        runs_of[tuple(k)] = sorted(grp["run"])
+    columns: list[tuple[str, str, str]] = []  # (column, metric, scene or "" for the mean)
+    groups = []
+    for m in table.metrics:
+        cols = [
+            (col, m, "" if sub == "mean" and col == table.mean_column(m) else sub)
+            for col, sub in table.columns_of(m)
+        ]
+        if scenes is not None:
+            cols = [c for c in cols if c[2] in scenes]
+        if cols:
+            arrow = "↑" if higher_is_better(m) else "↓"
+            groups.append({"label": f"{LABELS.get(m, m)}{arrow}", "span": len(cols), "metric": m})
+            columns += cols
+    subs = [{"label": g, "col": i, "type": "text", "best": "asc", "metric": "", "scene": ""} for i, g in
+            enumerate(keys)]  # fmt: skip
+    for j, (_, m, scene) in enumerate(columns):
+        subs.append(
+            {
+                "label": scene or "mean",
+                "col": len(keys) + j,
+                "type": "num",
+                "best": "desc" if higher_is_better(m) else "asc",
+                "metric": m,
+                "scene": scene,
+                "title": (
+                    f"{LABELS.get(m, m)} on {scene}"
+                    if scene
+                    else f"{LABELS.get(m, m)}: mean over {', '.join(table.mean_scenes) or 'no common scene'}"
+                ),
+            }
+        )
+    rows = []
+    for i, rec in table.frame.iterrows():
+        key = tuple(_key_text(rec[g]) for g in keys)
+        cells = []
+        for col, m, scene in columns:
+            v = float(rec[col])
+            in_cell = [
+                r for s in ([scene] if scene else table.mean_scenes) for r in runs_of.get((*key, s), [])
+            ]
+            hover = [f"{LABELS.get(m, m)} {scene or 'mean over ' + ', '.join(table.mean_scenes)}: "
+                     f"{format_value(v, m)} ({len(in_cell)} run(s))"]  # fmt: skip
+            for r in in_cell[:_HOVER_RUNS]:
+                e = entries.get(r)
+                hover.append(e.provenance() if e else r)
+            if len(in_cell) > _HOVER_RUNS:
+                hover.append(f"... and {len(in_cell) - _HOVER_RUNS} more")
+            cells.append(
+                {
+                    "text": format_value(v, m),
+                    "v": _data_value(v),
+                    "rank": marks[col][i],
+                    "metric": m,
+                    "scene": scene,
+                    "title": "\n".join(hover),
+                }
+            )
+        row_runs = [
+            r for s in (scenes if scenes is not None else table.scenes) for r in runs_of.get((*key, s), [])
+        ]
+        runs = []
+        for r in row_runs:
+            e = entries.get(r)
+            if e is not None:
+                runs.append({"entry": e, "link": (links or {}).get(r)})
+        if scenes is not None and not row_runs:
+            continue  # a configuration without a run on this scene has no row on its page
+        rows.append({"keys": list(key), "cells": cells, "runs": runs})
+    return {
+        "groups": groups,
+        "subs": subs,
+        "n_keys": len(keys),
+        "rows": rows,
+        "mean_scenes": list(table.mean_scenes),
+    }
+
+
+# ---------------------------------------------------------------------------------------------- plots
+
+
+def _speed_plots(long: pd.DataFrame, keys: Sequence[str], folder: Path, stem: str) -> tuple[list, list]:
+    """One speed-vs-error PNG per harness metric with values (x: wall time), Pareto front marked
+    (:mod:`benchmarks.plots`). Returns (plots as dicts of file and metric, notes)."""
+    from benchmarks.plots import draw, make_panel
+
+    have = set(long.loc[np.isfinite(long["value"].to_numpy(np.float64)), "metric"])
+    plots, notes = [], []
+    if "wall_time_s" not in have:
+        return [], ["no run has a wall time (timing.json), so there is no speed-vs-error plot"]
+    for m in HARNESS_METRICS:
+        if m not in have:
+            continue
+        try:
+            panel = make_panel(long, "wall_time_s", m, keys)
+        except UserError as e:
+            notes.append(f"no {m} plot: {e}")
+            continue
+        name = f"plots/{stem}_{m}.png"
+        draw([panel], folder / name, dpi=90)
+        front = panel.points[panel.points["pareto"]]["label"].tolist()
+        plots.append({"file": name, "metric": LABELS.get(m, m), "front": front})
+    return plots, notes
+
+
+def _curves(runs: Sequence[RunEntry], labels: dict[str, str], path: Path) -> bool:
+    """Per-frame PSNR and masked PSNR over time, one line per run, into ``path`` (PNG). False when no run
+    has per-frame scores."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    metrics = [
+        m
+        for m in CURVE_METRICS
+        if any(r.frames is not None and m in r.frames and r.frames[m].notna().any() for r in runs)
+    ]
+    if not metrics:
+        return False
+    fig = Figure(figsize=(6.0 * len(metrics), 3.6), layout="constrained")
+    FigureCanvasAgg(fig)
+    for k, m in enumerate(metrics):
+        ax = fig.add_subplot(1, len(metrics), k + 1)
+        for i, r in enumerate(runs):
+            if r.frames is None or m not in r.frames:
+                continue
+            t = frame_times(r.scene_dir, list(r.frames.index))
+            y = r.frames[m].to_numpy(np.float64)
+            # Infinite PSNR (a frame equal to the ground truth) cannot be drawn; it is left as a gap.
+            y = np.where(np.isfinite(y), y, np.nan)
+            ax.plot(t, y, marker=".", ms=4, lw=1.2, color=f"C{i % 10}", label=labels[str(r.folder)])
+        ax.set_xlabel("test frame time")
+        ax.set_ylabel(f"{LABELS.get(m, m)} (dB, higher is better)")
+        ax.grid(True, alpha=0.3)
+        ax.legend(fontsize=6)
+    fig.savefig(path, format="png", dpi=90)
+    return True
+
+
+# ---------------------------------------------------------------------------------------------- viewer
+
+
+def _pick(n: int, k: int) -> list[int]:
+    """``k`` indices of ``range(n)`` evenly spaced, first and last included (all when ``k`` is 0 or >= n)."""
+    if k <= 0 or k >= n:
+        return list(range(n))
+    return sorted({round(x) for x in np.linspace(0, n - 1, k)})
+
+
+def _viewer(
+    scene: str, runs: Sequence[RunEntry], labels: dict[str, str], root: Path, opts: ReportOptions
+) -> tuple[list[dict[str, Any]], list[str]]:
+    """Write the viewer's images of ``scene`` under ``root/img/<scene>/`` and return (frames, notes); a frame
+    holds its name, ground truth, mask and one row per run (render, error map, scores)."""
+    from benchmarks.video import mask_overlay
+    from benchmarks.webreport.images import error_map, fit_width, write_jpeg
+    from worldtree.imageio import read_image, read_mask
+
+    notes: list[str] = []
+    scene_dir = next((r.scene_dir for r in runs if r.scene_dir is not None), None)
+    gt_files = test_frame_files(scene_dir) if scene_dir is not None else {}
+    if scene_dir is None:
+        notes.append("the scene folder named by the runs' config.json is not here: no ground truth shown")
+    names: list[str] = list(gt_files)
+    if not names:
+        for r in runs:
+            if r.frames is not None:
+                names += [n for n in r.frames.index if n not in names]
+    names = [n for n in names if gt_files or any((r.folder / "renders" / f"{n}.png").is_file() for r in runs)]
+    if not names:
+        return [], notes + ["no test frame with a render or a ground-truth image: no viewer"]
+    chosen = [names[i] for i in _pick(len(names), opts.viewer_frames)]
+    if len(chosen) < len(names):
+        notes.append(f"the viewer shows {len(chosen)} of {len(names)} test frames (--viewer-frames)")
+    folder = f"img/{slug(scene)}"
+    frames = []
+    for name in chosen:
+        gt = mask = None
+        frame: dict[str, Any] = {"name": name, "gt": None, "mask": None, "rows": []}
+        if name in gt_files:
+            gt_path, mask_path = gt_files[name]
+            try:
+                gt = read_image(gt_path)
+                mask = read_mask(mask_path) if mask_path is not None else None
+            except UserError as e:
+                notes.append(str(e))
+                gt = mask = None
+            if gt is not None:
+                frame["gt"] = f"{folder}/{slug(name)}_gt.jpg"
+                write_jpeg(root / frame["gt"], fit_width(gt, opts.image_width))
+            if gt is not None and mask is not None and mask.shape == gt.shape[:2]:
+                frame["mask"] = f"{folder}/{slug(name)}_mask.jpg"
+                write_jpeg(root / frame["mask"], fit_width(mask_overlay(gt, mask), opts.image_width))
+        for i, r in enumerate(runs):
+            row: dict[str, Any] = {
+                "label": labels[str(r.folder)],
+                "render": None,
+                "error": None,
+                "scores": [],
+            }
+            render_path = r.folder / "renders" / f"{name}.png"
+            if render_path.is_file():
+                try:
+                    pred = read_image(render_path)
+                except UserError as e:
+                    notes.append(str(e))
+                    pred = None
+                if pred is not None:
+                    row["render"] = f"{folder}/{slug(name)}_r{i}.jpg"
+                    write_jpeg(root / row["render"], fit_width(pred, opts.image_width))
+                    if gt is not None and gt.shape == pred.shape:
+                        row["error"] = f"{folder}/{slug(name)}_e{i}.jpg"
+                        write_jpeg(root / row["error"], fit_width(error_map(pred, gt), opts.image_width))
+            if r.frames is not None and name in r.frames.index:
+                for m in CURVE_METRICS:
+                    if m in r.frames:
+                        row["scores"].append(f"{LABELS[m]} {format_value(float(r.frames.loc[name, m]), m)}")
+            frame["rows"].append(row)
+        frames.append(frame)
+    return frames, notes
+
+
+# ---------------------------------------------------------------------------------------------- the site
+
+
+def _environment():
+    import jinja2
+
+    return jinja2.Environment(
+        loader=jinja2.PackageLoader("benchmarks.webreport", "templates"),
+        autoescape=jinja2.select_autoescape(["html"]),
+        undefined=jinja2.StrictUndefined,
+        trim_blocks=True,
+        lstrip_blocks=True,
+    )
+
+
+def _check_out(out: Path) -> None:
+    if out.exists() and not out.is_dir():
+        raise UserError(f"-o {out}: is a file; give a folder for the report")
+    if out.is_dir() and any(out.iterdir()) and not (out / MARKER).is_file():
+        raise UserError(
+            f"-o {out}: the folder exists and is not a wtbench report; give a new or empty folder"
+        )
+
+
+def _run_label(e: RunEntry, keys: Sequence[str]) -> str:
+    fields = {"method": e.method, "configuration": e.configuration, "tag": e.tag,
+              "seed": "" if e.seed is None else str(e.seed), "preset": ""}  # fmt: skip
+    return " ".join(fields[k] for k in keys if fields.get(k)) + f" [{e.tag}]"
+
+
+def build_report(
+    runs_dirs: Sequence[str | Path],
+    out: str | Path,
+    opts: ReportOptions | None = None,
+    log: Callable[[str], None] = print,
+) -> list[str]:
+    """Write the report of the runs under ``runs_dirs`` to the folder ``out`` (replacing an earlier report).
+
+    Returns the notes (skipped runs, missing scenes, left-out plots) that the pages also show.
+    Raises :class:`UserError` for a missing RUNS_DIR, a folder without any run, or an ``out`` that is not an
+    earlier report.
+    """
+    from worldtree.atomic import atomic_dir, atomic_write_text
+
+    opts = opts or ReportOptions()
+    if not opts.group_by or any(g not in GROUP_KEYS for g in opts.group_by):
+        raise UserError(f"--group-by {','.join(opts.group_by)}: give names from {', '.join(GROUP_KEYS)}")
+    if opts.image_width < 16:
+        raise UserError(f"--image-width {opts.image_width}: give at least 16 pixels")
+    if opts.viewer_frames < 0:
+        raise UserError(f"--viewer-frames {opts.viewer_frames}: give 0 (every frame) or a positive count")
+    out = Path(out)
+    for d in map(Path, runs_dirs):
+        if not d.is_dir():
+            raise UserError(
+                f"RUNS_DIR {d}: no such folder; give the -o folder of `wtbench run`/`wtbench sweep`"
+            )
+    _check_out(out)
+    try:
+        found = collect_runs(runs_dirs)
+        long, notes = found.long, list(found.notes)
+    except UserError:
+        long, notes = None, ["no finished run yet: the tables and plots are empty"]
+    entries = gather_runs(runs_dirs, set(long["run"]) if long is not None else set())
+    failures = sweep_failures(runs_dirs)
+    if not entries and not failures:
+        where = ", ".join(str(d) for d in runs_dirs)
+        raise UserError(
+            f"RUNS_DIR {where}: no run folder (RUNS_DIR/<scene>/<method>/<tag>/config.json) found"
+        )
+    by_run = {str(e.folder): e for e in entries}
+    scenes = sorted({e.scene for e in entries})
+    scene_page = {s: f"scenes/{slug(s)}.html" for s in scenes}
+    links = {str(e.folder): scene_page[e.scene] for e in entries}
+    labels = {str(e.folder): _run_label(e, opts.group_by) for e in entries}
+    env = _environment()
+    now = time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime())
+    common = {"title": opts.title, "generated": now, "version": worldtree.__version__, "labels": LABELS}
+
+    with atomic_dir(out, force=True) as tmp:
+        (tmp / "plots").mkdir()
+        (tmp / "scenes").mkdir()
+        (tmp / "data").mkdir()
+        for name in ("report.css", "report.js"):
+            shutil.copyfile(Path(__file__).parent / "templates" / name, tmp / name)
+        sections, tables = [], {}
+        protocols = [] if long is None else sorted(long["protocol"].unique())
+        if opts.protocol is not None:
+            if opts.protocol not in protocols:
+                raise UserError(
+                    f"--protocol {opts.protocol}: no finished run uses it; the runs use {', '.join(protocols)}"
+                )
+            protocols = [opts.protocol]
+        for proto in protocols:
+            plong = select(long, proto)
+            table = build_wide(plong, opts.group_by)
+            tables[proto] = (table, plong)
+            notes += [f"{proto}: {n}" for n in table.notes]
+            stem = slug(proto)
+            atomic_write_text(tmp / "data" / f"{stem}_wide.csv", to_csv(table))
+            atomic_write_text(
+                tmp / "data" / f"{stem}_long.csv", plong.to_csv(index=False, na_rep="", float_format="%.10g")
+            )
+            log(f"protocol {proto}: {len(table.frame)} configuration(s), drawing speed-vs-error plots")
+            from benchmarks.plots import with_derived
+
+            plots, why = _speed_plots(with_derived(plong), opts.group_by, tmp, stem)
+            notes += [f"{proto}: {n}" for n in why]
+            sections.append(
+                {
+                    "protocol": proto,
+                    "id": f"results-{stem}",
+                    "table": _table_model(table, plong, by_run, links=links),
+                    "plots": plots,
+                    "csv": f"data/{stem}_wide.csv",
+                    "long_csv": f"data/{stem}_long.csv",
+                    "metrics": list(table.metrics),
+                }
+            )
+
+        scene_cards = []
+        for k, s in enumerate(scenes):
+            runs = [e for e in entries if e.scene == s]
+            done = [e for e in runs if e.state == "done"]
+            log(f"scene {k + 1}/{len(scenes)} {s}: {len(done)} finished run(s) of {len(runs)}")
+            frames, scene_notes = _viewer(s, done, labels, tmp, opts) if done else ([], [])
+            curves = f"plots/curves_{slug(s)}.png"
+            has_curves = bool(done) and _curves(done, labels, tmp / curves)
+            scene_tables = [
+                {
+                    "protocol": proto,
+                    "id": f"scene-{slug(proto)}",
+                    "table": _table_model(table, plong, by_run, scenes=[s]),
+                    "metrics": list(table.metrics),
+                }
+                for proto, (table, plong) in tables.items()
+                if s in table.scenes
+            ]
+            videos = []
+            for i, e in enumerate(done):
+                if e.video is not None:
+                    name = f"videos/{slug(s)}_{i}.mp4"
+                    (tmp / "videos").mkdir(exist_ok=True)
+                    shutil.copyfile(e.video, tmp / name)
+                    videos.append({"label": labels[str(e.folder)], "file": name})
+            page = env.get_template("scene.html").render(
+                **common,
+                root="../",
+                scene=s,
+                tables=scene_tables,
+                curves=curves if has_curves else None,
+                frames=frames,
+                videos=videos,
+                runs=runs,
+                notes=scene_notes,
+                error_vmax=_error_vmax(),
+            )
+            atomic_write_text(tmp / scene_page[s], page)
+            thumb = next((f["gt"] or next((r["render"] for r in f["rows"] if r["render"]), None)
+                          for f in frames), None)  # fmt: skip
+            counts = {
+                st: sum(e.state == st for e in runs) for st in ("done", "running", "unfinished", "damaged")
+            }
+            scene_cards.append({"name": s, "page": scene_page[s], "thumb": thumb, "counts": counts})
+        from benchmarks.webreport.images import write_colorbar
+
+        write_colorbar(tmp / "plots" / "error_colorbar.png")
+
+        state_counts = {
+            st: sum(e.state == st for e in entries) for st in ("done", "running", "unfinished", "damaged")
+        }
+        index = env.get_template("index.html").render(
+            **common,
+            root="",
+            runs_dirs=[str(d) for d in runs_dirs],
+            sections=sections,
+            scenes=scene_cards,
+            runs=entries,
+            links=links,
+            failures=failures,
+            notes=notes,
+            state_counts=state_counts,
+        )
+        atomic_write_text(tmp / "index.html", index)
+        (tmp / MARKER).write_text(f"wtbench report {worldtree.__version__} {now}\n")
+    return notes
+
+
+def _error_vmax() -> float:
+    from benchmarks.webreport.images import ERROR_VMAX
+
+    return ERROR_VMAX

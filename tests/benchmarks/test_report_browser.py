@@ -1,0 +1,155 @@
+"""`wtbench report` in a real headless browser: Debian's chromium and chromium-driver driven by Selenium.
+
+The report of a generated sweep (report_fixture.py) is opened from the file system; checked: no console
+error, one table row per configuration, every image loads, clicking a column header sorts the rows, the frame
+viewer steps through frames. Skips with one reason where the browser or Selenium is missing (`.ci/run`
+installs both with apt-get/pip when it can).
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import shutil
+from pathlib import Path
+
+import pytest
+from typer.testing import CliRunner
+
+from benchmarks.cli import app
+
+CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
+CHROMEDRIVER = shutil.which("chromedriver")
+if not (CHROMIUM and CHROMEDRIVER):
+    pytest.skip(
+        "no chromium/chromedriver on PATH (install: apt-get install chromium chromium-driver)",
+        allow_module_level=True,
+    )
+webdriver = pytest.importorskip(
+    "selenium.webdriver", reason="selenium is not installed (pip install selenium)"
+)
+
+
+def _fixture():
+    path = Path(__file__).with_name("report_fixture.py")
+    spec = importlib.util.spec_from_file_location("wt_tests_report_fixture_browser", path)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+fx = _fixture()
+
+
+@pytest.fixture(scope="module")
+def report(tmp_path_factory):
+    runs, _ = fx.write_sweep(tmp_path_factory.mktemp("sweep"))
+    out = tmp_path_factory.mktemp("site") / "report"
+    res = CliRunner().invoke(app, ["report", str(runs), "-o", str(out)])
+    assert res.exit_code == 0, res.output
+    return runs, out
+
+
+@pytest.fixture(scope="module")
+def browser(tmp_path_factory):
+    from selenium.webdriver.chrome.options import Options
+    from selenium.webdriver.chrome.service import Service
+
+    opts = Options()
+    opts.binary_location = CHROMIUM
+    profile = tmp_path_factory.mktemp("chromium-profile")
+    for arg in ("--headless=new", "--no-sandbox", "--disable-gpu", "--disable-dev-shm-usage",
+                "--window-size=1280,900", f"--user-data-dir={profile}"):  # fmt: skip
+        opts.add_argument(arg)
+    opts.set_capability("goog:loggingPrefs", {"browser": "ALL"})
+    # An explicit driver path: Selenium Manager (which would download a driver) is never run.
+    driver = webdriver.Chrome(service=Service(executable_path=CHROMEDRIVER), options=opts)
+    driver.set_page_load_timeout(60)
+    yield driver
+    driver.quit()
+
+
+def _open(driver, page: Path) -> None:
+    driver.get(page.resolve().as_uri())
+    driver.get_log("browser")  # what earlier pages logged is not this page's
+    driver.refresh()
+
+
+def _errors(driver) -> list[str]:
+    return [e["message"] for e in driver.get_log("browser") if e["level"] == "SEVERE"]
+
+
+def _all_images_load(driver) -> int:
+    """Scroll every visible image into view (lazy loading), wait for it, return how many loaded."""
+    from selenium.webdriver.support.ui import WebDriverWait
+
+    images = [i for i in driver.find_elements("css selector", "img") if i.is_displayed()]
+    for img in images:
+        driver.execute_script("arguments[0].scrollIntoView()", img)
+        WebDriverWait(driver, 20).until(lambda d, i=img: d.execute_script("return arguments[0].complete", i))
+        width = driver.execute_script("return arguments[0].naturalWidth", img)
+        assert width > 0, f"image did not load: {img.get_attribute('src')}"
+    return len(images)
+
+
+def _column(driver, table_id: str, col: int) -> list[str]:
+    return driver.execute_script(
+        "return Array.from(document.getElementById(arguments[0]).tBodies[0].rows)"
+        ".map(r => r.cells[arguments[1]].getAttribute('data-v') ?? r.cells[arguments[1]].textContent.trim())",
+        table_id,
+        col,
+    )
+
+
+def test_main_page(report, browser):
+    runs, out = report
+    _open(browser, out / "index.html")
+    assert _errors(browser) == []
+    rows = browser.find_elements("css selector", "#results-worldtree tbody tr")
+    assert len(rows) == len(fx.CONFIGS)
+    # Plots (one per metric with values) and the scene thumbnails all load.
+    assert _all_images_load(browser) >= len(fx.SCENES) + 1
+
+    # Sorting: the PSNR mean column, best first, is the fixture's configurations by rising noise
+    # (an independent order: the renders are the ground truth plus that much noise).
+    header = browser.find_element(
+        "xpath", "//table[@id='results-worldtree']//th[contains(@title, 'PSNR: mean')]"
+    )
+    col = int(header.get_attribute("data-col"))
+    by_noise = [c[0] for c in sorted(fx.CONFIGS, key=lambda c: c[3])]
+    header.click()
+    assert [float(v) for v in _column(browser, "results-worldtree", col)] == sorted(
+        (float(v) for v in _column(browser, "results-worldtree", col)), reverse=True
+    )
+    assert _column(browser, "results-worldtree", 0) == by_noise
+    header.click()  # again: reversed
+    assert _column(browser, "results-worldtree", 0) == by_noise[::-1]
+
+    # The unfinished run and the sweep's failure are listed with their state.
+    states = dict(zip(_column(browser, "runs-table", 3), _column(browser, "runs-table", 4), strict=True))
+    assert states["SceneA/base/quick"] == "unfinished"
+    assert "out of memory" in browser.find_element("css selector", "table.failures").text
+
+    # Hovering a cell tells its runs' protocol and checksums (the title attribute).
+    record = json.loads((runs / "SceneA" / "static" / "quick" / "metrics.json").read_text())
+    title = browser.find_element("css selector", "#results-worldtree td.m-psnr").get_attribute("title")
+    assert "protocol: worldtree" in title and record["inputs"]["gt_sha256"] in title
+    assert _errors(browser) == []
+
+
+def test_scene_page_viewer(report, browser):
+    _, out = report
+    _open(browser, out / "scenes" / "SceneA.html")
+    assert _errors(browser) == []
+    assert len(browser.find_elements("css selector", "#scene-worldtree tbody tr")) == len(fx.CONFIGS)
+    shown = lambda: [f for f in browser.find_elements("css selector", ".frame") if f.is_displayed()]  # noqa: E731
+    assert [f.get_attribute("data-name") for f in shown()] == ["v001_t000"]
+    # Per frame and run: render, ground truth, mask and error map, plus the curves and the colour bar.
+    assert _all_images_load(browser) == 4 * len(fx.CONFIGS) + 2
+    browser.execute_script(
+        "const r = document.querySelector('.frame-range'); r.value = r.max;"
+        "r.dispatchEvent(new Event('input'))"
+    )
+    assert [f.get_attribute("data-name") for f in shown()] == [f"v001_t{fx.FRAMES - 1:03d}"]
+    assert _all_images_load(browser) == 4 * len(fx.CONFIGS) + 2
+    assert _errors(browser) == []

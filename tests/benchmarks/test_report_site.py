@@ -1,0 +1,198 @@
+"""`wtbench report` without a browser: what the site holds, run states, bad input, atomic replacement.
+The page's behaviour in a real browser is tested in test_report_browser.py."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import shutil
+from html.parser import HTMLParser
+from pathlib import Path
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from benchmarks.cli import app
+from benchmarks.webreport import site
+from benchmarks.webreport.images import ERROR_VMAX, error_map, fit_width
+from worldtree.folder_lock import FolderLock
+
+
+def _fixture():
+    path = Path(__file__).with_name("report_fixture.py")
+    spec = importlib.util.spec_from_file_location("wt_tests_report_fixture_site", path)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+fx = _fixture()
+
+
+@pytest.fixture(scope="module")
+def sweep(tmp_path_factory):
+    return fx.write_sweep(tmp_path_factory.mktemp("sweep"))
+
+
+@pytest.fixture(scope="module")
+def report(sweep, tmp_path_factory):
+    """The report of the sweep, written by the command line."""
+    out = tmp_path_factory.mktemp("report") / "report"
+    res = CliRunner().invoke(app, ["report", str(sweep[0]), "-o", str(out)])
+    assert res.exit_code == 0, res.output
+    return out
+
+
+@pytest.fixture
+def no_plots(monkeypatch):
+    """Skip matplotlib in tests about other things (the plots are drawn in the report fixture)."""
+    monkeypatch.setattr(site, "_speed_plots", lambda *a, **k: ([], []))
+    monkeypatch.setattr(site, "_curves", lambda *a, **k: False)
+
+
+class _Rows(HTMLParser):
+    """Text of each body row of the table with id ``table_id``, and every img src of the page."""
+
+    def __init__(self, table_id: str):
+        super().__init__()
+        self.table_id, self.depth, self.in_body = table_id, 0, False
+        self.rows: list[list[str]] = []
+        self.imgs: list[str] = []
+
+    def handle_starttag(self, tag, attrs):
+        a = dict(attrs)
+        if tag == "img":
+            self.imgs.append(a["src"])
+        if tag == "table" and a.get("id") == self.table_id:
+            self.depth = 1
+        elif tag == "table" and self.depth:
+            self.depth += 1
+        if self.depth == 1 and tag == "tbody":
+            self.in_body = True
+        if self.in_body and self.depth == 1 and tag == "tr":
+            self.rows.append([])
+
+    def handle_endtag(self, tag):
+        if tag == "table" and self.depth:
+            self.depth -= 1
+        if tag == "tbody" and self.depth == 1:
+            self.in_body = False
+
+    def handle_data(self, data):
+        if self.in_body and self.rows and data.strip():
+            self.rows[-1].append(data.strip())
+
+
+def _parse(path: Path, table_id: str) -> _Rows:
+    p = _Rows(table_id)
+    p.feed(path.read_text())
+    return p
+
+
+def test_report_lists_every_configuration_and_state(sweep, report):
+    runs, out = sweep[0], report
+    index = _parse(out / "index.html", "results-worldtree")
+    # One row per configuration, keyed (method, configuration): the fixture's three, not the unfinished fourth.
+    assert len(index.rows) == len(fx.CONFIGS)
+    assert sorted(r[0] for r in index.rows) == sorted(c[0] for c in fx.CONFIGS)
+    # Every image the page names exists in the report folder (self-contained: no absolute or remote path).
+    for src in index.imgs:
+        assert not src.startswith(("/", "http:", "https:", "file:")), src
+        assert (out / src).is_file(), src
+    runs_rows = _parse(out / "index.html", "runs-table").rows
+    states = {r[3]: r[4] for r in runs_rows}  # folder -> state
+    assert states["SceneA/base/quick"] == "unfinished"
+    assert sum(s == "done" for s in states.values()) == len(fx.SCENES) * len(fx.CONFIGS)
+    html = (out / "index.html").read_text()
+    assert "out of memory" in html  # the sweep report's failure is listed
+    # The hover text of the cells names each run's checksums, as its evaluation record holds them.
+    record = json.loads((runs / "SceneA" / "static" / "quick" / "metrics.json").read_text())
+    assert record["inputs"]["pred_sha256"] in html
+    for scene in fx.SCENES:
+        page = out / "scenes" / f"{scene}.html"
+        parsed = _parse(page, "scene-worldtree")
+        assert len(parsed.rows) == len(fx.CONFIGS)
+        for src in parsed.imgs:
+            assert (page.parent / src).resolve().is_file(), src
+        # Viewer: every test frame (4 <= --viewer-frames), each with render | gt | mask | error for every run.
+        text = page.read_text()
+        assert text.count('class="frame"') == fx.FRAMES
+        assert len(list((out / "img" / scene).glob("*_e*.jpg"))) == fx.FRAMES * len(fx.CONFIGS)
+
+
+def test_running_and_stopped_runs_are_named(sweep, tmp_path, no_plots):
+    runs, _ = sweep
+    run = runs / "SceneA" / "base" / "quick"
+    with FolderLock(run, "run folder"):
+        site.build_report([runs], tmp_path / "r", log=lambda s: None)
+    rows = _parse(tmp_path / "r" / "index.html", "runs-table").rows
+    assert {r[3]: r[4] for r in rows}["SceneA/base/quick"] == "running"
+    # Stopped after a checkpoint: unfinished, with the step it resumes from.
+    (run / "checkpoints").mkdir()
+    for step in (4, 12):
+        (run / "checkpoints" / f"ckpt_{step:07d}.pt").write_bytes(b"")
+    try:
+        site.build_report([runs], tmp_path / "r", log=lambda s: None)
+    finally:
+        shutil.rmtree(run / "checkpoints")
+    rows = _parse(tmp_path / "r" / "index.html", "runs-table").rows
+    row = next(r for r in rows if r[3] == "SceneA/base/quick")
+    assert row[4] == "unfinished" and "step 12" in row[5]
+
+
+def test_viewer_frames_are_evenly_spaced():
+    assert site._pick(10, 0) == list(range(10))
+    assert site._pick(10, 4) == [0, 3, 6, 9]
+    assert site._pick(3, 5) == [0, 1, 2]
+
+
+def test_error_map_scale_and_thumbnail_size():
+    from matplotlib import colormaps
+
+    gt = np.full((4, 6, 3), 100, np.uint8)
+    pred = gt.copy()
+    pred[0, 0] = 255  # error 155/255 > ERROR_VMAX: saturated
+    pred[1, 1] = 100 + round(0.5 * ERROR_VMAX * 255)  # half the scale
+    heat = error_map(pred, gt)
+    cmap = colormaps["magma"]
+    expect = lambda x: np.round(np.array(cmap(x)[:3]) * 255)  # noqa: E731
+    assert np.abs(heat[2, 2] - expect(0.0)).max() <= 1
+    assert np.abs(heat[0, 0] - expect(1.0)).max() <= 1
+    assert np.abs(heat[1, 1] - expect(0.5)).max() <= 3  # the pixel's error is rounded to a grey level
+    assert fit_width(np.zeros((90, 160, 3), np.uint8), 80).shape == (45, 80, 3)
+    assert fit_width(np.zeros((9, 16, 3), np.uint8), 80).shape == (9, 16, 3)  # never scaled up
+
+
+def test_bad_input_is_one_line_and_writes_nothing(sweep, tmp_path, no_plots):
+    runs, _ = sweep
+    cli = CliRunner()
+    res = cli.invoke(app, ["report", str(tmp_path / "nowhere"), "-o", str(tmp_path / "r")])
+    assert res.exit_code != 0 and "RUNS_DIR" in str(res.exception or res.output)
+    other = tmp_path / "mine"
+    other.mkdir()
+    (other / "keep.txt").write_text("x")
+    with pytest.raises(Exception, match="not a wtbench report"):
+        site.build_report([runs], other, log=lambda s: None)
+    assert sorted(p.name for p in other.iterdir()) == ["keep.txt"]
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    with pytest.raises(Exception, match="no run folder"):
+        site.build_report([empty], tmp_path / "r2", log=lambda s: None)
+    assert not (tmp_path / "r2").exists()
+
+
+def test_interrupted_build_leaves_the_old_report(sweep, report, tmp_path, monkeypatch):
+    runs, _ = sweep
+    out = tmp_path / "report"
+    shutil.copytree(report, out)
+    before = (out / "index.html").read_text()
+
+    def boom(*a, **k):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(site, "_speed_plots", boom)
+    with pytest.raises(KeyboardInterrupt):
+        site.build_report([runs], out, log=lambda s: None)
+    assert (out / "index.html").read_text() == before
+    assert [p.name for p in tmp_path.iterdir()] == ["report"]  # no temporary folder left behind
