@@ -91,10 +91,11 @@ class RunEntry:
         names = {"pred_sha256": "renders", "gt_sha256": "ground truth", "mask_sha256": "masks"}
         return {label: str(inputs[k]) for k, label in names.items() if inputs.get(k)}
 
-    def provenance(self) -> str:
-        """One line per fact of the run's record (protocol, checksums, tool version, time), for hover text."""
+    def provenance(self, digits: int = 64) -> str:
+        """One line per fact of the run's record (protocol, checksums cut to ``digits`` hex digits, tool
+        version, time), for hover text."""
         lines = [self.rel, f"protocol: {self.protocol}"]
-        lines += [f"{k} sha256: {v}" for k, v in self.checksums.items()]
+        lines += [f"{k} sha256: {v[:digits]}" for k, v in self.checksums.items()]
         for key, label in (("tool_version", "tool version"), ("timestamp", "scored")):
             if self.record.get(key):
                 lines.append(f"{label}: {self.record[key]}")

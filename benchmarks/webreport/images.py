@@ -24,15 +24,20 @@ def fit_width(image: np.ndarray, width: int) -> np.ndarray:
     return cv2.resize(image, size, interpolation=cv2.INTER_AREA)
 
 
-def error_map(pred: np.ndarray, gt: np.ndarray, vmax: float = ERROR_VMAX) -> np.ndarray:
-    """Heat map uint8 RGB ``[H, W, 3]`` of the mean absolute error over RGB between two uint8 ``[H, W, 3]``
+def error_map(
+    pred: np.ndarray, gt: np.ndarray, vmax: float = ERROR_VMAX, width: int | None = None
+) -> np.ndarray:
+    """Heat map uint8 RGB ``[h, w, 3]`` of the mean absolute error over RGB between two uint8 ``[H, W, 3]``
     images, on [0, 1] values, coloured by :data:`COLORMAP` from 0 (dark) to ``vmax`` (bright, saturated
-    above)."""
+    above). ``width``: scale the error (not the images: noise would average out first) down to at most this
+    many pixels wide before colouring, as :func:`fit_width`."""
     from matplotlib import colormaps
 
     if pred.shape != gt.shape:
         raise ValueError(f"error_map: shapes differ {pred.shape} vs {gt.shape}")
-    err = np.abs(pred.astype(np.float32) - gt.astype(np.float32)).mean(axis=2) / 255.0
+    err = np.abs(pred.astype(np.int16) - gt.astype(np.int16)).sum(axis=2).astype(np.float32) / (3 * 255.0)
+    if width is not None:
+        err = fit_width(err, width)
     scaled = np.clip(err / vmax, 0.0, 1.0)
     return (colormaps[COLORMAP](scaled)[..., :3] * 255.0 + 0.5).astype(np.uint8)
 

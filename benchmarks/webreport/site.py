@@ -38,6 +38,8 @@ MARKER = ".wtbench-report"
 CURVE_METRICS = ("psnr", "mpsnr")
 #: Cells of a run shown in a hover text before "and N more".
 _HOVER_RUNS = 4
+#: Hex digits of each checksum in a cell's hover text.
+_HOVER_DIGITS = 16
 
 
 @dataclass(frozen=True)
@@ -136,7 +138,8 @@ def _table_model(
                      f"{format_value(v, m)} ({len(in_cell)} run(s))"]  # fmt: skip
             for r in in_cell[:_HOVER_RUNS]:
                 e = entries.get(r)
-                hover.append(e.provenance() if e else r)
+                # Cut checksums keep the hover text (one per cell) small; the row's runs list holds them whole.
+                hover.append(e.provenance(digits=_HOVER_DIGITS) if e else r)
             if len(in_cell) > _HOVER_RUNS:
                 hover.append(f"... and {len(in_cell) - _HOVER_RUNS} more")
             cells.append(
@@ -302,7 +305,7 @@ def _viewer(
                     write_jpeg(root / row["render"], fit_width(pred, opts.image_width))
                     if gt is not None and gt.shape == pred.shape:
                         row["error"] = f"{folder}/{slug(name)}_e{i}.jpg"
-                        write_jpeg(root / row["error"], fit_width(error_map(pred, gt), opts.image_width))
+                        write_jpeg(root / row["error"], error_map(pred, gt, width=opts.image_width))
             if r.frames is not None and name in r.frames.index:
                 for m in CURVE_METRICS:
                     if m in r.frames:

@@ -133,7 +133,11 @@ def test_main_page(report, browser):
     # Hovering a cell tells its runs' protocol and checksums (the title attribute).
     record = json.loads((runs / "SceneA" / "static" / "quick" / "metrics.json").read_text())
     title = browser.find_element("css selector", "#results-worldtree td.m-psnr").get_attribute("title")
-    assert "protocol: worldtree" in title and record["inputs"]["gt_sha256"] in title
+    assert "protocol: worldtree" in title and record["inputs"]["gt_sha256"][:16] in title
+    # ... and the row's runs list holds them whole.
+    details = browser.find_element("css selector", "#results-worldtree details.runs")
+    details.click()
+    assert record["inputs"]["pred_sha256"] in details.text
     assert _errors(browser) == []
 
 

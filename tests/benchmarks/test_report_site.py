@@ -160,6 +160,12 @@ def test_error_map_scale_and_thumbnail_size():
     assert np.abs(heat[2, 2] - expect(0.0)).max() <= 1
     assert np.abs(heat[0, 0] - expect(1.0)).max() <= 1
     assert np.abs(heat[1, 1] - expect(0.5)).max() <= 3  # the pixel's error is rounded to a grey level
+    # Scaled down, the map shows the mean of the per-pixel errors (noise +-40 everywhere: 40/255), not the
+    # error of scaled-down images (which would average the noise away).
+    checker = np.where((np.indices((8, 8)).sum(0) % 2)[..., None] == 1, 140, 60).astype(np.uint8)
+    small = error_map(np.repeat(checker, 3, axis=2), np.full((8, 8, 3), 100, np.uint8), width=4)
+    assert small.shape == (4, 4, 3)
+    assert np.abs(small - expect(40 / 255 / ERROR_VMAX)).max() <= 2
     assert fit_width(np.zeros((90, 160, 3), np.uint8), 80).shape == (45, 80, 3)
     assert fit_width(np.zeros((9, 16, 3), np.uint8), 80).shape == (9, 16, 3)  # never scaled up
 
