@@ -176,6 +176,9 @@ def import_(
     test_images: Path | None = typer.Option(None, help="Folder of the test views vNNN_tXXX.png."),
     test_masks: Path | None = typer.Option(None, help="Folder of test-view masks named like the views."),
     name: str | None = typer.Option(None, help="Scene folder name (default: the source folder's name)."),
+    no_poses: bool = typer.Option(
+        False, "--no-poses", help="A clip without poses_bounds.npy: identity poses, for 2D priors only."
+    ),
     force: bool = typer.Option(False, "--force", help="Replace an existing scene folder."),
 ) -> None:
     from nvidia_ls.build import parse_size
@@ -183,11 +186,15 @@ def import_(
 
     cfg = ImportConfig(
         layout=layout, size=parse_size(size), test_row=test_row, test_images=test_images,
-        test_masks=test_masks, name=name, force=force,
+        test_masks=test_masks, name=name, no_poses=no_poses, force=force,
     )  # fmt: skip
     console = _console()
     path = import_scene(source, out_dir, cfg, log=lambda m: console.print(f"[yellow]{m}[/yellow]"))
     console.print(f"wrote {path}", highlight=False)
+    if no_poses:
+        console.print(
+            f"2D priors without poses: wtbench prep {path} --epi-from-flow --preview", highlight=False
+        )
     args = run_args(path)
     if args:
         import shlex

@@ -66,6 +66,11 @@ class ImportConfig:
     """Folder of test-view dynamic masks named like the views; None looks in the layout's usual places."""
     name: str | None = None
     """Scene folder name (default: the source folder's name)."""
+    no_poses: bool = False
+    """A monocular clip without poses_bounds.npy: every frame gets the identity pose and a guessed focal
+    length (1.2 x the larger image side), recorded as ``poses.method = "none"``. Enough for 2D priors (flow,
+    tracks, masks from the epipolar error of flow with estimated fundamental matrices: ``wtbench prep
+    --epi-from-flow``), not for training a 3D method."""
     force: bool = False
     """Replace an existing scene folder."""
 
@@ -140,8 +145,12 @@ def scan_source(root: Path, cfg: ImportConfig) -> _Source:
         raise UserError(f"{root / 'images'}: missing or holds no .png/.jpg; the training frames go there")
     images = _images(root / "images")
     pb_path = root / "poses_bounds.npy"
+    if cfg.no_poses:
+        return _Source(layout, images, _identity_rows(images), {}, {}, None, "disparity", {}, [])
     if not pb_path.is_file():
-        raise UserError(f"{pb_path}: missing; the LLFF poses of the frames are needed")
+        raise UserError(
+            f"{pb_path}: missing; the LLFF poses of the frames are needed (a clip without poses: --no-poses)"
+        )
     try:
         pb = np.load(pb_path, allow_pickle=False)
     except (ValueError, OSError) as e:
@@ -173,6 +182,17 @@ def scan_source(root: Path, cfg: ImportConfig) -> _Source:
             break
     motion = _images(root / "motion_masks") if (root / "motion_masks").is_dir() else []
     return _Source(layout, images, pb, views, tmasks, depth_dir, kind, _flow_files(root), motion)
+
+
+def _identity_rows(images: list[Path]) -> np.ndarray:
+    """LLFF rows of identity poses (OpenCV c2w = I) for a clip without poses; focal 1.2 x the larger side."""
+    h, w = read_image(images[0]).shape[:2]
+    f = 1.2 * max(w, h)
+    rows = llff.opencv_to_llff(
+        np.tile(np.eye(4), (len(images), 1, 1)), np.tile(np.diag([f, f, 1.0]), (len(images), 1, 1)), h, w,
+        np.tile([[0.1, 100.0]], (len(images), 1)),
+    )  # fmt: skip
+    return rows
 
 
 def _cameras(src: _Source, T: int, test_row: int | None, pb_path: Path):
@@ -417,7 +437,9 @@ def import_scene(
                         "masks": len(times) if has_tmasks else 0,
                         "cameras": len(ids),
                     },  # fmt: skip
-                    "poses": {"method": "file", "rows": pose_note},
+                    "poses": {"method": "none", "note": "identity poses, focal guessed (--no-poses)"}
+                    if cfg.no_poses
+                    else {"method": "file", "rows": pose_note},
                     "masks": {"method": "imported" if has_tmasks else "none"},
                     "imported_priors": record_priors,
                     "world_transform": world,

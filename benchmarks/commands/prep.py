@@ -44,13 +44,17 @@ def register(app: typer.Typer) -> None:
             1.5, help="Sampson distance (pixels) above which a pixel is dynamic."
         ),
         planes: int = typer.Option(64, help="Depth hypotheses of the plane sweep."),
+        epi_from_flow: bool = typer.Option(
+            False, help="Epipolar errors from fundamental matrices estimated on the flow (LMedS), not from the "
+            "poses: for a clip imported with `nvls import --no-poses`.",
+        ),
     ) -> None:
         _run(scene, depth, depth_kind, depth_fit, depth_png_scale, tracks, flow, masks, cache, preview,
-             downscale, epi_threshold, planes)  # fmt: skip
+             downscale, epi_threshold, planes, epi_from_flow)  # fmt: skip
 
 
 def _run(scene_dir, depth, depth_kind, depth_fit, depth_png_scale, tracks, flow, masks, cache, preview,
-         downscale, epi_threshold, planes) -> None:  # fmt: skip
+         downscale, epi_threshold, planes, epi_from_flow=False) -> None:  # fmt: skip
     import dataclasses
 
     from rich.console import Console
@@ -72,7 +76,7 @@ def _run(scene_dir, depth, depth_kind, depth_fit, depth_png_scale, tracks, flow,
     sc = load_scene(scene_dir, downscale=downscale, load_masks=False)
     cfg = PriorsConfig(
         depth=dataclasses.replace(DepthConfig(), num_planes=planes),
-        epi=dataclasses.replace(EpiConfig(), threshold_px=epi_threshold),
+        epi=dataclasses.replace(EpiConfig(), threshold_px=epi_threshold, use_poses=not epi_from_flow),
         depth_import=DepthImportConfig(kind=depth_kind, png_scale=depth_png_scale, fit_scale_shift=depth_fit),
         depth_source=depth,
         tracks_source=tracks,

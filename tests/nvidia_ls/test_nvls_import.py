@@ -169,3 +169,20 @@ def test_cli_import_prints_the_run_command(exported, tmp_path):
         capture_output=True, text=True, timeout=300,
     )  # fmt: skip
     assert r.returncode == 2 and r.stderr.strip().startswith("error:") and "--force" in r.stderr
+
+
+def test_clip_without_poses(exported, tmp_path):
+    root, gt = exported
+    clip = tmp_path / "clip"
+    (clip / "images").mkdir(parents=True)
+    for p in sorted((root / "images").iterdir()):
+        (clip / "images" / p.name).write_bytes(p.read_bytes())
+    with pytest.raises(UserError, match="--no-poses"):
+        import_scene(clip, tmp_path / "o", ImportConfig())
+    out = import_scene(clip, tmp_path / "o", ImportConfig(no_poses=True), log=lambda m: None)
+    sc = load_scene(out)
+    np.testing.assert_array_equal(np.round(sc.images.numpy() * 255).astype(np.uint8), gt["rgb"])
+    np.testing.assert_allclose(sc.w2cs.numpy(), np.tile(np.eye(4), (T, 1, 1)), atol=1e-9)
+    np.testing.assert_allclose(sc.Ks[0, 0, 0].item(), 1.2 * CFG.width, rtol=1e-6)
+    assert json.loads((out / "manifest.json").read_text())["poses"]["method"] == "none"
+    assert verify_scene(out) == []

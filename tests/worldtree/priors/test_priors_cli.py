@@ -70,3 +70,12 @@ def test_prep_error_exit_code(tmp_path):
     r = _prep(str(tmp_path / "noscene"))
     assert r.returncode == 2 and r.stderr.startswith("error: ") and "cameras.json" in r.stderr
     assert "Traceback" not in r.stderr
+
+
+def test_prep_epi_from_flow_is_recorded(scene_dir, tmp_path):
+    r = CliRunner().invoke(
+        app, ["prep", str(scene_dir), "--planes", "8", "--epi-from-flow", "--cache", str(tmp_path / "c")]
+    )
+    assert r.exit_code == 0, r.output
+    rec = json.loads((tmp_path / "c" / "priors.json").read_text())
+    assert rec["config"]["epi"]["use_poses"] is False
