@@ -1,1 +1,2 @@
-"""Evaluation harness (metrics, protocols, LPIPS), the `wtbench` CLI, run folders and speed scripts."""
+"""The benchmark harness: evaluation (metrics, protocols, LPIPS), the runner (run folders, sweeps, overrides),
+reporting (tables, plots, videos), speed scripts, and the `wtbench` CLI."""

@@ -19,12 +19,12 @@ def one_torch_thread():
 
 @pytest.fixture(scope="session")
 def write_tiny_scene():
-    """``write_tiny_scene(root, width=64, height=36, frames=6) -> Path`` from tests/baselines/scene_fixture.py
+    """``write_tiny_scene(root, width=64, height=36, frames=6) -> Path`` from tests/methods/scene_fixture.py
     (imported by path: the suite runs with --import-mode=importlib, so test folders are not packages)."""
     import importlib.util
     from pathlib import Path
 
-    path = Path(__file__).parent / "baselines" / "scene_fixture.py"
+    path = Path(__file__).parent / "methods" / "scene_fixture.py"
     spec = importlib.util.spec_from_file_location("wt_tests_scene_fixture", path)
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)

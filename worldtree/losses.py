@@ -101,6 +101,6 @@ def photometric_loss(
 
 
 def psnr(pred: torch.Tensor, target: torch.Tensor) -> float:
-    """PSNR in dB for images in [0, 1] (for progress logs; the benchmark scores with benchmarks.evaluate)."""
+    """PSNR in dB for images in [0, 1] (for progress logs; the benchmark scores with benchmarks.evaluation)."""
     mse = float(((pred.detach() - target.detach()) ** 2).mean())
     return float("inf") if mse <= 0 else -10.0 * torch.log10(torch.tensor(mse)).item()

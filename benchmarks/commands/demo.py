@@ -53,7 +53,7 @@ def run_demo(
     from rich.console import Console
 
     from benchmarks.commands.table import export_tables
-    from benchmarks.runs import RunRequest, execute
+    from benchmarks.runner.runs import RunRequest, execute
     from nvidia_ls.build import BuildConfig, build_scene, parse_size
     from nvidia_ls.gt_priors import GtPriorsConfig, write_gt_priors
     from nvidia_ls.synth import SynthConfig, write_raw_scene
@@ -118,7 +118,7 @@ def _uses_priors(method: str, preset: str) -> bool:
     """Whether ``method``'s config has 2D priors (imported priors are refused by the others)."""
     import dataclasses
 
-    from baselines.registry import get_method
+    from methods.registry import get_method
 
     cfg = get_method(method).config(preset)
     return "priors" in {f.name for f in dataclasses.fields(cfg)}

@@ -53,8 +53,14 @@ def register(app: typer.Typer) -> None:
         from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
         from rich.table import Table
 
-        from benchmarks.evaluate import COLUMNS, EvalWarning, evaluate_folder, pair_files, write_result
-        from benchmarks.metrics import get_protocol
+        from benchmarks.evaluation.evaluate import (
+            COLUMNS,
+            EvalWarning,
+            evaluate_folder,
+            pair_files,
+            write_result,
+        )
+        from benchmarks.evaluation.metrics import get_protocol
 
         get_protocol(protocol)  # fail on a bad name before reading anything
         out_csv = out if out is not None else pred_dir.resolve().parent / "metrics.csv"

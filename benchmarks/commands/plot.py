@@ -39,9 +39,16 @@ def register(app: typer.Typer) -> None:
     ) -> None:
         import sys
 
-        from benchmarks.plots import AXIS_METRICS, DEFAULT_Y, draw, make_panel, resolve_y, with_derived
-        from benchmarks.results import GROUP_KEYS, collect_runs, select
-        from benchmarks.tables import parse_list
+        from benchmarks.reporting.plots import (
+            AXIS_METRICS,
+            DEFAULT_Y,
+            draw,
+            make_panel,
+            resolve_y,
+            with_derived,
+        )
+        from benchmarks.reporting.results import GROUP_KEYS, collect_runs, select
+        from benchmarks.reporting.tables import parse_list
 
         keys = parse_list(group_by, "--group-by", GROUP_KEYS)
         wanted = parse_list(y, "--y", AXIS_METRICS)

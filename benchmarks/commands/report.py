@@ -40,8 +40,8 @@ def register(app: typer.Typer) -> None:
     ) -> None:
         import sys
 
-        from benchmarks.results import GROUP_KEYS
-        from benchmarks.tables import parse_list
+        from benchmarks.reporting.results import GROUP_KEYS
+        from benchmarks.reporting.tables import parse_list
         from benchmarks.webreport.site import ReportOptions, build_report
 
         keys = parse_list(group_by, "--group-by", GROUP_KEYS)

@@ -73,7 +73,7 @@ def register(app: typer.Typer) -> None:
             False, "--list", help="List the registered methods and presets, then exit."
         ),
     ) -> None:
-        from benchmarks.runs import RunRequest, execute, resolve_prior_paths
+        from benchmarks.runner.runs import RunRequest, execute, resolve_prior_paths
         from worldtree.errors import UserError
 
         if list_:
@@ -129,7 +129,7 @@ def register(app: typer.Typer) -> None:
 
 
 def _options(ablate, depth, chain_length, split, sequential) -> dict:
-    """The method options given (``benchmarks.runs.METHOD_OPTIONS``); ablations sorted and deduplicated."""
+    """The method options given (``benchmarks.runner.runs.METHOD_OPTIONS``); ablations sorted and deduplicated."""
     opts: dict = {}
     if ablate:
         opts["ablate"] = sorted({a.strip().lower() for a in ablate})
@@ -147,7 +147,7 @@ def _command_line(
 ) -> str:  # fmt: skip
     """The command in canonical form (every resolved option), so that it can be pasted to repeat the run
     however it was invoked (shell, script, or in-process)."""
-    from benchmarks.runs import option_flag
+    from benchmarks.runner.runs import option_flag
 
     parts = ["wtbench", "run", "--method", method, "--scene", str(scene), "-o", str(runs_dir)]
     parts += ["--preset", preset, "--device", device]
@@ -181,7 +181,7 @@ def _one_line_warning(message, category, filename, lineno, file=None, line=None)
 
 
 def _print_methods() -> None:
-    from baselines.registry import list_methods
+    from methods.registry import list_methods
 
     for spec in list_methods():
         print(f"{spec.name:12s} {spec.description}  (presets: {', '.join(sorted(spec.presets))})")

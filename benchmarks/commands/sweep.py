@@ -44,7 +44,7 @@ def register(app: typer.Typer) -> None:
         flow: Path | None = typer.Option(None, "--flow", help=PRIOR_HELP["flow"]),
         dry_run: bool = typer.Option(False, "--dry-run", help="List the runs and exit."),
     ) -> None:
-        from benchmarks.runs import resolve_prior_paths
+        from benchmarks.runner.runs import resolve_prior_paths
 
         priors = resolve_prior_paths(
             {"masks": masks, "tracks": tracks, "depth_maps": depth_maps, "flow": flow}
@@ -70,15 +70,15 @@ def sweep(
     priors=None,
 ) -> None:
     """Resolve scenes and grid, run them, print a summary and write RUNS_DIR/sweep-<grid>.json. ``sets``
-    (``KEY=VALUE``) and ``priors`` (``benchmarks.runs.PRIOR_OPTIONS`` name -> path) go to every run; they are
+    (``KEY=VALUE``) and ``priors`` (``benchmarks.runner.runs.PRIOR_OPTIONS`` name -> path) go to every run; they are
     checked against the method's config once, before the first run."""
     import warnings
 
-    from baselines.registry import get_method
     from benchmarks.commands.run import _command_line, _one_line_warning
-    from benchmarks.config_overrides import split_assignment
-    from benchmarks.runs import RunRequest, execute, resolve_config
-    from benchmarks.sweep import find_scenes, grid_points, run_sweep, write_report
+    from benchmarks.runner.config_overrides import split_assignment
+    from benchmarks.runner.runs import RunRequest, execute, resolve_config
+    from benchmarks.runner.sweep import find_scenes, grid_points, run_sweep, write_report
+    from methods.registry import get_method
     from worldtree.errors import UserError
     from worldtree.folder_lock import FolderLock
     from worldtree.output_paths import check_output_folder

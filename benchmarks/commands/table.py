@@ -54,8 +54,8 @@ def export_tables(
     """Collect finished runs, print the wide table, and write it to ``out`` with the long table beside it."""
     import sys
 
-    from benchmarks.results import GROUP_KEYS, METRICS, collect_runs, select
-    from benchmarks.tables import build_wide, format_for, parse_list, render
+    from benchmarks.reporting.results import GROUP_KEYS, METRICS, collect_runs, select
+    from benchmarks.reporting.tables import build_wide, format_for, parse_list, render
     from worldtree.atomic import atomic_write_text
 
     keys = parse_list(group_by, "--group-by", GROUP_KEYS)

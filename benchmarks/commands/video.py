@@ -16,7 +16,7 @@ def register(app: typer.Typer) -> None:
         ),
         fps: float = typer.Option(10.0, "--fps", help="Frames per second."),
     ) -> None:
-        from benchmarks.video import compose_frames, write_video
+        from benchmarks.reporting.video import compose_frames, write_video
 
         frames, _ = compose_frames(run_dir)
         path = write_video(frames, out or run_dir / "test_view.mp4", fps)

@@ -1,7 +1,7 @@
 """What the report shows of each run folder: its state, its evaluation record, its per-frame scores and where
 its scene's ground truth is.
 
-Every folder :func:`benchmarks.results.find_run_folders` finds is listed, finished or not, with one state:
+Every folder :func:`benchmarks.reporting.results.find_run_folders` finds is listed, finished or not, with one state:
 
 - ``done``: ``DONE`` present and read into the tables;
 - ``damaged``: ``DONE`` present but the tables could not read it (the collection's note says why);
@@ -22,7 +22,7 @@ from typing import Any
 
 import pandas as pd
 
-from benchmarks.results import HARNESS_METRICS, describe_configuration, find_run_folders
+from benchmarks.reporting.results import HARNESS_METRICS, describe_configuration, find_run_folders
 
 STATES = ("done", "running", "unfinished", "damaged")
 
@@ -38,7 +38,7 @@ def read_json(path: Path) -> dict[str, Any] | None:
 
 def read_frame_scores(csv: Path) -> pd.DataFrame | None:
     """Per-frame rows of a run's ``metrics.csv`` (the ``mean`` row dropped): index the frame names, columns
-    the :data:`benchmarks.results.HARNESS_METRICS` present, NaN where empty. None when unreadable."""
+    the :data:`benchmarks.reporting.results.HARNESS_METRICS` present, NaN where empty. None when unreadable."""
     try:
         table = pd.read_csv(csv, dtype={"frame": str}, keep_default_na=False, na_values=[""])
     except (OSError, ValueError, pd.errors.ParserError):

@@ -21,8 +21,8 @@ import numpy as np
 import pandas as pd
 
 import worldtree
-from benchmarks.results import GROUP_KEYS, HARNESS_METRICS, collect_runs, higher_is_better, select
-from benchmarks.tables import LABELS, WideTable, build_wide, column_marks, format_value, to_csv
+from benchmarks.reporting.results import GROUP_KEYS, HARNESS_METRICS, collect_runs, higher_is_better, select
+from benchmarks.reporting.tables import LABELS, WideTable, build_wide, column_marks, format_value, to_csv
 from benchmarks.webreport.gather import (
     RunEntry,
     frame_times,
@@ -47,7 +47,7 @@ class ReportOptions:
     """How the report is made (the options of `wtbench report`)."""
 
     group_by: tuple[str, ...] = ("method", "configuration")
-    """Row keys of the tables, from :data:`benchmarks.results.GROUP_KEYS`."""
+    """Row keys of the tables, from :data:`benchmarks.reporting.results.GROUP_KEYS`."""
     protocol: str | None = None
     """Only this evaluation protocol; None: every protocol found, one table each."""
     image_width: int = 320
@@ -177,8 +177,8 @@ def _table_model(
 
 def _speed_plots(long: pd.DataFrame, keys: Sequence[str], folder: Path, stem: str) -> tuple[list, list]:
     """One speed-vs-error PNG per harness metric with values (x: wall time), Pareto front marked
-    (:mod:`benchmarks.plots`). Returns (plots as dicts of file and metric, notes)."""
-    from benchmarks.plots import draw, make_panel
+    (:mod:`benchmarks.reporting.plots`). Returns (plots as dicts of file and metric, notes)."""
+    from benchmarks.reporting.plots import draw, make_panel
 
     have = set(long.loc[np.isfinite(long["value"].to_numpy(np.float64)), "metric"])
     plots, notes = [], []
@@ -247,7 +247,7 @@ def _viewer(
 ) -> tuple[list[dict[str, Any]], list[str]]:
     """Write the viewer's images of ``scene`` under ``root/img/<scene>/`` and return (frames, notes); a frame
     holds its name, ground truth, mask and one row per run (render, error map, scores)."""
-    from benchmarks.video import mask_overlay
+    from benchmarks.reporting.video import mask_overlay
     from benchmarks.webreport.images import error_map, fit_width, write_jpeg
     from worldtree.imageio import read_image, read_mask
 
@@ -419,7 +419,7 @@ def build_report(
                 tmp / "data" / f"{stem}_long.csv", plong.to_csv(index=False, na_rep="", float_format="%.10g")
             )
             log(f"protocol {proto}: {len(table.frame)} configuration(s), drawing speed-vs-error plots")
-            from benchmarks.plots import with_derived
+            from benchmarks.reporting.plots import with_derived
 
             plots, why = _speed_plots(with_derived(plong), opts.group_by, tmp, stem)
             notes += [f"{proto}: {n}" for n in why]

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from baselines.registry import get_method
+from methods.registry import get_method
 
 
 @pytest.fixture(scope="module")

@@ -1,8 +1,8 @@
 """A tiny generated sweep for the report tests: two scenes, three configurations, one unfinished run and a
 failure recorded in a sweep report.
 
-Scenes come from tests/baselines/scene_fixture.py; each finished run's "renders" are the ground truth plus
-noise of a per-configuration strength, scored by the real harness (:func:`benchmarks.evaluate.evaluate_folder`),
+Scenes come from tests/methods/scene_fixture.py; each finished run's "renders" are the ground truth plus
+noise of a per-configuration strength, scored by the real harness (:func:`benchmarks.evaluation.evaluate.evaluate_folder`),
 so metrics.csv/metrics.json hold real per-frame scores and checksums. Folders, config.json and timing.json
 come from runs_fixture.write_run.
 """
@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks.evaluate import evaluate_folder
+from benchmarks.evaluation.evaluate import evaluate_folder
 from worldtree.imageio import read_image, write_image
 
 
@@ -28,7 +28,7 @@ def _load(name: str, path: Path):
 
 _here = Path(__file__).parent
 rf = _load("wt_tests_runs_fixture_report", _here / "runs_fixture.py")
-sf = _load("wt_tests_scene_fixture_report", _here.parent / "baselines" / "scene_fixture.py")
+sf = _load("wt_tests_scene_fixture_report", _here.parent / "methods" / "scene_fixture.py")
 
 SCENES = ("SceneA", "SceneB")
 #: (method, tag, ablate, noise std in grey levels, train seconds); one row of the table each. The third is

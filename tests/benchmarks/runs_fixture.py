@@ -1,8 +1,8 @@
 """Hand-made finished run folders for the table/plot tests.
 
-Paths come from :class:`benchmarks.runs.RunFolder` and the metrics files from the harness's own writer
-(:func:`benchmarks.evaluate.write_result`), so the fixtures follow the real format; config.json and
-timing.json carry the keys that :func:`benchmarks.runs.execute` writes (docs/running.md).
+Paths come from :class:`benchmarks.runner.runs.RunFolder` and the metrics files from the harness's own writer
+(:func:`benchmarks.evaluation.evaluate.write_result`), so the fixtures follow the real format; config.json and
+timing.json carry the keys that :func:`benchmarks.runner.runs.execute` writes (docs/running.md).
 """
 
 from __future__ import annotations
@@ -13,8 +13,8 @@ from typing import Any
 
 import pandas as pd
 
-from benchmarks.evaluate import COLUMNS, EvalResult, write_result
-from benchmarks.runs import RunFolder
+from benchmarks.evaluation.evaluate import COLUMNS, EvalResult, write_result
+from benchmarks.runner.runs import RunFolder
 from worldtree.atomic import atomic_write_json, atomic_write_text
 
 

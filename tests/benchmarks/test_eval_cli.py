@@ -15,7 +15,7 @@ from skimage.metrics import structural_similarity as sk_ssim
 
 import worldtree
 from benchmarks import cli
-from benchmarks.evaluate import evaluate_folder, pair_files
+from benchmarks.evaluation.evaluate import evaluate_folder, pair_files
 from worldtree.errors import UserError
 from worldtree.hashing import sha256_files
 from worldtree.imageio import write_image

@@ -10,7 +10,7 @@ import torch
 from skimage.metrics import peak_signal_noise_ratio as sk_psnr
 from skimage.metrics import structural_similarity as sk_ssim
 
-from benchmarks.metrics import avge, masked_psnr, psnr, ssim_box, ssim_box_1d, ssim_gaussian_masked
+from benchmarks.evaluation.metrics import avge, masked_psnr, psnr, ssim_box, ssim_box_1d, ssim_gaussian_masked
 
 
 def _pair(rng, h, w, noise=25):

@@ -12,10 +12,10 @@ import torch
 from skimage.metrics import peak_signal_noise_ratio as sk_psnr
 from skimage.metrics import structural_similarity as sk_ssim
 
-from benchmarks.evaluate import COLUMNS, EvalWarning, evaluate_arrays
-from benchmarks.lpips import LPIPS, random_state_dicts
-from benchmarks.metrics import avge
-from benchmarks.metrics.protocol_dycheck import masked_map_mean
+from benchmarks.evaluation.evaluate import COLUMNS, EvalWarning, evaluate_arrays
+from benchmarks.evaluation.lpips import LPIPS, random_state_dicts
+from benchmarks.evaluation.metrics import avge
+from benchmarks.evaluation.metrics.protocol_dycheck import masked_map_mean
 from worldtree.errors import UserError
 
 

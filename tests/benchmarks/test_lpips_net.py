@@ -7,7 +7,7 @@ import pytest
 import torch
 from numpy.lib.stride_tricks import sliding_window_view
 
-from benchmarks.lpips import LPIPS, AlexNetFeatures, random_state_dicts
+from benchmarks.evaluation.lpips import LPIPS, AlexNetFeatures, random_state_dicts
 
 # torchvision's AlexNet `features` (conv index -> weight shape), and its output sizes for a 224x224 input.
 TV_SHAPES = {

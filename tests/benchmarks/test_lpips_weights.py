@@ -12,7 +12,7 @@ from typer.testing import CliRunner
 
 from benchmarks import lpips_weights as lw
 from benchmarks.cli import app
-from benchmarks.lpips import LPIPS, random_state_dicts
+from benchmarks.evaluation.lpips import LPIPS, random_state_dicts
 from worldtree.errors import UserError
 
 

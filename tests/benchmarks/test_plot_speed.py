@@ -1,4 +1,4 @@
-"""benchmarks.plots: Pareto front against brute force, metric fallback, points, PNG output, `wtbench plot`."""
+"""benchmarks.reporting.plots: Pareto front against brute force, metric fallback, points, PNG output, `wtbench plot`."""
 
 from __future__ import annotations
 
@@ -12,8 +12,8 @@ import pytest
 from typer.testing import CliRunner
 
 from benchmarks.cli import app
-from benchmarks.plots import draw, make_panel, pareto_front, resolve_y, with_derived
-from benchmarks.results import collect_runs
+from benchmarks.reporting.plots import draw, make_panel, pareto_front, resolve_y, with_derived
+from benchmarks.reporting.results import collect_runs
 from worldtree.errors import UserError
 
 

@@ -12,9 +12,9 @@ import pandas as pd
 import pytest
 from typer.testing import CliRunner
 
-from baselines.static3dgs import StaticGaussians
 from benchmarks.cli import app
-from benchmarks.runs import RunRequest, execute, run_tag
+from benchmarks.runner.runs import RunRequest, execute, run_tag
+from methods.static3dgs import StaticGaussians
 from worldtree.errors import UserError
 
 

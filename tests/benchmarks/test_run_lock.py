@@ -13,7 +13,7 @@ import sys
 import pytest
 import torch
 
-from benchmarks.runs import RunRequest, execute, run_tag
+from benchmarks.runner.runs import RunRequest, execute, run_tag
 from worldtree.errors import UserError
 from worldtree.folder_lock import is_locked
 

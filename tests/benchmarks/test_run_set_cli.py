@@ -14,11 +14,11 @@ from types import SimpleNamespace
 import pytest
 from typer.testing import CliRunner
 
-import benchmarks.runs
-from baselines.registry import get_method
+import benchmarks.runner.runs
 from benchmarks.cli import app
 from benchmarks.commands.sweep import sweep
-from benchmarks.runs import RunRequest, resolve_config, run_tag
+from benchmarks.runner.runs import RunRequest, resolve_config, run_tag
+from methods.registry import get_method
 from worldtree.errors import UserError
 
 
@@ -134,7 +134,7 @@ def test_sweep_passes_sets_and_priors_to_every_run(tmp_path, monkeypatch):
         seen.append(req)
         return SimpleNamespace(skipped=False, folder=SimpleNamespace(root=tmp_path), mean={})
 
-    monkeypatch.setattr(benchmarks.runs, "execute", fake_execute)
+    monkeypatch.setattr(benchmarks.runner.runs, "execute", fake_execute)
     sets = ["priors.epi.threshold_px=1.0", "photometric.lambda_depth=0.2"]
     sweep([scene], "split", "worldtree", tmp_path / "runs", "quick", "cpu", None, None, None, False,
           sets=sets, priors={"masks": str(masks)})  # fmt: skip

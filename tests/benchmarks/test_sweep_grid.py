@@ -10,7 +10,7 @@ from types import SimpleNamespace
 
 import pytest
 
-from benchmarks.sweep import GridPoint, find_scenes, grid_points, run_sweep
+from benchmarks.runner.sweep import GridPoint, find_scenes, grid_points, run_sweep
 from worldtree.errors import UserError
 
 

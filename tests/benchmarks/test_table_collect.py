@@ -1,4 +1,4 @@
-"""benchmarks.results: finished runs -> long table, configuration labels, cost metrics, skipped runs."""
+"""benchmarks.reporting.results: finished runs -> long table, configuration labels, cost metrics, skipped runs."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from benchmarks.results import (
+from benchmarks.reporting.results import (
     LONG_COLUMNS,
     METRICS,
     collect_runs,
@@ -138,7 +138,7 @@ def test_select_protocols_and_metrics(tmp_path):
 
 def test_real_harness_table_is_read(tmp_path):
     """A metrics.csv written by the harness from real images (LPIPS off) gives back its own mean row."""
-    from benchmarks.evaluate import evaluate_arrays, write_result
+    from benchmarks.evaluation.evaluate import evaluate_arrays, write_result
 
     folder = rf.write_run(tmp_path, "S", "static", "quick", FULL)
     rng = np.random.default_rng(0)

@@ -15,8 +15,8 @@ import pytest
 from typer.testing import CliRunner
 
 from benchmarks.cli import app
-from benchmarks.results import collect_runs
-from benchmarks.tables import build_wide, latex_escape, rank_marks, to_csv, to_latex, to_markdown
+from benchmarks.reporting.results import collect_runs
+from benchmarks.reporting.tables import build_wide, latex_escape, rank_marks, to_csv, to_latex, to_markdown
 
 
 def _fixture():

@@ -12,10 +12,10 @@ import pytest
 import torch
 from typer.testing import CliRunner
 
-from baselines.registry import get_method
 from benchmarks.cli import app
-from benchmarks.results import HARNESS_METRICS, collect_runs
-from benchmarks.runs import RunRequest, execute
+from benchmarks.reporting.results import HARNESS_METRICS, collect_runs
+from benchmarks.runner.runs import RunRequest, execute
+from methods.registry import get_method
 
 
 @pytest.fixture

@@ -1,4 +1,4 @@
-"""benchmarks.tables.build_wide: per-scene cells, seed averaging, mean over the common scenes, group-by."""
+"""benchmarks.reporting.tables.build_wide: per-scene cells, seed averaging, mean over the common scenes, group-by."""
 
 from __future__ import annotations
 
@@ -10,8 +10,8 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from benchmarks.results import collect_runs
-from benchmarks.tables import build_wide
+from benchmarks.reporting.results import collect_runs
+from benchmarks.reporting.tables import build_wide
 from worldtree.errors import UserError
 
 

@@ -11,7 +11,7 @@ import pytest
 from typer.testing import CliRunner
 
 from benchmarks.cli import app
-from benchmarks.video import compose_frames
+from benchmarks.reporting.video import compose_frames
 from worldtree.errors import UserError
 from worldtree.imageio import read_image
 

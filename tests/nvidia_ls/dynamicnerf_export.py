@@ -12,9 +12,9 @@ from pathlib import Path
 
 import numpy as np
 
+from benchmarks.fixtures.planar_scene import PlanarScene
 from nvidia_ls import llff
 from worldtree.imageio import write_image
-from worldtree.priors.synthetic import PlanarScene
 
 
 def export_dynamicnerf(

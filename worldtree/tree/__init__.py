@@ -5,7 +5,7 @@ Modules: :mod:`~worldtree.tree.tpt` (indices, intervals, the tree), :mod:`~world
 strategies), :mod:`~worldtree.tree.sac` (ancestor copies, policy, time convention), :mod:`~worldtree.tree.node`
 (a node's state and its files), :mod:`~worldtree.tree.inherit` (parent -> children),
 :mod:`~worldtree.tree.parallel` (layer runner), :mod:`~worldtree.tree.build` (Algorithm 1 below a trained
-root), :mod:`~worldtree.tree.toy` (toy node trainers for tests and the speed script).
+root). Toy node trainers for the tests and the speed script live in ``benchmarks/fixtures/toy_nodes.py``.
 """
 
 from worldtree.tree.tpt import (

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from worldtree.priors.synthetic import PlanarScene, PlanarSceneConfig
+from benchmarks.fixtures.planar_scene import PlanarScene, PlanarSceneConfig
 
 
 @pytest.fixture(scope="session")

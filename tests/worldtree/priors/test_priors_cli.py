@@ -10,8 +10,8 @@ import pytest
 from typer.testing import CliRunner
 
 from benchmarks.cli import app
+from benchmarks.fixtures.planar_scene import PlanarScene, PlanarSceneConfig, write_scene_folder
 from worldtree.errors import UserError
-from worldtree.priors.synthetic import PlanarScene, PlanarSceneConfig, write_scene_folder
 
 
 def _prep(*args: str) -> subprocess.CompletedProcess:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from worldtree.priors.synthetic import ping_pong
+from benchmarks.fixtures.planar_scene import ping_pong
 
 
 def test_ping_pong_order():

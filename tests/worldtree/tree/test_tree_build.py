@@ -17,10 +17,10 @@ from worldtree.tree.tpt import Interval, build_intervals
 def test_tree_build_binary_depth2_sequential_and_parallel_agree(node_factory, tmp_path):
     root = node_factory(1, Interval(0, 59), num_dynamic=400)
     cfg = TreeConfig(depth=2, inherit=InheritConfig(caps=(150, 60)))
-    with LayerRunner(ParallelConfig(sequential=True, device="cpu"), "worldtree.tree.toy:perturb_node") as r:
+    with LayerRunner(ParallelConfig(sequential=True, device="cpu"), "benchmarks.fixtures.toy_nodes:perturb_node") as r:
         seq = grow_tree(root, cfg, r, tmp_path / "seq", seed=5)
     with LayerRunner(
-        ParallelConfig(device="cpu", max_workers=2, threads_total=2), "worldtree.tree.toy:perturb_node"
+        ParallelConfig(device="cpu", max_workers=2, threads_total=2), "benchmarks.fixtures.toy_nodes:perturb_node"
     ) as r:
         par = grow_tree(root, cfg, r, tmp_path / "par", seed=5)
     assert seq.tree.intervals == build_intervals(60, 2).intervals == par.tree.intervals
@@ -51,7 +51,7 @@ def test_tree_build_gradient_split_uses_the_parents_profile(node_factory, tmp_pa
     # Root profile: all the gradient in frames 40..59 -> root splits at 50.
     prof = torch.zeros(60, dtype=torch.float64)
     prof[40:] = 1.0
-    with LayerRunner(ParallelConfig(sequential=True, device="cpu"), "worldtree.tree.toy:perturb_node") as r:
+    with LayerRunner(ParallelConfig(sequential=True, device="cpu"), "benchmarks.fixtures.toy_nodes:perturb_node") as r:
         res = grow_tree(root, cfg, r, tmp_path, root_profile=prof)
     assert res.tree.interval(2) == Interval(0, 49) and res.splits[1].fallback is None
     # Children return the rising profile w[k] = k + 1: node 2 ([0, 49], n = 50) balances where
@@ -63,7 +63,7 @@ def test_tree_build_gradient_split_uses_the_parents_profile(node_factory, tmp_pa
 
 
 def test_tree_build_rejects_a_non_root(node_factory, tmp_path):
-    with LayerRunner(ParallelConfig(sequential=True, device="cpu"), "worldtree.tree.toy:perturb_node") as r:
+    with LayerRunner(ParallelConfig(sequential=True, device="cpu"), "benchmarks.fixtures.toy_nodes:perturb_node") as r:
         with pytest.raises(ValueError):
             grow_tree(node_factory(2, Interval(0, 29)), TreeConfig(), r, tmp_path)
     with pytest.raises(ValueError):

@@ -7,8 +7,8 @@ import json
 import pytest
 import torch
 
+from benchmarks.fixtures.toy_nodes import fit_node, make_input
 from worldtree.tree.parallel import LayerFailed, LayerRunner, ParallelConfig, node_dir, write_input
-from worldtree.tree.toy import fit_node, make_input
 
 NODES = [4, 5, 6, 7]
 
@@ -23,7 +23,7 @@ def test_tree_parallel_equals_sequential_with_files_and_timings(tmp_path):
     _write_layer(seq_dir)
     _write_layer(par_dir)
     seeds = [11, 12, 13, 14]
-    with LayerRunner(ParallelConfig(sequential=True, device="cpu"), "worldtree.tree.toy:fit_node") as r:
+    with LayerRunner(ParallelConfig(sequential=True, device="cpu"), "benchmarks.fixtures.toy_nodes:fit_node") as r:
         seq = r.run_layer(2, seq_dir, NODES, seeds)
         seq_out = {j: r.load_output(seq_dir, j) for j in NODES}
     threads_here = torch.get_num_threads()
@@ -64,7 +64,7 @@ def test_tree_parallel_failure_names_the_node(tmp_path):
     folder = tmp_path / "layer1"
     for j in (2, 3):
         write_input(folder, j, make_input(dim=4, rows=16, steps=5, seed=j))
-    with LayerRunner(ParallelConfig(sequential=True, device="cpu"), "worldtree.tree.toy:fail_node") as r:
+    with LayerRunner(ParallelConfig(sequential=True, device="cpu"), "benchmarks.fixtures.toy_nodes:fail_node") as r:
         with pytest.raises(LayerFailed, match=r"node\(s\) 3 failed.*toy failure on purpose") as info:
             r.run_layer(1, folder, [2, 3])
     assert [n.node for n in info.value.failed] == [3]
@@ -86,7 +86,7 @@ def test_tree_parallel_dead_worker_is_reported_with_its_node(tmp_path):
     for j in (2, 3):
         write_input(folder, j, make_input(dim=4, rows=16, steps=5, seed=j))
     cfg = ParallelConfig(device="cpu", max_workers=2, threads_total=2)
-    with LayerRunner(cfg, "worldtree.tree.toy:die_node") as r:
+    with LayerRunner(cfg, "benchmarks.fixtures.toy_nodes:die_node") as r:
         with pytest.raises(LayerFailed, match="died") as info:
             r.run_layer(1, folder, [2, 3])
         assert 3 in [n.node for n in info.value.failed]

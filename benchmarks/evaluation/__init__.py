@@ -1,0 +1,1 @@
+"""Evaluation: metrics, protocols, LPIPS and the `wtbench eval` harness over run folders."""

@@ -1,0 +1,1 @@
+"""Reporting: result records, tables, speed-vs-error plots and videos of finished runs."""

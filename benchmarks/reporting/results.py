@@ -1,0 +1,325 @@
+"""Collect finished runs into one long table: a row per (run, metric).
+
+A run folder is ``RUNS_DIR/<scene>/<method>/<tag>/`` as written by :mod:`benchmarks.runner.runs`. Only finished runs
+(``DONE`` present) are read; unfinished or damaged ones are skipped with a note. What is read:
+
+- ``config.json``: ``method``, ``preset``, ``overrides``, ``seed`` and the method's ``config`` (for the
+  configuration label, :func:`describe_configuration`);
+- ``metrics.csv``: the ``mean`` row of the evaluation harness (columns of :data:`HARNESS_METRICS`);
+- ``metrics.json``: ``protocol.name``;
+- ``timing.json`` (and ``model/model.json`` for model sizes): the cost metrics of :data:`COST_METRICS`.
+
+The format is documented in docs/tables.md.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from worldtree.errors import UserError
+
+#: Columns of the evaluation harness (benchmarks.evaluation.evaluate.COLUMNS without ``frame``).
+HARNESS_METRICS = ("psnr", "ssim", "lpips", "avge", "mpsnr", "mssim", "mlpips", "mavge")
+#: Cost of a run: wall seconds, peak memory (MiB), model size.
+COST_METRICS = ("wall_time_s", "peak_memory_mb", "n_gaussians", "n_scaffold_nodes", "n_tree_nodes")
+METRICS = HARNESS_METRICS + COST_METRICS
+#: Metrics where a larger value is better; every other metric is better when smaller.
+HIGHER_IS_BETTER = frozenset({"psnr", "ssim", "mpsnr", "mssim"})
+#: Columns of the long table, in order.
+LONG_COLUMNS = (
+    "method",
+    "configuration",
+    "scene",
+    "protocol",
+    "metric",
+    "value",
+    "preset",
+    "tag",
+    "seed",
+    "run",
+)
+#: Columns of the long table that may group the rows of the wide table.
+GROUP_KEYS = ("method", "configuration", "preset", "tag", "seed")
+
+#: Ablation flags in the order the paper's ablation table lists them; others follow alphabetically.
+_ABLATION_ORDER = ("ba", "sw", "tpt", "sac")
+#: Keys naming the model-size counts, first match wins (method stats may use any of these spellings).
+_SIZE_KEYS = {
+    "n_gaussians": ("num_gaussians", "n_gaussians"),
+    "n_scaffold_nodes": ("num_scaffold_nodes", "n_scaffold_nodes", "scaffold_nodes"),
+    "n_tree_nodes": ("num_tree_nodes", "n_tree_nodes", "tree_nodes"),
+}
+
+
+def higher_is_better(metric: str) -> bool:
+    """Direction of ``metric``: True for PSNR/SSIM (plain or masked), False for errors, time, memory, size."""
+    return metric in HIGHER_IS_BETTER
+
+
+# ------------------------------------------------------------------------------------- configuration label
+
+
+def _lookup(record: Mapping[str, Any], key: str) -> Any:
+    """``key`` from the record's top level, its ``config``, or ``config["tree"]`` (first found), else None."""
+    places: list[Any] = [record]
+    cfg = record.get("config")
+    if isinstance(cfg, Mapping):
+        places.append(cfg)
+        if isinstance(cfg.get("tree"), Mapping):
+            places.append(cfg["tree"])
+    for place in places:
+        if key in place and place[key] is not None:
+            return place[key]
+    return None
+
+
+def _ablations(value: Any) -> list[str]:
+    if isinstance(value, str):
+        items = [s for s in value.replace(",", " ").split() if s]
+    elif isinstance(value, Iterable):
+        items = [str(s) for s in value]
+    else:
+        return []
+    items = sorted({s.strip().lstrip("-").lower() for s in items if s.strip()})
+    known = [a for a in _ABLATION_ORDER if a in items]
+    return known + [a for a in items if a not in _ABLATION_ORDER]
+
+
+def describe_configuration(record: Mapping[str, Any]) -> str:
+    """A short label of a run's configuration from its ``config.json`` record; missing keys are left out.
+
+    Reads, in this order: ``preset`` (e.g. ``quick``); ``overrides`` other than ``seed`` as ``key=value``
+    sorted by key (runs differing only in their seed share a label, so that a table averages seeds); then
+    ``ablate`` (list or comma/space separated string) as ``-ba -sw -tpt -sac``; ``depth`` as ``depth=D``;
+    ``chain_length`` as ``chain=K``; ``split`` as ``split=S``. Each of the last four is looked up at the
+    record's top level, then in ``record["config"]``, then in ``record["config"]["tree"]``.
+    ``{"preset": "quick", "config": {"ablate": ["sw", "ba"], "depth": 3}}`` -> ``"quick -ba -sw depth=3"``.
+    Then ``sets`` (``--set KEY=VALUE``, sorted) and ``imported_priors`` (``--masks`` etc.) as ``name=folder``
+    (the path's last part), so runs that differ only there never share a row.
+    A record with none of these keys gives ``"default"``.
+    """
+    parts: list[str] = []
+    preset = record.get("preset")
+    if preset not in (None, ""):
+        parts.append(str(preset))
+    overrides = record.get("overrides")
+    if isinstance(overrides, Mapping):
+        parts += [f"{k}={overrides[k]}" for k in sorted(overrides) if k != "seed"]
+    parts += [f"-{a}" for a in _ablations(_lookup(record, "ablate"))]
+    for key, name in (("depth", "depth"), ("chain_length", "chain"), ("split", "split")):
+        v = _lookup(record, key)
+        if v is not None and not isinstance(v, Mapping | list):
+            parts.append(f"{name}={v}")
+    sets = record.get("sets")
+    if isinstance(sets, list):
+        parts += sorted(str(x) for x in sets)
+    priors = record.get("imported_priors")
+    if isinstance(priors, Mapping):
+        parts += [f"{k}={Path(str(priors[k])).name}" for k in sorted(priors)]
+    return " ".join(parts) if parts else "default"
+
+
+# --------------------------------------------------------------------------------------------- collection
+
+
+@dataclass
+class Collection:
+    """Finished runs as a long table, and what was noticed while reading them."""
+
+    long: pd.DataFrame
+    """One row per (run, metric) with columns :data:`LONG_COLUMNS`; ``value`` NaN where absent."""
+    notes: list[str] = field(default_factory=list)
+    """One line per skipped run or oddity, for the user."""
+
+
+def _read_json(path: Path) -> dict[str, Any] | None:
+    try:
+        obj = json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError, UnicodeDecodeError):
+        return None
+    return obj if isinstance(obj, dict) else None
+
+
+def _number(v: Any) -> float:
+    """A JSON/CSV value as float; NaN when absent or not a number."""
+    if v is None or isinstance(v, bool):
+        return math.nan
+    try:
+        return float(v)
+    except (TypeError, ValueError):
+        return math.nan
+
+
+def _mean_row(csv: Path) -> dict[str, float] | None:
+    try:
+        table = pd.read_csv(csv, dtype={"frame": str}, keep_default_na=False, na_values=[""])
+    except (OSError, ValueError, pd.errors.ParserError):
+        return None
+    if "frame" not in table.columns:
+        return None
+    rows = table[table["frame"] == "mean"]
+    if len(rows) != 1:
+        return None
+    row = rows.iloc[0]
+    return {m: _number(row[m]) if m in table.columns else math.nan for m in HARNESS_METRICS}
+
+
+def _first(places: Sequence[Mapping[str, Any] | None], keys: Sequence[str]) -> float:
+    for place in places:
+        if not isinstance(place, Mapping):
+            continue
+        for k in keys:
+            v = _number(place.get(k))
+            if not math.isnan(v):
+                return v
+    return math.nan
+
+
+def cost_metrics(timing: Mapping[str, Any] | None, model_info: Mapping[str, Any] | None) -> dict[str, float]:
+    """The :data:`COST_METRICS` of one run from its ``timing.json`` and ``model/model.json`` (NaN if absent).
+
+    ``wall_time_s``: the sum of ``stages_s`` except ``eval`` (scoring is not the method's cost), with the
+    ``train`` stage replaced by ``train.wall_s_all_sessions`` so that a resumed run counts every session;
+    ``total_s`` when ``stages_s`` is missing. ``peak_memory_mb``: ``cuda_peak_allocated_mib`` when the run
+    was on CUDA, else ``peak_rss_mib`` (MiB). Sizes: the first of ``num_*``/``n_*`` keys found in
+    timing.json, its ``method_stats``, then model.json.
+    """
+    timing = timing or {}
+    stages = timing.get("stages_s")
+    wall = math.nan
+    if isinstance(stages, Mapping) and stages:
+        vals = {str(k): _number(v) for k, v in stages.items() if k != "eval"}
+        train = timing.get("train")
+        all_sessions = _number(train.get("wall_s_all_sessions")) if isinstance(train, Mapping) else math.nan
+        if "train" in vals and not math.isnan(all_sessions):
+            vals["train"] = all_sessions
+        finite = [v for v in vals.values() if math.isfinite(v)]
+        wall = float(sum(finite)) if finite else math.nan
+    if math.isnan(wall):
+        wall = _number(timing.get("total_s"))
+    mem = _number(timing.get("cuda_peak_allocated_mib"))
+    if math.isnan(mem):
+        mem = _number(timing.get("peak_rss_mib"))
+    stats = timing.get("method_stats")
+    places = [timing, stats if isinstance(stats, Mapping) else None, model_info]
+    out = {"wall_time_s": wall, "peak_memory_mb": mem}
+    for metric, keys in _SIZE_KEYS.items():
+        out[metric] = _first(places, keys)
+    return out
+
+
+def find_run_folders(runs_dir: Path) -> list[Path]:
+    """Folders ``runs_dir/<scene>/<method>/<tag>`` holding a ``config.json`` or ``DONE``, sorted; hidden
+    names (temporary folders of atomic writes) are left out."""
+    return sorted(
+        p
+        for p in runs_dir.glob("*/*/*")
+        if p.is_dir()
+        and not any(part.startswith(".") for part in p.relative_to(runs_dir).parts)
+        and ((p / "config.json").is_file() or (p / "DONE").is_file())
+    )
+
+
+def collect_runs(runs_dirs: Sequence[str | Path]) -> Collection:
+    """Read every finished run under ``runs_dirs`` into a long table (see the module doc).
+
+    Raises :class:`UserError` when a folder does not exist or no finished run is found.
+    """
+    rows: list[dict[str, Any]] = []
+    notes: list[str] = []
+    unfinished: list[str] = []
+    seen: set[Path] = set()
+    for d in runs_dirs:
+        d = Path(d)
+        if not d.is_dir():
+            raise UserError(
+                f"RUNS_DIR {d}: no such folder; give the -o folder of `wtbench run`/`wtbench sweep`"
+            )
+        for run in find_run_folders(d):
+            if run.resolve() in seen:
+                continue  # the same run reached through two RUNS_DIR arguments counts once
+            seen.add(run.resolve())
+            rel = str(run.relative_to(d))
+            if not (run / "DONE").is_file():
+                unfinished.append(rel)
+                continue
+            config = _read_json(run / "config.json")
+            mean = _mean_row(run / "metrics.csv")
+            if config is None or mean is None:
+                what = "config.json" if config is None else "metrics.csv (no single 'mean' row)"
+                notes.append(f"skipped {run}: unreadable {what}; re-run it with `wtbench run ... --force`")
+                continue
+            record = _read_json(run / "metrics.json") or {}
+            proto = record.get("protocol")
+            protocol = (
+                str(proto.get("name")) if isinstance(proto, Mapping) and proto.get("name") else "unknown"
+            )
+            if protocol == "unknown":
+                notes.append(f"{run}: metrics.json names no protocol; listed as protocol 'unknown'")
+            values = {
+                **mean,
+                **cost_metrics(_read_json(run / "timing.json"), _read_json(run / "model" / "model.json")),
+            }
+            inf = [m for m, v in values.items() if math.isinf(v)]
+            if inf:
+                notes.append(f"{run}: infinite {', '.join(inf)} (renders identical to the ground truth?)")
+            seed = config.get("seed")
+            base = {
+                "method": str(config.get("method") or run.parent.name),
+                "configuration": describe_configuration(config),
+                "scene": run.parent.parent.name,
+                "protocol": protocol,
+                "preset": str(config.get("preset") or ""),
+                "tag": run.name,
+                "seed": int(seed) if isinstance(seed, int) and not isinstance(seed, bool) else None,
+                "run": str(run),
+            }
+            rows += [{**base, "metric": m, "value": values[m]} for m in METRICS]
+    if unfinished:
+        shown = ", ".join(unfinished[:5]) + (
+            f" and {len(unfinished) - 5} more" if len(unfinished) > 5 else ""
+        )
+        notes.append(f"skipped {len(unfinished)} unfinished run(s) (no DONE): {shown}")
+    if not rows:
+        where = ", ".join(str(d) for d in runs_dirs)
+        raise UserError(
+            f"RUNS_DIR {where}: no finished run (RUNS_DIR/<scene>/<method>/<tag>/DONE) found; "
+            "run `wtbench run --method M --scene S -o RUNS_DIR` first"
+        )
+    long = pd.DataFrame(rows)
+    long["seed"] = long["seed"].astype("Int64")
+    long["value"] = long["value"].astype(np.float64)
+    return Collection(long[list(LONG_COLUMNS)], notes)
+
+
+def select(
+    long: pd.DataFrame, protocol: str | None = None, metrics: Sequence[str] | None = None
+) -> pd.DataFrame:
+    """Rows of one protocol (``protocol`` or the only one present) and of ``metrics`` (default: all).
+
+    Raises :class:`UserError` when several protocols are present and none is chosen, or a name is unknown.
+    """
+    protocols = sorted(long["protocol"].unique())
+    if protocol is None:
+        if len(protocols) > 1:
+            raise UserError(
+                f"runs were scored under several protocols ({', '.join(protocols)}); choose one with --protocol"
+            )
+    elif protocol not in protocols:
+        raise UserError(f"--protocol {protocol}: no run uses it; the runs use {', '.join(protocols)}")
+    else:
+        long = long[long["protocol"] == protocol]
+    if metrics is not None:
+        bad = [m for m in metrics if m not in METRICS]
+        if bad:
+            raise UserError(f"--metrics: unknown {', '.join(bad)}; choose from {', '.join(METRICS)}")
+        long = long[long["metric"].isin(list(metrics))]
+    return long

@@ -1,0 +1,507 @@
+"""Run folders: the layout of one method's run on one scene, its bookkeeping, and executing it end to end.
+
+Layout (``RUNS_DIR/<scene>/<method>/<tag>/``, ``tag`` = preset plus overrides, e.g. ``quick`` or
+``quick-steps200-seed1``, and ``-set<8 hex>`` when ``--set`` or imported priors change the config)::
+
+    config.json     resolved typed config, preset, overrides, options, sets, imported priors, seed, scene,
+                    tool version
+    command.txt     the command line that made the run
+    checkpoints/    periodic atomic checkpoints (model + optimiser + density-control state + RNG states)
+    model/          final model: gaussians.pt (GaussianSet.load), gaussians.ply, model.json
+    renders/        the test camera at every test time, named like the ground truth (v001_tXXX.png)
+    metrics.csv     per-frame scores and a 'mean' row (benchmarks.evaluation.evaluate), metrics.json beside it
+    timing.json     wall time per stage, iterations/s, peak memory, Gaussian count, device, backend
+    tensorboard/    TensorBoard scalars (only with --tensorboard)
+    DONE            written last; a finished run is skipped unless forced
+
+Running the same request again resumes from the newest checkpoint, or skips a run whose DONE exists.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import resource
+import shutil
+import sys
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+import worldtree
+from benchmarks.runner.config_overrides import apply_overrides, sets_digest, split_assignment
+from worldtree.atomic import atomic_write_json, atomic_write_text
+from worldtree.errors import UserError
+from worldtree.imageio import write_image
+from worldtree.output_paths import check_output_folder
+
+TUNABLE = ("steps", "seed", "downscale")
+# Method options of `wtbench run` (set only on methods whose config has the field), in tag order.
+METHOD_OPTIONS = ("ablate", "depth", "chain_length", "split", "sequential")
+# Imported-prior options of `wtbench run` -> the PriorsConfig field each sets (priors.<field>), and what the
+# path must be ("dir", "file" or "any"; as `wtbench prep` reads them, docs/priors.md).
+PRIOR_OPTIONS: dict[str, tuple[str, str]] = {
+    "masks": ("masks_source", "dir"),
+    "tracks": ("tracks_source", "file"),
+    "depth_maps": ("depth_source", "any"),
+    "flow": ("flow_source", "dir"),
+}
+
+
+@dataclass(frozen=True)
+class RunFolder:
+    """Paths of one run."""
+
+    root: Path
+
+    @property
+    def config_json(self) -> Path:
+        return self.root / "config.json"
+
+    @property
+    def command_txt(self) -> Path:
+        return self.root / "command.txt"
+
+    @property
+    def checkpoints(self) -> Path:
+        return self.root / "checkpoints"
+
+    @property
+    def model(self) -> Path:
+        return self.root / "model"
+
+    @property
+    def renders(self) -> Path:
+        return self.root / "renders"
+
+    @property
+    def metrics_csv(self) -> Path:
+        return self.root / "metrics.csv"
+
+    @property
+    def metrics_json(self) -> Path:
+        return self.root / "metrics.json"
+
+    @property
+    def timing_json(self) -> Path:
+        return self.root / "timing.json"
+
+    @property
+    def tensorboard(self) -> Path:
+        return self.root / "tensorboard"
+
+    @property
+    def done(self) -> Path:
+        return self.root / "DONE"
+
+    def is_done(self) -> bool:
+        return self.done.is_file()
+
+
+def run_tag(
+    preset: str,
+    overrides: dict[str, Any],
+    options: dict[str, Any] | None = None,
+    sets: list[str] | None = None,
+) -> str:
+    """Folder name of a configuration: the preset, then ``-<field><value>`` per override in a fixed order,
+    then the method options: ``-no<name>`` per ablation, ``-depth<D>``, ``-chain<K>``, ``-split<S>``, ``-seq``
+    (e.g. ``quick-steps200-noba-nosac-depth3``), then ``-set<8 hex>`` when ``sets`` (``KEY=VALUE`` strings,
+    imported priors included) are given: :func:`benchmarks.runner.config_overrides.sets_digest`, the same for the
+    same settings in any order."""
+    parts = [preset] + [f"{k}{overrides[k]}" for k in TUNABLE if k in overrides]
+    opts = options or {}
+    parts += [f"no{a}" for a in sorted(set(opts.get("ablate") or ()))]
+    for key, name in (("depth", "depth"), ("chain_length", "chain"), ("split", "split")):
+        if opts.get(key) is not None:
+            parts.append(f"{name}{opts[key]}")
+    if opts.get("sequential"):
+        parts.append("seq")
+    if sets:
+        parts.append("set" + sets_digest(sets))
+    return "-".join(parts)
+
+
+def peak_rss_mib() -> float:
+    """Peak resident memory of this process so far, MiB (Linux reports kilobytes, macOS bytes)."""
+    rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return rss / (1024.0 * 1024.0) if sys.platform == "darwin" else rss / 1024.0
+
+
+class StageTimer:
+    """Wall time of named stages, in the order they ran."""
+
+    def __init__(self) -> None:
+        self.stages: dict[str, float] = {}
+
+    @contextmanager
+    def stage(self, name: str) -> Iterator[None]:
+        t0 = time.perf_counter()
+        try:
+            yield
+        finally:
+            self.stages[name] = self.stages.get(name, 0.0) + time.perf_counter() - t0
+
+
+@dataclass(frozen=True)
+class TestView:
+    """The test camera at the size of the ground-truth images."""
+
+    K: torch.Tensor  # [3, 3] pixels
+    w2c: torch.Tensor  # [4, 4] OpenCV world-to-camera
+    width: int
+    height: int
+    times: list[int]
+    files: list[str]
+
+
+def native_test_view(root: Path) -> TestView:
+    """The test camera of scene ``root`` at the stored (not down-scaled) image size, from ``cameras.json``."""
+    from worldtree.scene import read_cameras_json
+
+    meta = read_cameras_json(root)
+    frames = meta.get("test_frames") or []
+    if not frames:
+        raise UserError(f"{root / 'cameras.json'}: lists no test frames, so nothing can be scored")
+    cams = {int(c["id"]): c for c in meta["cameras"]}
+    cid = int(meta.get("test_camera", 1))
+    if cid not in cams:
+        raise UserError(f"{root / 'cameras.json'}: test camera {cid} is not listed under 'cameras'")
+    return TestView(
+        K=torch.tensor(cams[cid]["K"], dtype=torch.float32),
+        w2c=torch.tensor(cams[cid]["w2c"], dtype=torch.float32),
+        width=int(meta["width"]),
+        height=int(meta["height"]),
+        times=[int(f["time"]) for f in frames],
+        files=[Path(f["file"]).name for f in frames],
+    )
+
+
+@dataclass
+class RunRequest:
+    """Everything ``wtbench run`` was asked to do."""
+
+    scene: Path
+    """Scene folder (written by ``nvls build``)."""
+    method: str
+    """Registered method name."""
+    runs_dir: Path = Path("runs")
+    """Root of all run folders."""
+    preset: str = "paper"
+    """Config preset of the method."""
+    device: str = "auto"
+    """auto, cpu, cuda or cuda:N."""
+    overrides: dict[str, int] = field(default_factory=dict)
+    """Overridden common config fields (steps, seed, downscale)."""
+    options: dict[str, Any] = field(default_factory=dict)
+    """Method options (``METHOD_OPTIONS``: ablate list, depth, chain_length, split, sequential), set on the
+    config fields of the same name; a method whose config lacks one refuses it."""
+    lpips_weights: Path | None = None
+    """Folder with the LPIPS weight files (None: the evaluator's default search)."""
+    tensorboard: bool = False
+    """Write TensorBoard scalars into the run folder."""
+    force: bool = False
+    """Delete an existing run folder (finished or not) and start again."""
+    sets: list[str] = field(default_factory=list)
+    """``KEY=VALUE`` assignments to any config field (``--set``, :mod:`benchmarks.runner.config_overrides`), applied
+    after overrides and options; recorded verbatim in config.json."""
+    priors: dict[str, str] = field(default_factory=dict)
+    """Imported priors: ``PRIOR_OPTIONS`` name (masks, tracks, depth_maps, flow) -> path; each sets its
+    ``priors.<...>_source`` field (a method without ``priors`` refuses them)."""
+    tag: str | None = None
+    """Run-folder name; default: preset plus overrides."""
+    progress: bool = True
+    """Show training progress."""
+    command: str = ""
+    """Command line, recorded in command.txt."""
+
+
+@dataclass
+class RunResult:
+    folder: RunFolder
+    skipped: bool
+    mean: dict[str, float]
+
+
+def _config_record(spec, cfg, req: RunRequest) -> dict[str, Any]:
+    return {
+        "method": spec.name,
+        "preset": req.preset,
+        "overrides": dict(req.overrides),
+        "options": dict(req.options),
+        "sets": list(req.sets),
+        "imported_priors": dict(req.priors),
+        "config": dataclasses.asdict(cfg),
+        "seed": cfg.seed,
+        "scene": str(req.scene.resolve()),
+        "device": req.device,
+        "version": worldtree.__version__,
+    }
+
+
+def _check_same_config(folder: RunFolder, record: dict[str, Any]) -> None:
+    try:
+        old = json.loads(folder.config_json.read_text())
+    except json.JSONDecodeError as e:
+        raise UserError(f"{folder.config_json}: damaged; re-run with --force to start this run again") from e
+    # Round-trip through JSON so tuples compare equal to the lists read back.
+    new = json.loads(json.dumps(record, default=str))
+    for key in ("method", "config", "scene"):
+        if old.get(key) != new.get(key):
+            raise UserError(
+                f"{folder.root} holds a run with a different {key}; use --force to replace it, "
+                "or --tag/-o to run elsewhere"
+            )
+
+
+def execute(req: RunRequest) -> RunResult:
+    """Train, render, score and record one run (resuming or skipping as described in the module doc).
+
+    Everything that can be checked is checked before the run folder is touched (method, scene, config,
+    device, the output folder's writability), so a rejected request leaves nothing behind. The run folder
+    is then locked (:class:`worldtree.folder_lock.FolderLock`, held until this function returns) before
+    anything is written or deleted in it: a second writer, ``--force`` included, fails at once naming the
+    holder's PID and host.
+    """
+    from methods.registry import get_method
+    from worldtree.checkpoint import seed_everything
+    from worldtree.device import pick_device
+    from worldtree.folder_lock import FolderLock
+    from worldtree.scene import load_scene
+    from worldtree.trainer import check_tensorboard
+
+    spec = get_method(req.method)
+    if req.tensorboard:
+        check_tensorboard()
+    root = Path(req.scene)
+    if not root.is_dir():
+        raise UserError(f"--scene {root}: no such folder; give a scene folder written by `nvls build`")
+    view = native_test_view(root)
+    cfg, sets = resolve_config(spec, req)
+    tag = req.tag or run_tag(req.preset, req.overrides, req.options, sets)
+    folder = RunFolder(Path(req.runs_dir) / root.name / spec.name / tag)
+    device = pick_device(req.device)
+    check_output_folder(req.runs_dir, "--out")
+    timer = StageTimer()
+
+    def build_method():
+        seed_everything(cfg.seed)  # before building: a method may draw its initial points
+        with timer.stage("load"):
+            scene = load_scene(root, downscale=cfg.downscale)
+        with timer.stage("init"):
+            return spec.build(cfg, scene, device)
+
+    # A finished run is skipped without loading its scene; any other request loads the scene and builds the
+    # method first, so that their errors (a damaged scene, too few frames) come before the folder exists.
+    method = None if (folder.is_done() and not req.force) else build_method()
+    with FolderLock(folder.root, "run folder"):
+        return _execute_locked(req, spec, cfg, folder, root, view, device, timer, method, build_method)
+
+
+def _execute_locked(req, spec, cfg, folder, root, view, device, timer, method, build_method) -> RunResult:
+    """The part of :func:`execute` that runs with the run folder locked. ``method`` is the built method, or
+    None when the run looked finished before locking (``build_method()`` builds it if it no longer is)."""
+    from worldtree.trainer import TrainContext
+
+    record = _config_record(spec, cfg, req)
+    if req.force and folder.root.exists():
+        shutil.rmtree(folder.root)
+    if folder.config_json.is_file():
+        _check_same_config(folder, record)
+        if folder.is_done():
+            print(f"already finished: {folder.root} (use --force to run it again)", file=sys.stderr)
+            return RunResult(folder, skipped=True, mean=_read_mean(folder))
+        print(f"resuming: {folder.root}", file=sys.stderr)
+    folder.root.mkdir(parents=True, exist_ok=True)
+    atomic_write_json(folder.config_json, record)
+    atomic_write_text(folder.command_txt, req.command + "\n")
+
+    if device.type == "cuda":
+        torch.cuda.reset_peak_memory_stats(device)
+    if method is None:
+        method = build_method()
+    with timer.stage("train"):
+        ctx = TrainContext(
+            checkpoint_dir=folder.checkpoints,
+            tensorboard_dir=folder.tensorboard if req.tensorboard else None,
+            progress=req.progress,
+            resume=True,
+        )
+        summary = method.fit(ctx)
+    with timer.stage("save_model"):
+        method.save_model(folder.model)
+    with timer.stage("render"):
+        _render_test(method, view, folder)
+    with timer.stage("eval"):
+        mean = _evaluate(folder, root, req, device)
+
+    stats = method.stats()
+    timing = {
+        "stages_s": timer.stages,
+        "total_s": sum(timer.stages.values()),
+        "train": {
+            "steps": summary.end_step,
+            "resumed_from_step": summary.start_step,
+            "steps_this_session": summary.steps_run,
+            "wall_s_this_session": summary.wall_s,
+            "wall_s_all_sessions": summary.total_wall_s,
+            "it_per_s": summary.it_per_s,
+            "final_loss": summary.final_loss,
+        },
+        "peak_rss_mib": peak_rss_mib(),
+        "cuda_peak_allocated_mib": (
+            torch.cuda.max_memory_allocated(device) / 2**20 if device.type == "cuda" else None
+        ),
+        "num_gaussians": stats.get("num_gaussians"),
+        "backend": stats.get("backend"),
+        "device": str(device),
+        "torch_threads": torch.get_num_threads(),
+        "method_stats": stats,
+    }
+    atomic_write_json(folder.timing_json, timing)
+    atomic_write_json(
+        folder.done, {"finished": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()), "mean": mean}
+    )
+    return RunResult(folder, skipped=False, mean=mean)
+
+
+def resolve_config(spec, req: RunRequest) -> tuple[Any, list[str]]:
+    """The config of ``req``: ``spec``'s preset, then the overrides, the method options, and last the
+    ``--set`` assignments with the imported priors (as ``priors.<field>=<absolute path>``). Returns the config
+    and every assignment applied (they name the run folder). A ``--set`` key also given by its own option
+    (``--steps``, ``--depth``, ``--masks``...) is refused rather than silently preferring one."""
+    cfg = spec.config(req.preset)
+    for k in req.overrides:
+        if k not in TUNABLE:
+            raise UserError(f"override {k!r} is not one of {', '.join(TUNABLE)}")
+    cfg = dataclasses.replace(cfg, **req.overrides, **_method_options(cfg, spec.name, req.options))
+    prior_sets = _prior_sets(cfg, spec.name, req.priors)
+    flags = {k: option_flag(k) for k in (*req.overrides, *req.options)}
+    flags |= {f"priors.{PRIOR_OPTIONS[k][0]}": option_flag(k) for k in req.priors}
+    for item in req.sets:
+        key, _ = split_assignment(item)
+        if key in flags:
+            raise UserError(f"--set {item}: {key} is also given by {flags[key]}; keep one of them")
+    sets = list(req.sets) + prior_sets
+    cfg = apply_overrides(cfg, sets)
+    for k in ("steps", "downscale"):  # given by --steps/--downscale or by --set
+        v = getattr(cfg, k)
+        if v < 1:
+            raise UserError(f"{f'--{k} {v}' if k in req.overrides else f'--set {k}={v}'}: must be at least 1")
+    return cfg, sets
+
+
+def resolve_prior_paths(priors: dict[str, Any]) -> dict[str, str]:
+    """``{option: path}`` (``PRIOR_OPTIONS`` names; None values dropped) with each path made absolute; a
+    missing path, or a file where a folder is needed (or the reverse), is a :class:`UserError` naming the
+    option."""
+    out: dict[str, str] = {}
+    for name, value in priors.items():
+        if value is None:
+            continue
+        if name not in PRIOR_OPTIONS:
+            raise UserError(f"prior {name!r} is not one of {', '.join(PRIOR_OPTIONS)}")
+        flag = option_flag(name)
+        path = Path(value).expanduser().resolve()
+        kind = PRIOR_OPTIONS[name][1]
+        if not path.exists():
+            raise UserError(f"{flag} {value}: no such file or folder; see docs/priors.md for the layout")
+        if kind == "dir" and not path.is_dir():
+            raise UserError(f"{flag} {value}: not a folder; give the folder holding the files")
+        if kind == "file" and not path.is_file():
+            raise UserError(f"{flag} {value}: not a file; give one .npy/.npz/.pt file")
+        out[name] = str(path)
+    return out
+
+
+def option_flag(name: str) -> str:
+    """The command-line option of a request field: ``depth_maps`` -> ``--depth-maps``."""
+    return "--" + name.replace("_", "-")
+
+
+def _prior_sets(cfg, method: str, priors: dict[str, Any]) -> list[str]:
+    """The imported priors as ``priors.<field>=<absolute path>`` assignments, in ``PRIOR_OPTIONS`` order."""
+    given = [k for k, v in priors.items() if v is not None]
+    if given and "priors" not in {f.name for f in dataclasses.fields(cfg)}:
+        raise UserError(
+            f"{option_flag(given[0])}: method {method!r} uses no 2D priors; drop it or use --method base or --method worldtree"
+        )
+    paths = resolve_prior_paths(priors)
+    return [f"priors.{PRIOR_OPTIONS[k][0]}={paths[k]}" for k in PRIOR_OPTIONS if k in paths]
+
+
+def _method_options(cfg, method: str, options: dict[str, Any]) -> dict[str, Any]:
+    """``options`` checked against ``cfg``'s fields, the ablation list as a tuple."""
+    names = {f.name for f in dataclasses.fields(cfg)}
+    out: dict[str, Any] = {}
+    for k, v in options.items():
+        if k not in METHOD_OPTIONS:
+            raise UserError(f"option {k!r} is not one of {', '.join(METHOD_OPTIONS)}")
+        if k not in names:
+            raise UserError(
+                f"{option_flag(k)}: method {method!r} has no such option; drop it or use --method worldtree"
+            )
+        out[k] = tuple(v) if k == "ablate" else v
+    return out
+
+
+def _render_test(method, view: TestView, folder: RunFolder) -> None:
+    """Render the test camera at every test time into ``renders/`` (existing renders of the final model are
+    kept, so an interrupted rendering stage resumes)."""
+    folder.renders.mkdir(parents=True, exist_ok=True)
+    for t, name in zip(view.times, view.files, strict=True):
+        out = folder.renders / (Path(name).stem + ".png")  # lossless, whatever the ground truth's format
+        if out.is_file():
+            continue
+        img = method.render(view.K, view.w2c, view.width, view.height, t)
+        if not torch.isfinite(img).all():
+            raise RuntimeError(f"render of test time {t} contains NaN/Inf; the model diverged")
+        arr = (img.detach().clamp(0, 1).cpu().numpy() * 255.0 + 0.5).astype(np.uint8)
+        write_image(out, arr)
+
+
+def _evaluate(folder: RunFolder, root: Path, req: RunRequest, device: torch.device) -> dict[str, float]:
+    from benchmarks.evaluation.evaluate import evaluate_folder
+
+    mask_dir = root / "masks"
+    has_masks = mask_dir.is_dir() and any(mask_dir.iterdir())
+    res = evaluate_folder(
+        folder.renders,
+        root / "gt_images",
+        mask_dir=mask_dir if has_masks else None,
+        protocol="worldtree",
+        out_csv=folder.metrics_csv,
+        lpips_weights=req.lpips_weights,
+        device=str(device),
+    )
+    if not folder.metrics_json.is_file():
+        atomic_write_json(folder.metrics_json, res.record)
+    return _finite_means(res.mean)
+
+
+def _finite_means(row) -> dict[str, float]:
+    """The finite numbers of the table's mean row (LPIPS is empty when its weights are missing)."""
+    out = {}
+    for k, v in row.items():
+        if k == "frame":
+            continue
+        try:
+            fv = float(v)
+        except (TypeError, ValueError):
+            continue
+        if np.isfinite(fv):
+            out[str(k)] = fv
+    return out
+
+
+def _read_mean(folder: RunFolder) -> dict[str, float]:
+    try:
+        return dict(json.loads(folder.done.read_text()).get("mean", {}))
+    except (OSError, json.JSONDecodeError):
+        return {}

@@ -1,0 +1,1 @@
+"""Speed and proof scripts (`python -m benchmarks.speed.<name>`); they print figures, tests never time."""

@@ -1,0 +1,120 @@
+"""Methods registered by name: a typed config with named presets, a description, and a builder.
+
+A new method is one module that defines its config dataclass and a class implementing :class:`Method`, and
+calls :func:`register_method` at import; its module name is added once to :data:`METHOD_MODULES`. Nothing
+else in the toolkit changes: ``wtbench run --method NAME`` finds it here.
+
+Every config dataclass has the fields of :class:`CommonConfig` (``seed``, ``steps``, ``downscale``), which
+``wtbench run`` can override from the command line.
+"""
+
+from __future__ import annotations
+
+import importlib
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, fields
+from pathlib import Path
+from typing import Any, Protocol
+
+import torch
+
+from worldtree.errors import UserError
+from worldtree.scene import Scene
+from worldtree.trainer import TrainContext, TrainSummary
+
+# Modules that register methods when imported (one line per method).
+METHOD_MODULES: tuple[str, ...] = ("methods.static3dgs", "methods.base", "methods.worldtree")
+
+COMMON_FIELDS = ("seed", "steps", "downscale")
+
+
+@dataclass
+class CommonConfig:
+    """Fields every method config has (and ``wtbench run`` may override)."""
+
+    seed: int = 0
+    """Seed of every random-number generator of the run."""
+    steps: int = 30_000
+    """Optimisation steps of the main training stage."""
+    downscale: int = 1
+    """Train on images shrunk by this integer factor (renders are still made at the test images' size)."""
+
+
+class Method(Protocol):
+    """What ``wtbench run`` needs from a method built for one scene."""
+
+    def fit(self, ctx: TrainContext) -> TrainSummary:
+        """Train (resuming from ``ctx.checkpoint_dir`` when it holds checkpoints)."""
+        ...
+
+    def render(self, K: torch.Tensor, w2c: torch.Tensor, width: int, height: int, time: int) -> torch.Tensor:
+        """Image ``[height, width, 3]`` in [0, 1] of camera ``K [3,3]``, ``w2c [4,4]`` at time index ``time``."""
+        ...
+
+    def save_model(self, folder: Path) -> None:
+        """Write the final model (loadable) into ``folder``."""
+        ...
+
+    def stats(self) -> dict[str, Any]:
+        """Numbers for ``timing.json``: at least ``num_gaussians`` and ``backend``."""
+        ...
+
+
+@dataclass(frozen=True)
+class MethodSpec:
+    """A registered method."""
+
+    name: str
+    """Name used by ``--method``."""
+    description: str
+    """One line shown in listings."""
+    config_cls: type
+    """Config dataclass (with the :class:`CommonConfig` fields)."""
+    presets: Mapping[str, Callable[[], Any]]
+    """Preset name -> config factory; ``quick`` and ``paper`` at least."""
+    build: Callable[[Any, Scene, torch.device], Method]
+    """Entry point: ``build(config, scene, device) -> Method``."""
+
+    def config(self, preset: str) -> Any:
+        """The config of ``preset``."""
+        if preset not in self.presets:
+            raise UserError(
+                f"--preset {preset}: method {self.name!r} has presets {', '.join(sorted(self.presets))}"
+            )
+        return self.presets[preset]()
+
+
+_METHODS: dict[str, MethodSpec] = {}
+
+
+def register_method(spec: MethodSpec) -> MethodSpec:
+    """Add ``spec`` to the registry (a second registration of the same name replaces the first)."""
+    names = {f.name for f in fields(spec.config_cls)}
+    missing = [f for f in COMMON_FIELDS if f not in names]
+    if missing:
+        raise TypeError(f"config of method {spec.name!r} lacks the common fields {missing}")
+    for required in ("quick", "paper"):
+        if required not in spec.presets:
+            raise TypeError(f"method {spec.name!r} must define a {required!r} preset")
+    _METHODS[spec.name] = spec
+    return spec
+
+
+def _load_all() -> None:
+    for mod in METHOD_MODULES:
+        importlib.import_module(mod)
+
+
+def list_methods() -> list[MethodSpec]:
+    """Every registered method, sorted by name."""
+    _load_all()
+    return [_METHODS[k] for k in sorted(_METHODS)]
+
+
+def get_method(name: str) -> MethodSpec:
+    """The method called ``name``; an unknown name is a :class:`UserError` listing the registered ones."""
+    _load_all()
+    if name not in _METHODS:
+        known = ", ".join(sorted(_METHODS)) or "(none)"
+        raise UserError(f"--method {name!r} is not a registered method; choose one of: {known}")
+    return _METHODS[name]

@@ -1,0 +1,557 @@
+"""The WorldTree method: the Base method's root optimisation, then the Temporal Partition Tree (docs/worldtree.md).
+
+1. Root: the Base method's stages (priors -> BA -> SW -> scaffold -> photometric, :mod:`methods.base`) train
+   node 1 over every frame.
+2. Tree: :func:`worldtree.tree.build.grow_tree` splits, inherits and trains the layers ``1 .. depth`` with the
+   :class:`~worldtree.tree.parallel.LayerRunner` (one worker process per node, or ``sequential``). Each child
+   runs :func:`train_node`: the photometric fit of :mod:`worldtree.stages.photometric` on its own frames
+   (RGB, SSIM, depth, track and motion terms as at the root) rendering its Spatial Ancestral Chain, with the
+   cameras fixed and no density control (REFERENCE section 1: both only at the root); the nearest ancestors
+   train with it (:class:`~worldtree.tree.sac.AncestorPolicy`).
+3. Test: every test time is rendered by the deepest node covering it plus its chain (truncated to
+   ``chain_length``); the test camera is aligned and refined as in the Base method, through the tree's render.
+
+Worker hand-over: ``checkpoints/tree/context.pt`` holds what every node trains on (images, depth priors,
+intrinsics, dynamic tracks; plain tensors) and ``checkpoints/tree/node_config.pkl`` the node settings; a node
+finds them two folders above its own (``tree/layer<d>/node<j>``).
+
+Ablations (``ablate``): ``ba`` / ``sw`` as in the Base method; ``tpt`` trains the root only (depth 0, the Base
+method); ``sac`` grows the tree but every node trains and renders without ancestors.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import pickle
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from methods.base import BaseConfig, BaseMethod, paper_config, quick_config, smoke_config
+from methods.registry import MethodSpec, register_method
+from worldtree.atomic import atomic_write_bytes, atomic_write_json
+from worldtree.errors import UserError
+from worldtree.render import rasterize
+from worldtree.scene import Scene
+from worldtree.stages.photometric import PhotometricConfig, PhotometricFit
+from worldtree.strategy import DensifyStrategy
+from worldtree.torchfile import save_torch
+from worldtree.trainer import TrainContext, Trainer, TrainerConfig, TrainSummary
+from worldtree.tree.build import TreeConfig, TreeResult, grow_tree, node_output, read_node_input
+from worldtree.tree.inherit import InheritConfig
+from worldtree.tree.node import NodeState
+from worldtree.tree.parallel import LayerRunner, NodeContext, ParallelConfig
+from worldtree.tree.sac import (
+    AncestorCopy,
+    AncestorPolicy,
+    ancestor_optimizer,
+    chain_gaussians_at,
+)
+from worldtree.tree.split import SPLIT_STRATEGIES, ProfileAccumulator
+from worldtree.tree.tpt import DEFAULT_MIN_LEN, Interval, TemporalPartitionTree, depth_of
+
+__all__ = ["ABLATIONS", "NodeFit", "NodeTrainConfig", "WorldTreeConfig", "WorldTreeMethod", "train_node"]
+
+ABLATIONS = ("ba", "sw", "tpt", "sac")
+"""Ablation names of ``--ablate`` (the paper's ablation table columns)."""
+
+
+@dataclass
+class WorldTreeConfig(BaseConfig):
+    """WorldTree settings: the Base method's (root) plus the tree's. ``steps`` is the root's photometric fit."""
+
+    depth: int = 2
+    """Deepest tree layer (0 = the root only; the paper: 2)."""
+    chain_length: int | None = None
+    """Ancestors rendered at test time (None: the whole chain; 0: none). Training always uses the chain."""
+    split: str = "binary"
+    """Split strategy: ``binary``, ``gradient`` (position-gradient profile of the node) or ``flow``."""
+    sequential: bool = False
+    """Train each layer's nodes one after another in this process instead of in worker processes."""
+    max_workers: int | None = None
+    """Most nodes trained at once (None: the CPU cores, or the GPUs)."""
+    layer_steps: tuple[int, ...] = (2000, 2000)
+    """Photometric steps of a child node by its depth 1, 2, ... (deeper layers: the last value). The root's
+    are ``steps`` (paper NVIDIA-LS: 4000 / 2000 / 2000)."""
+    min_len: int = DEFAULT_MIN_LEN
+    """Nodes with fewer frames are leaves (12)."""
+    inherit_caps: tuple[int, ...] = (5000, 2000)
+    """Most dynamic Gaussians a child inherits, by depth 1, 2, ... (the root's cap is ``dynamic_max_init``)."""
+    inherit_opacity: float = 0.05
+    """Inherited dynamic opacities are reset to at most this."""
+    ancestors_optimised: int = 2
+    """The nearest this many ancestors train with a node; deeper ones are frozen."""
+
+    @classmethod
+    def ablation_names(cls) -> tuple[str, ...]:
+        """``ba``, ``sw`` as in Base, plus ``tpt`` (root only) and ``sac`` (no ancestors)."""
+        return ABLATIONS
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        if self.depth < 0:
+            raise UserError(f"--depth {self.depth}: must be >= 0 (0 = the root only)")
+        if self.chain_length is not None and self.chain_length < 0:
+            raise UserError(
+                f"--chain-length {self.chain_length}: must be >= 0, or omitted for the whole chain"
+            )
+        if self.split not in SPLIT_STRATEGIES:
+            raise UserError(f"--split {self.split}: choose one of {', '.join(SPLIT_STRATEGIES)}")
+        if not self.layer_steps or min(self.layer_steps) < 1:
+            raise UserError(f"WorldTreeConfig.layer_steps {self.layer_steps}: need one or more values >= 1")
+        self.layer_steps = tuple(int(s) for s in self.layer_steps)
+        self.inherit_caps = tuple(int(c) for c in self.inherit_caps)
+
+    @property
+    def tree_depth(self) -> int:
+        """The depth actually grown (0 under ``ablate tpt``)."""
+        return 0 if "tpt" in self.ablate else self.depth
+
+    def steps_at(self, depth: int) -> int:
+        """Photometric steps of a node at ``depth`` (>= 1)."""
+        return self.layer_steps[min(depth, len(self.layer_steps)) - 1]
+
+    def tree_config(self) -> TreeConfig:
+        policy = AncestorPolicy(optimised_nearest=self.ancestors_optimised)
+        inherit = InheritConfig(caps=self.inherit_caps, opacity_cap=self.inherit_opacity, policy=policy)
+        return TreeConfig(depth=self.tree_depth, min_len=self.min_len, split=self.split, inherit=inherit)
+
+
+def _wt(factory, layer_steps: tuple[int, ...], inherit_caps: tuple[int, ...] | None = None):
+    def make() -> WorldTreeConfig:
+        base = factory()
+        kw = {f.name: getattr(base, f.name) for f in dataclasses.fields(BaseConfig)}
+        extra: dict[str, Any] = {"layer_steps": layer_steps}
+        if inherit_caps is not None:
+            extra["inherit_caps"] = inherit_caps
+        return WorldTreeConfig(**kw, **extra)
+
+    return make
+
+
+# ------------------------------------------------------------------------------------------ node training
+_NO_DENSIFY = DensifyStrategy(refine_start=10**9, refine_stop=10**9, reset_every=0)
+
+
+@dataclass(frozen=True)
+class NodeTrainConfig:
+    """What every child node's training needs besides its state (written once per run for the workers)."""
+
+    photometric: PhotometricConfig
+    """The root's photometric settings; ``steps``, cameras and density control are set per node."""
+    layer_steps: tuple[int, ...]
+    """Steps by depth 1, 2, ..."""
+    policy: AncestorPolicy
+    """Which ancestors train."""
+    no_ancestors: bool
+    """``ablate sac``: train (and render) without the chain."""
+    extent: float
+    """Scene extent (world units) for the learning rates."""
+    checkpoint_every: int
+    log_every: int
+
+    def steps_at(self, depth: int) -> int:
+        return self.layer_steps[min(depth, len(self.layer_steps)) - 1]
+
+
+class NodeFit(PhotometricFit):
+    """The photometric fit of one tree node: its own static/dynamic/scaffold plus its ancestor chain.
+
+    ``images`` etc. are the node's frames (node-local indexing); ``t0`` is the node's first global frame, at
+    which ancestors are evaluated (each at its own local time). The trainable ancestors get one Adam with
+    constant rates (:func:`worldtree.tree.sac.ancestor_optimizer`); they are not regularised or densified.
+    A per-frame position-gradient profile of the node's dynamic Gaussians is gathered for the gradient split.
+    """
+
+    def __init__(self, *args, t0: int, chain: list[AncestorCopy], policy: AncestorPolicy, **kwargs):
+        self.t0 = int(t0)
+        self.chain = chain
+        self.policy = policy
+        super().__init__(*args, **kwargs)
+        self.profile = ProfileAccumulator(self.T)
+        self._frame = 0
+        self._build_ancestor_optimizer()
+
+    def _build_ancestor_optimizer(self) -> None:
+        c = self.cfg
+        lrs = {
+            "gauss.means": c.lr_means * self.extent,
+            "gauss.quats": c.lr_quats,
+            "gauss.log_scales": c.lr_scales,
+            "gauss.opacity_logits": c.lr_opacity,
+            "gauss.sh0": c.lr_sh0,
+            "gauss.skin_corr": c.lr_skin_corr,
+            "scaffold.pos": c.lr_node_pos * self.extent,
+            "scaffold.quat": c.lr_node_quat,
+            "scaffold.sigma_logit": c.lr_node_sigma,
+        }
+        for a in self.chain:
+            a.apply_policy(self.policy)
+            a.refresh_cache()
+        self.anc_opt = ancestor_optimizer(self.chain, self.policy, lrs)
+
+    def gaussians_at(self, t: int, cache=None):
+        """Static + own dynamic at node-local frame ``t``, then the ancestors at global ``t0 + t``."""
+        own = super().gaussians_at(t, cache)
+        anc = chain_gaussians_at(self.chain, self.t0 + int(t))
+        if anc is None:
+            return own
+        return tuple(torch.cat([a, b]) for a, b in zip(own, anc, strict=True))
+
+    def track_means_at(self, j: int) -> torch.Tensor:
+        """The root's track loss also colours the ancestors' Gaussians by their pixel in frame ``j``."""
+        return self.gaussians_at(j)[0]
+
+    def _next_frame(self) -> int:
+        self._frame = super()._next_frame()
+        return self._frame
+
+    def optimizer_step(self, step: int, out) -> dict[str, float]:
+        g = self.dynamic.params["means"].grad if len(self.dynamic) else None
+        if g is not None:
+            self.profile.add(self._frame, g.norm(dim=-1).sum())
+        if self.anc_opt is not None:
+            self.anc_opt.set_step(step)
+            self.anc_opt.step()
+            self.anc_opt.zero_grad()
+        res = super().optimizer_step(step, out)
+        if self.cfg.reattach_every > 0 and step % self.cfg.reattach_every == 0:
+            for a in self.chain:
+                a.refresh_cache()
+        return res
+
+    def state_dict(self) -> dict[str, Any]:
+        d = super().state_dict()
+        d["chain"] = [a.to_payload() for a in self.chain]
+        d["anc_opt"] = self.anc_opt.state_dict() if self.anc_opt is not None else None
+        d["profile"] = self.profile.state_dict()
+        return d
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        super().load_state_dict(state)
+        dev = self.images.device
+        self.chain[:] = [AncestorCopy.from_payload(a, dev) for a in state["chain"]]
+        self._build_ancestor_optimizer()
+        if self.anc_opt is not None and state["anc_opt"] is not None:
+            self.anc_opt.load_state_dict(state["anc_opt"])
+        self.profile.load_state_dict(state["profile"])
+
+
+_CONTEXT: dict[str, Any] = {}
+
+
+def _load_context(tree_dir: Path, device: str) -> tuple[dict[str, torch.Tensor], NodeTrainConfig]:
+    """The run's node context (cached per worker process: a worker trains several nodes)."""
+    key = f"{tree_dir.resolve()}|{device}"
+    if key not in _CONTEXT:
+        data = torch.load(tree_dir / "context.pt", map_location=device, weights_only=True)
+        with open(tree_dir / "node_config.pkl", "rb") as f:
+            cfg = pickle.load(f)  # written by this run's main process (trusted)
+        _CONTEXT.clear()
+        _CONTEXT[key] = (data, cfg)
+    return _CONTEXT[key]
+
+
+def train_node(payload: dict, ctx: NodeContext) -> dict:
+    """Train one child node (the :mod:`worldtree.tree.build` node-function contract).
+
+    The node's frames ``[L, R]`` of the run's context are its training data; checkpoints go to
+    ``ctx.folder/checkpoints`` so an interrupted node resumes.
+    """
+    state, depth = read_node_input(payload, ctx.device)
+    data, cfg = _load_context(Path(ctx.folder).parent.parent, ctx.device)
+    iv = state.interval
+    sl = slice(iv.start, iv.end + 1)
+    if cfg.no_ancestors:
+        state.chain = []
+    steps = cfg.steps_at(depth)
+    pcfg = dataclasses.replace(
+        cfg.photometric,
+        steps=steps,
+        camera_start_step=steps + 1,  # cameras are optimised at the root only
+        static_strategy=_NO_DENSIFY,
+        dynamic_strategy=_NO_DENSIFY,
+        node_densify_every=0,  # density control (Gaussians and scaffold nodes) only at the root
+    )
+    tracks = data["tracks"][sl] if data["tracks"].shape[1] else None
+    vis = data["track_vis"][sl] if tracks is not None else None
+    fit = NodeFit(
+        pcfg, data["images"][sl], data["depth"][sl], data["Ks"][sl], state.w2cs, state.static, state.dynamic,
+        state.scaffold, tracks, vis, cfg.extent, seed=ctx.seed, t0=iv.start, chain=state.chain,
+        policy=cfg.policy,
+    )  # fmt: skip
+    t0 = time.perf_counter()
+    summary = Trainer(
+        TrainerConfig(steps=steps, checkpoint_every=cfg.checkpoint_every, log_every=cfg.log_every),
+        fit,
+        checkpoint_dir=Path(ctx.folder) / "checkpoints",
+        generators={"frame_order": fit.order},
+        progress=False,
+        description=f"node {state.index}",
+    ).fit(resume=True)
+    state.static, state.dynamic, state.scaffold = fit.static, fit.dynamic, fit.scaffold
+    state.chain = fit.chain
+    stats = {
+        "node": state.index,
+        "depth": depth,
+        "frames": [iv.start, iv.end],
+        "steps": summary.end_step,
+        "train_s": time.perf_counter() - t0,
+        "final_loss": summary.final_loss,
+        "num_static": len(state.static),
+        "num_dynamic": len(state.dynamic),
+        "num_ancestor_gaussians": sum(len(a.dynamic) for a in state.chain),
+        "ancestors": [a.node for a in state.chain],
+    }
+    return node_output(state, fit.profile.profile(), stats)
+
+
+# ------------------------------------------------------------------------------------------------ method
+def _frozen(state: NodeState) -> NodeState:
+    """``state`` with no parameter requiring gradients (trained nodes are only rendered from here on; the
+    test-pose refinement then back-propagates to the pose alone)."""
+    tensors = [*state.static.params.values(), *state.dynamic.params.values()]
+    scaffolds = [state.scaffold] + [a.scaffold for a in state.chain]
+    for a in state.chain:
+        tensors += list(a.dynamic.params.values())
+    for scf in scaffolds:
+        tensors += [scf.pos, scf.quat, scf.sigma_logit]
+    for t in tensors:
+        t.requires_grad_(False)
+    return state
+
+
+class WorldTreeMethod(BaseMethod):
+    """The WorldTree method for one scene; implements :class:`methods.registry.Method`."""
+
+    def __init__(self, cfg: WorldTreeConfig, scene: Scene, device: torch.device):
+        super().__init__(cfg, scene, device)
+        self.cfg: WorldTreeConfig = cfg
+        self.tree: TemporalPartitionTree | None = None
+        self.states: dict[int, NodeState] = {}
+        self.result: TreeResult | None = None
+        self._caches: dict[int, Any] = {}
+        self._ckpt: Path | None = None
+        self._progress = True
+        self._data: dict[str, torch.Tensor] = {}
+
+    def fit(self, ctx: TrainContext) -> TrainSummary:
+        self._ckpt = ctx.checkpoint_dir
+        self._progress = ctx.progress
+        c = self.cfg
+        pcfg = ParallelConfig(sequential=c.sequential, max_workers=c.max_workers, device=self.device.type)
+        with LayerRunner(pcfg, "methods.worldtree:train_node") as runner:
+            self._runner = runner
+            if c.tree_depth >= 1:
+                runner.warm_up(2)  # worker start-up overlaps the root's training
+            summary = super().fit(ctx)  # root stages; the tree grows inside _test_pose, before the test pose
+        # The tree was timed inside the Base method's "test_pose" stage: report the two apart.
+        self.stage_s["test_pose"] = self.stage_s.get("test_pose", 0.0) - self.stage_s.get("tree", 0.0)
+        return summary
+
+    def _dynamic(self, P: dict, depth, w2cs):
+        scf, dyn, tracks, vis = super()._dynamic(P, depth, w2cs)
+        self._data = {"depth": depth, "tracks": tracks, "track_vis": vis}
+        return scf, dyn, tracks, vis
+
+    def _write_context(self, tree_dir: Path) -> None:
+        s, fit, c = self.scene, self.fit_state, self.cfg
+        data = {
+            "images": s.images.detach().cpu().contiguous(),
+            "depth": self._data["depth"].detach().float().cpu().contiguous(),
+            "Ks": s.Ks.detach().float().cpu(),
+            "tracks": self._data["tracks"].detach().float().cpu().contiguous(),
+            "track_vis": self._data["track_vis"].detach().cpu().contiguous(),
+        }
+        save_torch(tree_dir / "context.pt", data)
+        ncfg = NodeTrainConfig(
+            photometric=c.photometric,
+            layer_steps=c.layer_steps,
+            policy=c.tree_config().inherit.policy,
+            no_ancestors="sac" in c.ablate,
+            extent=fit.extent,
+            checkpoint_every=c.checkpoint_every,
+            log_every=c.log_every,
+        )
+        atomic_write_bytes(tree_dir / "node_config.pkl", pickle.dumps(ncfg))
+
+    def _grow(self) -> None:
+        fit, c = self.fit_state, self.cfg
+        T = self.scene.num_frames
+        root = NodeState(1, Interval(0, T - 1), fit.scaffold, fit.dynamic, fit.static, fit.cameras(), [])
+        tcfg = c.tree_config()
+        if tcfg.depth == 0 or T < tcfg.min_len:
+            self.tree = TemporalPartitionTree(T, tcfg.min_len)
+            self.states = {1: root}
+            self.info["tree"] = {"nodes": [1], "layers": [], "note": "root only"}
+            return
+        tree_dir = (self._ckpt if self._ckpt is not None else Path(self._tmp_tree())) / "tree"
+        tree_dir.mkdir(parents=True, exist_ok=True)
+        self._write_context(tree_dir)
+        root_cpu = NodeState.from_payload(root.to_payload(), "cpu")
+        flow = self._flow_profile() if c.split == "flow" else None
+        prof = self._root_profile() if c.split == "gradient" else None
+        res = grow_tree(root_cpu, tcfg, self._runner, tree_dir, seed=c.seed, root_profile=prof, flow=flow)
+        self.result, self.tree = res, res.tree
+        self.states = {1: root}
+        for j, st in res.states.items():
+            if j != 1:
+                self.states[j] = _frozen(NodeState.from_payload(st.to_payload(), self.device))
+        self.info["tree"] = {
+            "nodes": sorted(self.states),
+            "intervals": {
+                str(j): [self.tree.interval(j).start, self.tree.interval(j).end] for j in self.states
+            },
+            "splits": {str(j): {"point": ch.point, "fallback": ch.fallback} for j, ch in res.splits.items()},
+            "layers": [
+                {
+                    "depth": r.depth,
+                    "mode": r.mode,
+                    "workers": r.workers,
+                    "wall_s": r.wall_s,
+                    "node_seconds": r.node_seconds,
+                    "nodes_s": {str(n.node): n.wall_s for n in r.nodes},
+                    "nodes_cpu_s": {str(n.node): n.cpu_s for n in r.nodes},
+                }
+                for r in res.layers
+            ],
+            "node_stats": {str(j): s for j, s in res.stats.items()},
+        }
+
+    def _tmp_tree(self) -> str:
+        import tempfile
+
+        return tempfile.mkdtemp(prefix="worldtree-tree-")
+
+    def _priors(self):
+        pri, P = super()._priors()
+        self._pri = pri  # the flow split needs the flow pairs, which the tensor dict leaves out
+        return pri, P
+
+    def _flow_profile(self):
+        from worldtree.tree.split import flow_profile
+
+        return flow_profile(self._pri.flow, self._pri.epi_mask)
+
+    def _root_profile(self):
+        """``[T]`` position-gradient profile of the trained root for the gradient split: the norm of the
+        dynamic means' gradient of each frame's photometric loss, summed over Gaussians (one pass over the
+        frames; the Base method's fit does not gather it while training)."""
+        fit = self.fit_state
+        acc = ProfileAccumulator(fit.T)
+        means = fit.dynamic.params["means"]
+        if len(fit.dynamic) == 0:
+            return acc.profile()
+        for i in range(fit.T):
+            loss, _, _ = fit.frame_losses(i, 1)  # step 1: no track term, as in most steps
+            (g,) = torch.autograd.grad(loss, [means], allow_unused=True)
+            if g is not None:
+                acc.add(i, g.norm(dim=-1).sum())
+        return acc.profile()
+
+    # ------------------------------------------------------------------ rendering with the tree
+    def _node_for(self, t: int) -> int:
+        t = min(max(int(t), 0), self.scene.num_frames - 1)
+        return self.tree.covering(t) if self.tree is not None else 1
+
+    def render_out(self, K: torch.Tensor, w2c: torch.Tensor, width: int, height: int, t: int):
+        """Rasterizer output of the deepest node covering frame ``t`` with its chain (``chain_length``)."""
+        t = min(max(int(t), 0), self.scene.num_frames - 1)
+        j = self._node_for(t)
+        st = self.states[j]
+        if j not in self._caches:
+            self._caches[j] = st.dynamic.attach(st.scaffold)
+        m, q, ls, o, col = st.gaussians_at(t, self.cfg.chain_length, self._caches[j])
+        return rasterize(m, q, ls, o, col, K, w2c, width, height, backend=self.cfg.photometric.backend)
+
+    def _test_pose(self) -> None:
+        t0 = time.perf_counter()
+        self._grow()
+        self.stage_s["tree"] = self.stage_s.get("tree", 0.0) + time.perf_counter() - t0
+        super()._test_pose()
+
+    def _test_render(self, K: torch.Tensor, w2c: torch.Tensor, width: int, height: int, t: int):
+        """Test-pose refinement renders through the tree (deepest covering node and its chain)."""
+        return self.render_out(K, w2c, width, height, t)
+
+    @torch.no_grad()
+    def render(self, K: torch.Tensor, w2c: torch.Tensor, width: int, height: int, time: int) -> torch.Tensor:
+        """``[height, width, 3]`` at frame ``time`` by the deepest node covering it (see the Base method for
+        the camera: the test camera uses its refined pose, any other the Sim(3) alignment)."""
+        if self.fit_state is None:
+            raise RuntimeError("render before fit")
+        K = K.to(self.device, torch.float32)
+        w2c = w2c.to(self.device, torch.float32)
+        is_test = torch.allclose(w2c, self.scene.test_w2c.to(w2c), atol=1e-5)
+        pose = (
+            self.test_poses[int(time)]
+            if is_test and int(time) in self.test_poses
+            else self.sim3.apply_w2c(w2c)
+        )
+        return self.render_out(K, pose, width, height, int(time)).rgb.clamp(0.0, 1.0)
+
+    # ------------------------------------------------------------------ outputs
+    def save_model(self, folder: Path) -> None:
+        folder = Path(folder)
+        super().save_model(folder)  # the root (node 1) in the Base method's files
+        for j, st in self.states.items():
+            st.save(folder / "tree" / f"node{j}.pt")
+        atomic_write_json(
+            folder / "model.json",
+            {
+                "method": "worldtree",
+                "frames": self.scene.num_frames,
+                "tree": self.tree.to_dict() if self.tree is not None else None,
+                "nodes": sorted(self.states),
+                "chain_length": self.cfg.chain_length,
+                "ablate": list(self.cfg.ablate),
+                "sim3_given_to_optimised": self.sim3.to_dict() if self.sim3 is not None else None,
+                "files": {
+                    "tree/node<j>.pt": "worldtree.tree.node.NodeState.load (node j with its ancestor copies)",
+                    "static_gaussians.pt, dynamic_gaussians.pt, scaffold_cameras.pt": "the root (Base method)",
+                },
+            },
+        )
+
+    def stats(self) -> dict[str, Any]:
+        out = super().stats()
+        leaves = self.tree.leaves() if self.tree is not None else [1]
+        leaves = [j for j in leaves if j in self.states] or [1]
+        # Model size: what the rendering nodes hold (each its static copy, own dynamic Gaussians and ancestors).
+        n_g = 0
+        for j in leaves:
+            st = self.states.get(j)
+            if st is not None:
+                n_g += len(st.static) + len(st.dynamic) + sum(len(a.dynamic) for a in st.chain)
+        root = self.states.get(1)
+        out.update(
+            {
+                "num_gaussians": n_g if self.states else out["num_gaussians"],
+                "num_scaffold_nodes": root.scaffold.M if root is not None else 0,
+                "num_tree_nodes": len(self.states),
+                "tree_depth": max((depth_of(j) for j in self.states), default=0),
+                "ablate": list(self.cfg.ablate),
+                "chain_length": self.cfg.chain_length,
+                "split": self.cfg.split,
+                "sequential": self.cfg.sequential,
+            }
+        )
+        return out
+
+
+register_method(
+    MethodSpec(
+        name="worldtree",
+        description="WorldTree: Base root + Temporal Partition Tree with Spatial Ancestral Chains",
+        config_cls=WorldTreeConfig,
+        presets={
+            "paper": _wt(paper_config, (2000, 2000)),
+            "quick": _wt(quick_config, (300, 300), (1500, 800)),
+            "smoke": _wt(smoke_config, (10, 10), (500, 300)),
+        },
+        build=WorldTreeMethod,
+    )
+)

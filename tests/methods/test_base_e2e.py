@@ -1,0 +1,108 @@
+"""The Base method through `wtbench run`'s executor on the tiny analytic scene (smoke schedule)."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+import torch
+
+import methods.base  # noqa: F401  (registers "base")
+from benchmarks.runner.runs import RunRequest, execute
+from methods.registry import get_method
+from worldtree.dynamic import DynamicGaussians
+from worldtree.gaussians import GaussianSet
+from worldtree.motion.scaffold import Scaffold
+
+
+def run(scene, tmp_path, preset: str):
+    return execute(
+        RunRequest(scene=scene, method="base", runs_dir=tmp_path / "runs", preset=preset, progress=False)
+    )
+
+
+@pytest.fixture(scope="module")
+def smoke_runs(tiny_scene, tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("base_runs")
+    torch.set_num_threads(1)
+    return {p: run(tiny_scene, tmp, p) for p in ("smoke", "smoke-ablate-ba", "smoke-ablate-sw")}
+
+
+def test_run_layout_model_and_timings(smoke_runs, tiny_scene):
+    res = smoke_runs["smoke"]
+    folder = res.folder
+    assert folder.is_done()
+    renders = sorted(p.name for p in folder.renders.iterdir())
+    assert renders == [f"v001_t{t:03d}.png" for t in range(6)]
+    for k in ("psnr", "ssim", "mpsnr"):
+        assert k in res.mean and res.mean[k] == res.mean[k]  # present and not NaN
+    timing = json.loads(folder.timing_json.read_text())
+    stages = timing["method_stats"]["stages_s"]
+    assert set(stages) == {"priors", "ba", "sw", "scaffold", "photometric", "test_pose"}
+    assert all(v >= 0 for v in stages.values())
+    # Loadable model files.
+    m = folder.model
+    static = GaussianSet.load(m / "static_gaussians.pt")
+    dyn = DynamicGaussians.load(m / "dynamic_gaussians.pt")
+    extra = torch.load(m / "scaffold_cameras.pt", weights_only=True)
+    scf = Scaffold.from_state(extra["scaffold"])
+    assert len(static) == timing["method_stats"]["num_static"]
+    assert len(dyn) == timing["method_stats"]["num_dynamic"]
+    assert scf.T == 6 and extra["w2cs"].shape == (6, 4, 4)
+    assert set(extra["test_poses"]) == set(range(6))
+    cfg = json.loads(folder.config_json.read_text())
+    assert cfg["preset"] == "smoke" and cfg["config"]["ablate_ba"] is False
+
+
+def test_ablations_are_recorded_and_change_the_result(smoke_runs):
+    base = json.loads(smoke_runs["smoke"].folder.timing_json.read_text())["method_stats"]
+    no_ba = json.loads(smoke_runs["smoke-ablate-ba"].folder.timing_json.read_text())["method_stats"]
+    no_sw = json.loads(smoke_runs["smoke-ablate-sw"].folder.timing_json.read_text())["method_stats"]
+    assert no_ba["ablate_ba"] and not base["ablate_ba"] and no_sw["ablate_sw"]
+    # Without BA the cameras are the given ones, untouched: reprojection stats stay at zero.
+    assert no_ba["ba"]["reproj_px_after"] == 0.0 and base["ba"]["reproj_px_after"] > 0.0
+    assert no_sw["sw_steps"] == 0 and base["sw_steps"] == 20
+    assert smoke_runs["smoke"].mean["psnr"] != smoke_runs["smoke-ablate-ba"].mean["psnr"]
+    assert smoke_runs["smoke"].mean["psnr"] != smoke_runs["smoke-ablate-sw"].mean["psnr"]
+
+
+def test_rerun_resumes_and_skips(smoke_runs, tiny_scene):
+    folder = smoke_runs["smoke"].folder
+    again = run(tiny_scene, folder.root.parent.parent.parent.parent, "smoke")
+    assert again.skipped
+
+
+def test_presets_and_config_fields():
+    spec = get_method("base")
+    for name in ("quick", "paper", "smoke", "quick-ablate-ba", "paper-ablate-sw"):
+        cfg = spec.config(name)
+        assert cfg.seed == 0
+    paper, quick = spec.config("paper"), spec.config("quick")
+    assert (paper.steps, paper.ba.steps, paper.sw.steps) == (4000, 2000, 6000)
+    assert paper.photometric.camera_start_step == 1500
+    assert (paper.test_pose.first_steps, paper.test_pose.next_steps) == (300, 30)
+    assert quick.steps < paper.steps and quick.sw.steps < paper.sw.steps
+    assert spec.config("quick-ablate-ba").ablate_ba and not spec.config("quick-ablate-ba").ablate_sw
+
+
+def test_second_fit_resumes_from_the_checkpoints(tiny_scene, tmp_path):
+    from methods.base import BaseMethod, smoke_config
+    from worldtree.checkpoint import seed_everything
+    from worldtree.device import pick_device
+    from worldtree.scene import load_scene
+    from worldtree.trainer import TrainContext
+
+    scene = load_scene(tiny_scene)
+    ctx = TrainContext(checkpoint_dir=tmp_path / "ckpt", progress=False)
+    seed_everything(0)
+    first = BaseMethod(smoke_config(), scene, pick_device("cpu"))
+    s1 = first.fit(ctx)
+    img1 = first.render(scene.test_K, scene.test_w2c, scene.width, scene.height, 2)
+    assert (tmp_path / "ckpt" / "ba.pt").is_file()
+    seed_everything(0)
+    second = BaseMethod(smoke_config(), scene, pick_device("cpu"))
+    s2 = second.fit(ctx)
+    assert (s1.start_step, s1.end_step) == (0, 20) and (s2.start_step, s2.end_step) == (20, 20)
+    torch.testing.assert_close(second.fit_state.cameras(), first.fit_state.cameras())
+    img2 = second.render(scene.test_K, scene.test_w2c, scene.width, scene.height, 2)
+    torch.testing.assert_close(img2, img1)

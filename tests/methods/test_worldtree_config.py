@@ -1,0 +1,106 @@
+"""WorldTree config (ablations, validation, per-layer steps) and the `wtbench run` method options: tags,
+refusal on methods without the option, one-line errors. No training."""
+
+from __future__ import annotations
+
+import dataclasses
+import subprocess
+import sys
+
+import pytest
+from typer.testing import CliRunner
+
+from benchmarks.cli import app
+from benchmarks.runner.runs import run_tag
+from methods.registry import get_method
+from methods.worldtree import WorldTreeConfig
+from worldtree.errors import UserError
+
+
+def test_ablations_are_normalised_and_mirror_the_base_flags():
+    cfg = WorldTreeConfig(ablate=("sac", "ba"))
+    assert cfg.ablate == ("ba", "sac") and cfg.ablate_ba and not cfg.ablate_sw
+    assert WorldTreeConfig(ablate_sw=True).ablate == ("sw",)
+    assert dataclasses.replace(cfg, ablate=("tpt",)).tree_depth == 0
+    assert WorldTreeConfig(depth=3).tree_depth == 3
+
+
+def test_per_layer_steps_and_tree_settings():
+    cfg = WorldTreeConfig(layer_steps=(200, 100), depth=4, split="gradient", ancestors_optimised=1)
+    assert [cfg.steps_at(d) for d in (1, 2, 3, 4)] == [200, 100, 100, 100]
+    tc = cfg.tree_config()
+    assert tc.depth == 4 and tc.split == "gradient" and tc.inherit.policy.optimised_nearest == 1
+    paper = get_method("worldtree").config("paper")
+    assert paper.steps == 4000 and paper.layer_steps == (2000, 2000) and paper.depth == 2
+    assert paper.inherit_caps == (5000, 2000) and paper.dynamic_max_init == 30_000
+
+
+@pytest.mark.parametrize(
+    "kw",
+    [{"ablate": ("foo",)}, {"depth": -1}, {"chain_length": -2}, {"split": "median"}, {"layer_steps": ()}],
+)
+def test_bad_values_are_user_errors(kw):
+    with pytest.raises(UserError):
+        WorldTreeConfig(**kw)
+
+
+def test_run_tags_differ_per_configuration():
+    tags = {
+        run_tag("quick", {}, opts)
+        for opts in (
+            {},
+            {"ablate": ["sac"]},
+            {"ablate": ["tpt"]},
+            {"ablate": ["ba", "sw"]},
+            {"depth": 3},
+            {"chain_length": 1},
+            {"split": "flow"},
+            {"sequential": True},
+        )
+    }
+    assert len(tags) == 8
+    assert (
+        run_tag("quick", {"steps": 5}, {"ablate": ["sw", "ba"], "depth": 1})
+        == "quick-steps5-noba-nosw-depth1"
+    )
+    assert run_tag("quick", {}, {"ablate": ["sw", "ba"]}) == run_tag("quick", {}, {"ablate": ["ba", "sw"]})
+    assert run_tag("quick", {"steps": 5}) == "quick-steps5"
+
+
+@pytest.mark.parametrize(
+    "method,extra,needle",
+    [
+        ("base", ["--depth", "3"], "--depth: method 'base' has no such option"),
+        ("worldtree", ["--ablate", "foo"], "--ablate foo"),
+        ("worldtree", ["--split", "median"], "--split median"),
+    ],
+)
+def test_cli_refuses_bad_options_before_running(tmp_path, method, extra, needle, write_tiny_scene):
+    scene = write_tiny_scene(tmp_path / "tiny")
+    args = [
+        "run",
+        "--method",
+        method,
+        "--scene",
+        str(scene),
+        "-o",
+        str(tmp_path / "runs"),
+        "--preset",
+        "smoke",
+    ]
+    res = CliRunner().invoke(app, args + extra)
+    assert isinstance(res.exception, UserError) and needle in str(res.exception)
+    assert not any((tmp_path / "runs").rglob("config.json"))
+
+
+def test_cli_option_error_is_one_line(tmp_path, write_tiny_scene):
+    scene = write_tiny_scene(tmp_path / "tiny")
+    out = subprocess.run(
+        [sys.executable, "-m", "benchmarks.cli", "run", "--method", "worldtree", "--scene", str(scene),
+         "--preset", "smoke", "--chain-length", "-1", "-o", str(tmp_path / "runs")],
+        capture_output=True,
+        text=True,
+    )  # fmt: skip
+    assert out.returncode == 2
+    lines = out.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("error: --chain-length -1"), out.stderr

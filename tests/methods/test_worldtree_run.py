@@ -1,0 +1,194 @@
+"""The WorldTree method end to end through `wtbench run` on a 26-frame tiny analytic scene (smoke schedule):
+the default tree, ``--ablate sac`` and ``--ablate tpt`` (against the Base method), and one node's training."""
+
+from __future__ import annotations
+
+import json
+import pickle
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from typer.testing import CliRunner
+
+from benchmarks.cli import app
+from worldtree.imageio import read_image
+from worldtree.render import rasterize
+from worldtree.tree.node import NodeState, load_payload
+from worldtree.tree.parallel import NodeContext
+
+FRAMES = 26
+# Binary rule P = (L + R) // 2 by hand: [0, 25] -> P 12; [0, 11] -> P 5; [12, 25] -> P 18.
+INTERVALS = {1: [0, 25], 2: [0, 11], 3: [12, 25], 4: [0, 4], 5: [5, 11], 6: [12, 17], 7: [18, 25]}
+
+
+def _wtbench(*args: str) -> None:
+    res = CliRunner().invoke(app, ["run", *args])
+    assert res.exit_code == 0, res.output
+
+
+@pytest.fixture(scope="module")
+def runs(tmp_path_factory, write_tiny_scene):
+    tmp = tmp_path_factory.mktemp("wt_runs")
+    scene = write_tiny_scene(tmp / "tiny26", frames=FRAMES)
+    out = tmp / "runs"
+    common = ["--scene", str(scene), "-o", str(out), "--preset", "smoke", "--device", "cpu"]
+    _wtbench("--method", "worldtree", *common)
+    _wtbench("--method", "worldtree", *common, "--ablate", "sac")
+    _wtbench("--method", "worldtree", *common, "--ablate", "tpt")
+    _wtbench("--method", "base", *common)
+    folder = out / "tiny26"
+    return {
+        "scene": scene,
+        "default": folder / "worldtree" / "smoke",
+        "sac": folder / "worldtree" / "smoke-nosac",
+        "tpt": folder / "worldtree" / "smoke-notpt",
+        "base": folder / "base" / "smoke",
+    }
+
+
+def _stats(folder: Path) -> dict:
+    return json.loads((folder / "timing.json").read_text())["method_stats"]
+
+
+def test_configurations_land_in_their_own_finished_folders(runs):
+    for key in ("default", "sac", "tpt", "base"):
+        assert (runs[key] / "DONE").is_file(), key
+        assert len(list((runs[key] / "renders").glob("*.png"))) == FRAMES
+    cfg = json.loads((runs["sac"] / "config.json").read_text())
+    assert cfg["options"] == {"ablate": ["sac"]} and cfg["config"]["ablate"] == ["sac"]
+    assert "--ablate sac" in (runs["sac"] / "command.txt").read_text()
+
+
+def test_default_tree_has_seven_nodes_with_binary_intervals_and_timings(runs):
+    st = _stats(runs["default"])
+    assert st["num_tree_nodes"] == 7 and st["tree_depth"] == 2
+    assert {int(j): iv for j, iv in st["tree"]["intervals"].items()} == INTERVALS
+    layers = st["tree"]["layers"]
+    assert [lay["depth"] for lay in layers] == [1, 2]
+    assert sorted(map(int, layers[0]["nodes_s"])) == [2, 3]
+    assert sorted(map(int, layers[1]["nodes_s"])) == [4, 5, 6, 7]
+    assert all(lay["wall_s"] > 0 and all(v > 0 for v in lay["nodes_s"].values()) for lay in layers)
+    assert st["stages_s"]["tree"] > 0
+    for j in range(1, 8):
+        node = NodeState.load(runs["default"] / "model" / "tree" / f"node{j}.pt")
+        assert [node.interval.start, node.interval.end] == INTERVALS[j]
+        assert [a.node for a in node.chain] == [k for k in (j // 2, j // 4) if k >= 1]
+        assert node.scaffold.M == st["num_scaffold_nodes"]
+    # Model size: each leaf's static copy + own dynamic + its ancestor copies.
+    size = 0
+    for j in (4, 5, 6, 7):
+        node = NodeState.load(runs["default"] / "model" / "tree" / f"node{j}.pt")
+        size += len(node.static) + len(node.dynamic) + sum(len(a.dynamic) for a in node.chain)
+    assert st["num_gaussians"] == size
+
+
+@pytest.mark.parametrize("t", [3, 20])
+def test_test_render_is_the_deepest_covering_node_with_its_chain(runs, t):
+    folder = runs["default"]
+    node = {3: 4, 20: 7}[t]  # deepest nodes holding frames 3 and 20 (INTERVALS)
+    st = NodeState.load(folder / "model" / "tree" / f"node{node}.pt")
+    meta = json.loads((runs["scene"] / "cameras.json").read_text())
+    cam = {c["id"]: c for c in meta["cameras"]}[meta["test_camera"]]
+    pose = torch.load(folder / "model" / "scaffold_cameras.pt", weights_only=True)["test_poses"][t]
+    with torch.no_grad():
+        m, q, ls, o, c = st.gaussians_at(t)
+        out = rasterize(m, q, ls, o, c, torch.tensor(cam["K"]).float(), pose.float(), meta["width"],
+                        meta["height"])  # fmt: skip
+    mine = (out.rgb.clamp(0, 1).numpy() * 255.0 + 0.5).astype(np.int16)
+    saved = read_image(folder / "renders" / f"v001_t{t:03d}.png").astype(np.int16)
+    assert np.abs(mine - saved).max() <= 1
+    # Without its ancestors the node renders something else (the chain is in the picture).
+    with torch.no_grad():
+        out0 = rasterize(*st.gaussians_at(t, chain_length=0), torch.tensor(cam["K"]).float(), pose.float(),
+                         meta["width"], meta["height"])  # fmt: skip
+    assert np.abs((out0.rgb.clamp(0, 1).numpy() * 255.0 + 0.5).astype(np.int16) - saved).max() > 1
+
+
+def test_ablate_sac_keeps_the_tree_without_ancestors(runs):
+    st = _stats(runs["sac"])
+    assert st["num_tree_nodes"] == 7 and st["ablate"] == ["sac"]
+    for j in range(2, 8):
+        node = NodeState.load(runs["sac"] / "model" / "tree" / f"node{j}.pt")
+        assert node.chain == []
+        assert node.interval.start == INTERVALS[j][0]
+
+
+def test_ablate_tpt_is_the_base_method(runs):
+    st = _stats(runs["tpt"])
+    assert st["num_tree_nodes"] == 1 and st["tree"]["layers"] == []
+    base = _stats(runs["base"])
+    assert st["num_gaussians"] == base["num_gaussians"]
+    for p in sorted((runs["base"] / "renders").glob("*.png")):
+        a = read_image(p).astype(np.int16)
+        b = read_image(runs["tpt"] / "renders" / p.name).astype(np.int16)
+        assert np.abs(a - b).max() <= 1, p.name
+
+
+def test_node_training_optimises_the_nearest_ancestors_only(runs, tmp_path):
+    """Node 6 (depth 2) retrained with one optimised ancestor: its parent copy (node 3) moves, the root copy
+    stays bit-identical, and its own Gaussians move."""
+    from methods.worldtree import train_node
+
+    src = runs["default"] / "checkpoints" / "tree"
+    tree = tmp_path / "tree"
+    (tree / "layer2" / "node6").mkdir(parents=True)
+    shutil.copy(src / "context.pt", tree / "context.pt")
+    cfg = pickle.loads((src / "node_config.pkl").read_bytes())
+    import dataclasses
+
+    from worldtree.tree.sac import AncestorPolicy
+
+    cfg = dataclasses.replace(cfg, policy=AncestorPolicy(optimised_nearest=1), checkpoint_every=1000)
+    (tree / "node_config.pkl").write_bytes(pickle.dumps(cfg))
+    payload = load_payload(src / "layer2" / "node6" / "input.pt")
+    before = NodeState.from_payload(payload["state"])
+    torch.manual_seed(0)
+    out = train_node(payload, NodeContext(6, 6, "cpu", 1, str(tree / "layer2" / "node6")))
+    after = NodeState.from_payload(out["state"])
+    assert [a.node for a in after.chain] == [3, 1]
+    assert not torch.equal(after.chain[0].dynamic.params["means"], before.chain[0].dynamic.params["means"])
+    assert not torch.equal(after.chain[0].scaffold.pos, before.chain[0].scaffold.pos)
+    for k, v in before.chain[1].dynamic.params.items():
+        assert torch.equal(after.chain[1].dynamic.params[k], v), k
+    assert torch.equal(after.chain[1].scaffold.pos, before.chain[1].scaffold.pos)
+    assert not torch.equal(after.dynamic.params["means"], before.dynamic.params["means"])
+    # The gradient profile covers the node's frames.
+    assert out["profile"].shape == (INTERVALS[6][1] - INTERVALS[6][0] + 1,)
+    assert out["stats"]["steps"] == cfg.steps_at(2)
+
+
+def test_interrupted_node_resumes_to_the_same_result(runs, tmp_path):
+    """A node stopped after its step-8 checkpoint (the step-10 one deleted) ends as the uninterrupted run:
+    own Gaussians, ancestor copies and gradient profile identical."""
+    import dataclasses
+
+    from methods.worldtree import train_node
+
+    src = runs["default"] / "checkpoints" / "tree"
+    tree = tmp_path / "tree"
+    folder = tree / "layer2" / "node6"
+    folder.mkdir(parents=True)
+    shutil.copy(src / "context.pt", tree / "context.pt")
+    cfg = pickle.loads((src / "node_config.pkl").read_bytes())
+    cfg = dataclasses.replace(cfg, checkpoint_every=4, layer_steps=(10, 10))
+    (tree / "node_config.pkl").write_bytes(pickle.dumps(cfg))
+    ctx = NodeContext(6, 6, "cpu", 1, str(folder))
+
+    def run():
+        torch.manual_seed(6)
+        return train_node(load_payload(src / "layer2" / "node6" / "input.pt"), ctx)
+
+    full = run()
+    (folder / "checkpoints" / "ckpt_0000010.pt").unlink()
+    resumed = run()
+    a, b = NodeState.from_payload(full["state"]), NodeState.from_payload(resumed["state"])
+    assert resumed["stats"]["steps"] == 10
+    assert torch.equal(a.dynamic.params["means"], b.dynamic.params["means"])
+    assert torch.equal(a.static.params["means"], b.static.params["means"])
+    for x, y in zip(a.chain, b.chain, strict=True):
+        assert torch.equal(x.dynamic.params["means"], y.dynamic.params["means"])
+        assert torch.equal(x.scaffold.pos, y.scaffold.pos)
+    assert torch.equal(full["profile"], resumed["profile"])
