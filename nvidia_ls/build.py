@@ -27,10 +27,15 @@ from nvidia_ls.sfm import CAMERA_MODELS, run_sfm, sfm_candidates
 from nvidia_ls.undistort import Undistorter
 from nvidia_ls.writer import cameras_document, frame_file, mask_file, save_image, test_file
 from worldtree import __version__
-from worldtree.atomic import atomic_dir, atomic_write_bytes, atomic_write_json
+from worldtree.atomic import atomic_dir, atomic_write_bytes, atomic_write_json, remove_stale_partials
 from worldtree.errors import UserError
+from worldtree.folder_lock import FolderLock, lock_paths
+from worldtree.losses import SSIM_WINDOW
+from worldtree.output_paths import check_output_folder, remove_new_folders_on_failure
 
 NORMALIZE = ("auto", "rig", "none")
+# Smallest stored image side: training's SSIM loss needs its whole window inside the image.
+MIN_SIZE = SSIM_WINDOW
 
 
 @dataclass
@@ -76,8 +81,22 @@ class BuildConfig:
             raise UserError(f"--camera-model {self.camera_model!r}: choose one of {', '.join(CAMERA_MODELS)}")
         if self.normalize not in NORMALIZE:
             raise UserError(f"--normalize {self.normalize!r}: choose one of {', '.join(NORMALIZE)}")
-        if self.size is not None and (self.size[0] < 8 or self.size[1] < 8):
-            raise UserError(f"--size {self.size[0]}x{self.size[1]}: too small; give WxH of at least 8x8")
+        if self.size is not None and min(self.size) < MIN_SIZE:
+            raise UserError(
+                f"--size {self.size[0]}x{self.size[1]}: too small for the {MIN_SIZE}x{MIN_SIZE} SSIM window of "
+                f"training; give WxH of at least {MIN_SIZE}x{MIN_SIZE}"
+            )
+        for flag, value, least in (
+            ("--test-camera", self.test_camera, 1),
+            ("--sfm-tries", self.sfm_tries, 1),
+            ("--sfm-threads", self.sfm_threads, 1),
+            ("--num-cameras", self.num_cameras, 2),
+            ("--seed", self.seed, 0),
+            ("preview_frames", self.preview_frames, 1),
+        ):
+            if value is not None and value < least:
+                raise UserError(f"{flag} {value}: must be at least {least}")
+        self.mask.check()
 
 
 def parse_size(text: str | None) -> tuple[int, int] | None:
@@ -159,6 +178,25 @@ def build_scene(
     """
     cfg = cfg or BuildConfig()
     cfg.check()
+    check_output_folder(out_dir, "-o")
+    raw_dir = Path(raw_dir)
+    final = Path(out_dir) / scene_name(raw_dir, cfg)
+    # One builder per scene folder; a failed build removes the -o folders it made (and its lock files there).
+    leftovers = tuple(p.name for p in lock_paths(final))
+    with remove_new_folders_on_failure(out_dir, leftovers), FolderLock(final, "scene"):
+        for stale in remove_stale_partials(final):
+            (log or print)(f"removed {stale}, left by an interrupted build")
+        return _build(raw_dir, final, cfg, log, progress)
+
+
+def _build(
+    raw_dir: Path,
+    final: Path,
+    cfg: BuildConfig,
+    log: Callable[[str], None] | None,
+    progress: Callable[[str, int, int], None] | None,
+) -> Path:
+    """:func:`build_scene` of ``final`` with its lock held."""
     say = log or (lambda _msg: None)
     tick = progress or (lambda _s, _d, _t: None)
     timer = _Timer()
@@ -168,13 +206,11 @@ def build_scene(
         warnings.append(msg)
         say(f"warning: {msg}")
 
-    raw_dir = Path(raw_dir)
     with timer("index"):
         raw: RawCapture = open_raw(raw_dir, cfg.num_cameras)
     for w in raw.warnings:
         warn(w)
-    final = Path(out_dir) / scene_name(raw_dir, cfg)
-    if final.exists() and not cfg.force:
+    if (final.exists() or final.is_symlink()) and not cfg.force:
         raise UserError(f"{final}: already exists; pass --force to replace it")
     train = training_cameras(raw.cameras, cfg.test_camera)
     kept = sample_times(raw.times, cfg.frames)
@@ -183,6 +219,11 @@ def build_scene(
     T = len(kept)
     frame_cams = pingpong(train, T)
     out_wh = cfg.size or (raw.width, raw.height)
+    if min(out_wh) < MIN_SIZE:
+        raise UserError(
+            f"{raw_dir}: images of {out_wh[0]}x{out_wh[1]} are smaller than {MIN_SIZE}x{MIN_SIZE}, the "
+            "SSIM window of training; use larger images"
+        )
     if abs(out_wh[0] / out_wh[1] - raw.width / raw.height) > 0.01 * raw.width / raw.height:
         raise UserError(
             f"--size {out_wh[0]}x{out_wh[1]}: aspect differs from the raw {raw.width}x{raw.height}; keep the aspect"

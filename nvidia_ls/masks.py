@@ -39,6 +39,18 @@ class MaskConfig:
     min_area: float = 0.001
     """Components smaller than this fraction of the image are dropped."""
 
+    def check(self) -> None:
+        """Refuse values outside the documented ranges (one-line :class:`UserError` naming the option)."""
+        if not 0.0 <= self.threshold <= 255.0:  # also refuses NaN
+            raise UserError(f"--mask-threshold {self.threshold}: must be within 0..255 (colour difference)")
+        if self.blur < 0 or (self.blur > 0 and self.blur % 2 == 0):
+            raise UserError(f"mask blur {self.blur}: must be 0 (none) or an odd kernel size")
+        for name in ("open_px", "close_px"):
+            if getattr(self, name) < 0:
+                raise UserError(f"mask {name} {getattr(self, name)}: must be at least 0")
+        if not 0.0 <= self.min_area < 1.0:
+            raise UserError(f"mask min_area {self.min_area}: must be a fraction within [0, 1)")
+
 
 def _fill_holes(mask: np.ndarray) -> np.ndarray:
     h, w = mask.shape

@@ -5,6 +5,7 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import re
 import shutil
 import tempfile
 from collections.abc import Iterator
@@ -19,6 +20,7 @@ def atomic_write_bytes(path: str | Path, data: bytes) -> None:
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     try:
         with os.fdopen(fd, "wb") as f:
+            os.fchmod(f.fileno(), 0o666 & ~_umask())  # mkstemp's 0600 -> the usual mode of a new file
             f.write(data)
             f.flush()
             os.fsync(f.fileno())
@@ -58,19 +60,64 @@ def atomic_dir(final: str | Path, *, force: bool = False) -> Iterator[Path]:
     final = Path(final)
     final.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{final.name}.", suffix=".partial", dir=final.parent))
+    # mkdtemp makes the folder private (0700); the finished folder gets the usual permissions of a new folder.
+    os.chmod(tmp, 0o777 & ~_umask())
     try:
         yield tmp
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
-    if final.exists():
+    if final.exists() or final.is_symlink():
         if not force:
             shutil.rmtree(tmp, ignore_errors=True)
             raise FileExistsError(final)
-        old = final.with_name(f".{final.name}.old")
-        shutil.rmtree(old, ignore_errors=True)
+        old = _old_path(final)
+        remove_path(old)
         os.replace(final, old)
         os.replace(tmp, final)
-        shutil.rmtree(old, ignore_errors=True)
+        remove_path(old)
     else:
         os.replace(tmp, final)
+
+
+def _umask() -> int:
+    """The process's umask (read by setting it and putting it back at once)."""
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
+def _old_path(final: Path) -> Path:
+    return final.with_name(f".{final.name}.old")
+
+
+def remove_path(path: str | Path) -> None:
+    """Remove ``path`` whatever it is: a folder tree, a file or a symbolic link (never what a link points
+    to); nothing when it does not exist."""
+    path = Path(path)
+    if path.is_symlink() or path.is_file():
+        path.unlink()
+    elif path.is_dir():
+        shutil.rmtree(path)
+
+
+def remove_stale_partials(final: str | Path) -> list[Path]:
+    """Remove what killed :func:`atomic_dir` calls for ``final`` left beside it: temporary
+    ``.NAME.XXXXXXXX.partial`` folders and a ``.NAME.old``. Returns the paths removed.
+
+    Only safe while the caller holds ``final``'s :class:`worldtree.folder_lock.FolderLock`: then no live
+    writer of ``final`` owns any of them.
+    """
+    final = Path(final)
+    if not final.parent.is_dir():
+        return []
+    # mkdtemp's random part is 8 characters of [a-z0-9_]; matching it exactly keeps ``A``'s cleanup away
+    # from the temporaries of a sibling called ``A.b``.
+    pattern = re.compile(rf"\.{re.escape(final.name)}\.[a-z0-9_]{{8}}\.partial")
+    stale = [p for p in final.parent.iterdir() if pattern.fullmatch(p.name)]
+    old = _old_path(final)
+    if old.exists() or old.is_symlink():
+        stale.append(old)
+    for p in stale:
+        remove_path(p)
+    return stale

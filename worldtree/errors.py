@@ -11,6 +11,9 @@ class UserError(Exception):
     """
 
 
+INTERRUPTED = "interrupted: re-run the same command to resume from the last checkpoint"
+
+
 def run_cli(app) -> None:
     """Run a typer/click ``app``; print a :class:`UserError` as one line (exit 2) and Ctrl-C as exit 130."""
     import sys
@@ -22,7 +25,7 @@ def run_cli(app) -> None:
         print(f"error: {e}", file=sys.stderr)
         raise SystemExit(2) from None
     except KeyboardInterrupt:
-        print("interrupted: re-run the same command to resume from the last checkpoint", file=sys.stderr)
+        print(INTERRUPTED, file=sys.stderr)
         raise SystemExit(130) from None
     except Exception as e:
         # Usage errors arrive here with standalone_mode=False. Recent typer releases vendor their own copy of
@@ -34,6 +37,10 @@ def run_cli(app) -> None:
         if type(e).__name__ == "Exit" and isinstance(exit_code, int):
             raise SystemExit(exit_code) from None
         if type(e).__name__ == "Abort":
+            # click turns Ctrl-C (and EOF at a prompt) into Abort, keeping the KeyboardInterrupt as its cause.
+            if isinstance(e.__cause__ or e.__context__, KeyboardInterrupt):
+                print(INTERRUPTED, file=sys.stderr)
+                raise SystemExit(130) from None
             print("aborted", file=sys.stderr)
             raise SystemExit(1) from None
         raise

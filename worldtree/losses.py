@@ -16,6 +16,9 @@ import functools
 import torch
 import torch.nn.functional as F
 
+SSIM_WINDOW = 11
+"""Side of the training SSIM window (pixels); training images must be at least this large."""
+
 
 @functools.lru_cache(maxsize=8)
 def _gauss_1d(size: int, sigma: float) -> torch.Tensor:
@@ -44,7 +47,7 @@ def _blur(x: torch.Tensor, g: torch.Tensor) -> torch.Tensor:
 def ssim_map(
     img1: torch.Tensor,
     img2: torch.Tensor,
-    window_size: int = 11,
+    window_size: int = SSIM_WINDOW,
     sigma: float = 1.5,
     data_range: float = 1.0,
 ) -> torch.Tensor:
@@ -71,7 +74,9 @@ def ssim_map(
     return num / den
 
 
-def ssim(img1: torch.Tensor, img2: torch.Tensor, window_size: int = 11, sigma: float = 1.5) -> torch.Tensor:
+def ssim(
+    img1: torch.Tensor, img2: torch.Tensor, window_size: int = SSIM_WINDOW, sigma: float = 1.5
+) -> torch.Tensor:
     """Mean SSIM (scalar tensor) of two ``[(B,) H, W, C]`` images in [0, 1]; differentiable in both."""
     return ssim_map(img1, img2, window_size, sigma).mean()
 

@@ -3,7 +3,9 @@ with one line naming the option, instead of failing (or being misdiagnosed) afte
 
 from __future__ import annotations
 
+import contextlib
 import os
+from collections.abc import Iterator
 from pathlib import Path
 
 from worldtree.errors import UserError
@@ -54,3 +56,28 @@ def _check_parent(path: Path, option: str) -> None:
         )
     if not os.access(probe, os.W_OK | os.X_OK):
         raise UserError(f"{option} {path}: {probe} is not writable; choose another path")
+
+
+@contextlib.contextmanager
+def remove_new_folders_on_failure(folder: str | Path, leftovers: tuple[str, ...] = ()) -> Iterator[None]:
+    """On an exception, remove the folders on the way to ``folder`` that did not exist on entry, when they
+    hold nothing but the names in ``leftovers`` (e.g. the lock files of a released
+    :class:`worldtree.folder_lock.FolderLock`), so that a failed command leaves no empty output folder.
+    Folders that existed before, or that hold anything else, are kept."""
+    folder = Path(folder).absolute()
+    new: list[Path] = []
+    probe = folder
+    while not probe.exists():
+        new.append(probe)
+        probe = probe.parent
+    try:
+        yield
+    except BaseException:
+        for d in new:  # deepest first
+            try:
+                for name in leftovers:
+                    (d / name).unlink(missing_ok=True)
+                d.rmdir()
+            except OSError:
+                break  # not empty (or not ours to remove): keep it and its parents
+        raise

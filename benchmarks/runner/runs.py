@@ -39,6 +39,7 @@ from benchmarks.runner.config_overrides import apply_overrides, sets_digest, spl
 from worldtree.atomic import atomic_write_json, atomic_write_text
 from worldtree.errors import UserError
 from worldtree.imageio import write_image
+from worldtree.losses import SSIM_WINDOW
 from worldtree.output_paths import check_output_folder
 
 TUNABLE = ("steps", "seed", "downscale")
@@ -294,6 +295,12 @@ def execute(req: RunRequest) -> RunResult:
         seed_everything(cfg.seed)  # before building: a method may draw its initial points
         with timer.stage("load"):
             scene = load_scene(root, downscale=cfg.downscale)
+        if min(scene.height, scene.width) < SSIM_WINDOW:
+            raise UserError(
+                f"--scene {root}: training images of {scene.width}x{scene.height} (downscale {cfg.downscale}) "
+                f"are smaller than the {SSIM_WINDOW}x{SSIM_WINDOW} SSIM window; use a smaller --downscale "
+                "or rebuild the scene larger"
+            )
         with timer.stage("init"):
             return spec.build(cfg, scene, device)
 
