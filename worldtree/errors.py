@@ -31,18 +31,21 @@ def run_cli(app) -> None:
         # Usage errors arrive here with standalone_mode=False. Recent typer releases vendor their own copy of
         # click, so the exception classes are matched by behaviour, not by click's class objects.
         exit_code = getattr(e, "exit_code", None)
+        # Ctrl-C: typer turns it into Exit(130), click into Abort; both keep the KeyboardInterrupt as cause.
+        if isinstance(e.__cause__ or e.__context__, KeyboardInterrupt):
+            print(INTERRUPTED, file=sys.stderr)
+            raise SystemExit(130) from None
         if callable(getattr(e, "show", None)) and isinstance(exit_code, int):
             e.show()
             raise SystemExit(exit_code) from None
         if type(e).__name__ == "Exit" and isinstance(exit_code, int):
             raise SystemExit(exit_code) from None
         if type(e).__name__ == "Abort":
-            # click turns Ctrl-C (and EOF at a prompt) into Abort, keeping the KeyboardInterrupt as its cause.
-            if isinstance(e.__cause__ or e.__context__, KeyboardInterrupt):
-                print(INTERRUPTED, file=sys.stderr)
-                raise SystemExit(130) from None
             print("aborted", file=sys.stderr)
             raise SystemExit(1) from None
         raise
+    if code == 130:
+        # typer turns Ctrl-C into Exit(130), which click (standalone_mode=False) returns as this code.
+        print(INTERRUPTED, file=sys.stderr)
     if isinstance(code, int) and code != 0:
         raise SystemExit(code)

@@ -68,6 +68,11 @@ def register(app: typer.Typer) -> None:
             from worldtree.errors import UserError
 
             raise UserError(f"--out {out_csv}: the table is written as CSV; give a file name ending in .csv")
+        from worldtree.output_paths import check_output_file
+
+        # Before the scoring, not after it: the CSV and its JSON record beside it must be writable.
+        check_output_file(out_csv, "--out")
+        check_output_file(out_csv.with_suffix(".json"), "--out")
         err = Console(stderr=True)
         n = len(pair_files(pred_dir, gt, masks))
         with (

@@ -57,10 +57,14 @@ def export_tables(
     from benchmarks.reporting.results import GROUP_KEYS, METRICS, collect_runs, select
     from benchmarks.reporting.tables import build_wide, format_for, parse_list, render
     from worldtree.atomic import atomic_write_text
+    from worldtree.output_paths import check_output_file
 
     keys = parse_list(group_by, "--group-by", GROUP_KEYS)
     chosen = parse_list(metrics, "--metrics", METRICS)
     fmt = format_for(out, fmt)
+    if out is not None:
+        check_output_file(out, "-o")
+        check_output_file(out.with_name(f"{out.stem}_long.csv"), "-o")
     found = collect_runs(runs_dirs)
     long = select(found.long, protocol)
     table = build_wide(long, keys, chosen, mean_only=mean_only)

@@ -236,6 +236,7 @@ def collect_runs(runs_dirs: Sequence[str | Path]) -> Collection:
     rows: list[dict[str, Any]] = []
     notes: list[str] = []
     unfinished: list[str] = []
+    skipped_bad: list[str] = []
     seen: set[Path] = set()
     for d in runs_dirs:
         d = Path(d)
@@ -253,9 +254,23 @@ def collect_runs(runs_dirs: Sequence[str | Path]) -> Collection:
                 continue
             config = _read_json(run / "config.json")
             mean = _mean_row(run / "metrics.csv")
-            if config is None or mean is None:
-                what = "config.json" if config is None else "metrics.csv (no single 'mean' row)"
-                notes.append(f"skipped {run}: unreadable {what}; re-run it with `wtbench run ... --force`")
+            timing_path = run / "timing.json"
+            timing = _read_json(timing_path)
+            unreadable = [
+                what
+                for what, bad in (
+                    ("config.json", config is None),
+                    ("metrics.csv (no single 'mean' row)", mean is None),
+                    # A missing timing.json only leaves the cost columns empty; a damaged one is said.
+                    ("timing.json", timing is None and timing_path.exists()),
+                )
+                if bad
+            ]
+            if unreadable:
+                skipped_bad.append(f"{run} ({', '.join(unreadable)})")
+                notes.append(
+                    f"skipped {run}: unreadable {', '.join(unreadable)}; re-run it with `wtbench run ... --force`"
+                )
                 continue
             record = _read_json(run / "metrics.json") or {}
             proto = record.get("protocol")
@@ -266,7 +281,7 @@ def collect_runs(runs_dirs: Sequence[str | Path]) -> Collection:
                 notes.append(f"{run}: metrics.json names no protocol; listed as protocol 'unknown'")
             values = {
                 **mean,
-                **cost_metrics(_read_json(run / "timing.json"), _read_json(run / "model" / "model.json")),
+                **cost_metrics(timing, _read_json(run / "model" / "model.json")),
             }
             inf = [m for m, v in values.items() if math.isinf(v)]
             if inf:
@@ -290,6 +305,11 @@ def collect_runs(runs_dirs: Sequence[str | Path]) -> Collection:
         notes.append(f"skipped {len(unfinished)} unfinished run(s) (no DONE): {shown}")
     if not rows:
         where = ", ".join(str(d) for d in runs_dirs)
+        if skipped_bad:
+            raise UserError(
+                f"RUNS_DIR {where}: no readable finished run; skipped {'; '.join(skipped_bad)}; re-run those "
+                "with `wtbench run ... --force`"
+            )
         raise UserError(
             f"RUNS_DIR {where}: no finished run (RUNS_DIR/<scene>/<method>/<tag>/DONE) found; "
             "run `wtbench run --method M --scene S -o RUNS_DIR` first"
