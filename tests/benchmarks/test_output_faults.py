@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from benchmarks.results import collect_runs
+from benchmarks.reporting.results import collect_runs
 from worldtree.errors import UserError
 from worldtree.imageio import write_image
 
