@@ -19,7 +19,7 @@ def register(app: typer.Typer) -> None:
             None, "--lpips-weights", help="Also look in this folder first."
         ),
     ) -> None:
-        from benchmarks import lpips_weights as lw
+        from benchmarks.evaluation import lpips_weights as lw
         from worldtree.errors import UserError
 
         print("LPIPS weights are looked for in this order; eval uses the first folder listed:")
@@ -47,7 +47,7 @@ def register(app: typer.Typer) -> None:
         ),
         to: Path | None = typer.Option(None, "--to", help="Destination folder (default: the user cache)."),
     ) -> None:
-        from benchmarks import lpips_weights as lw
+        from benchmarks.evaluation import lpips_weights as lw
 
         dest = to or lw.default_folder()
         for name, digest in lw.install_from(src, dest).items():
@@ -58,7 +58,7 @@ def register(app: typer.Typer) -> None:
         to: Path | None = typer.Option(None, "--to", help="Destination folder (default: the user cache)."),
         timeout: float = typer.Option(60.0, "--timeout", help="Seconds to wait for the server."),
     ) -> None:
-        from benchmarks import lpips_weights as lw
+        from benchmarks.evaluation import lpips_weights as lw
 
         dest = to or lw.default_folder()
         for name, digest in lw.download(dest, timeout=timeout).items():

@@ -196,7 +196,7 @@ def _lpips_model(lpips_weights, device, warn_list: list[str]):
     """-> (model on device or None, record dict). ``lpips_weights``: folder, LPIPS instance, None or False."""
     import torch
 
-    from benchmarks import lpips_weights as lw
+    from benchmarks.evaluation import lpips_weights as lw
     from benchmarks.evaluation.lpips import LPIPS
 
     if lpips_weights is False:

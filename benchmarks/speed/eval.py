@@ -79,7 +79,7 @@ def main() -> None:
 
     import torch
 
-    from benchmarks import lpips_weights as lw
+    from benchmarks.evaluation import lpips_weights as lw
     from benchmarks.evaluation.evaluate import evaluate_folder
     from benchmarks.evaluation.lpips import LPIPS, random_state_dicts
 

@@ -10,8 +10,8 @@ import pytest
 import torch
 from typer.testing import CliRunner
 
-from benchmarks import lpips_weights as lw
 from benchmarks.cli import app
+from benchmarks.evaluation import lpips_weights as lw
 from benchmarks.evaluation.lpips import LPIPS, random_state_dicts
 from worldtree.errors import UserError
 
