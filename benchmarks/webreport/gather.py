@@ -232,4 +232,3 @@ def test_frame_files(scene_dir: Path) -> dict[str, tuple[Path, Path | None]]:
             mask = scene_dir / fr["mask"] if fr.get("mask") else None
             out[Path(fr["file"]).stem] = (scene_dir / fr["file"], mask)
     return out
-

@@ -42,6 +42,14 @@ def error_map(
     return (colormaps[COLORMAP](scaled)[..., :3] * 255.0 + 0.5).astype(np.uint8)
 
 
+def mask_view(image: np.ndarray, mask: np.ndarray, dim: float = 0.25) -> np.ndarray:
+    """``image`` (uint8 RGB ``[H, W, 3]``) kept inside ``mask`` (bool ``[H, W]``) and darkened to ``dim`` of
+    its value outside, so the scored region shows whatever its colours."""
+    out = (image.astype(np.float32) * dim + 0.5).astype(np.uint8)
+    out[mask] = image[mask]
+    return out
+
+
 def write_jpeg(path: Path, image: np.ndarray, quality: int = 90) -> None:
     """Write uint8 RGB ``[H, W, 3]`` as JPEG (the report folder is temporary until complete, so no atomic
     write is needed per file)."""
@@ -61,10 +69,10 @@ def write_colorbar(path: Path, vmax: float = ERROR_VMAX) -> None:
     from matplotlib.colors import Normalize
     from matplotlib.figure import Figure
 
-    fig = Figure(figsize=(4.0, 0.7), layout="constrained")
+    fig = Figure(figsize=(4.0, 0.8), layout="constrained")
     FigureCanvasAgg(fig)
     ax = fig.add_subplot(1, 1, 1)
     bar = ColorbarBase(ax, cmap=COLORMAP, norm=Normalize(0.0, vmax), orientation="horizontal", extend="max")
-    bar.set_label("mean |render - ground truth| over RGB, values in [0, 1]", fontsize=7)
-    ax.tick_params(labelsize=7)
+    bar.set_label("mean |render - ground truth| over RGB, values in [0, 1]", fontsize=8)
+    ax.tick_params(labelsize=8)
     fig.savefig(path, format="png", dpi=100)

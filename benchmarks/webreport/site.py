@@ -247,8 +247,7 @@ def _viewer(
 ) -> tuple[list[dict[str, Any]], list[str]]:
     """Write the viewer's images of ``scene`` under ``root/img/<scene>/`` and return (frames, notes); a frame
     holds its name, ground truth, mask and one row per run (render, error map, scores)."""
-    from benchmarks.reporting.video import mask_overlay
-    from benchmarks.webreport.images import error_map, fit_width, write_jpeg
+    from benchmarks.webreport.images import error_map, fit_width, mask_view, write_jpeg
     from worldtree.imageio import read_image, read_mask
 
     notes: list[str] = []
@@ -285,7 +284,7 @@ def _viewer(
                 write_jpeg(root / frame["gt"], fit_width(gt, opts.image_width))
             if gt is not None and mask is not None and mask.shape == gt.shape[:2]:
                 frame["mask"] = f"{folder}/{slug(name)}_mask.jpg"
-                write_jpeg(root / frame["mask"], fit_width(mask_overlay(gt, mask), opts.image_width))
+                write_jpeg(root / frame["mask"], fit_width(mask_view(gt, mask), opts.image_width))
         for i, r in enumerate(runs):
             row: dict[str, Any] = {
                 "label": labels[str(r.folder)],

@@ -15,7 +15,7 @@ from typer.testing import CliRunner
 
 from benchmarks.cli import app
 from benchmarks.webreport import site
-from benchmarks.webreport.images import ERROR_VMAX, error_map, fit_width
+from benchmarks.webreport.images import ERROR_VMAX, error_map, fit_width, mask_view
 from worldtree.folder_lock import FolderLock
 
 
@@ -167,6 +167,11 @@ def test_error_map_scale_and_thumbnail_size():
     assert small.shape == (4, 4, 3)
     assert np.abs(small - expect(40 / 255 / ERROR_VMAX)).max() <= 2
     assert fit_width(np.zeros((90, 160, 3), np.uint8), 80).shape == (45, 80, 3)
+    # The mask column: scored pixels as they are, the others at a quarter of their value.
+    m = np.zeros((4, 6), bool)
+    m[1:3, 2:5] = True
+    shown = mask_view(np.full((4, 6, 3), 200, np.uint8), m)
+    assert (shown[m] == 200).all() and (shown[~m] == 50).all()
     assert fit_width(np.zeros((9, 16, 3), np.uint8), 80).shape == (9, 16, 3)  # never scaled up
 
 
