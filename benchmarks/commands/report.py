@@ -42,7 +42,7 @@ def register(app: typer.Typer) -> None:
 
         from benchmarks.reporting.results import GROUP_KEYS
         from benchmarks.reporting.tables import parse_list
-        from benchmarks.webreport.site import ReportOptions, build_report
+        from benchmarks.reporting.webreport.site import ReportOptions, build_report
 
         keys = parse_list(group_by, "--group-by", GROUP_KEYS)
         opts = ReportOptions(keys, protocol, image_width, viewer_frames, title)

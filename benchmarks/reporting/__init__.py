@@ -1,1 +1,1 @@
-"""Reporting: result records, tables, speed-vs-error plots and videos of finished runs."""
+"""Reporting: result records, tables, speed-vs-error plots, videos and the results site of finished runs."""

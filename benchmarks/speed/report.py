@@ -5,7 +5,7 @@
 
 Writes ``--scenes`` scene folders (smooth images with noise, a moving square as the mask) and ``--configs``
 finished runs per scene (renders = ground truth plus noise, metrics.csv with per-frame rows, timing.json) in
-a temporary folder, then times :func:`benchmarks.webreport.site.build_report` and prints the size of the
+a temporary folder, then times :func:`benchmarks.reporting.webreport.site.build_report` and prints the size of the
 main page, the largest scene page, the whole site and its image count: what a browser has to load to open it.
 The scores are drawn at random (the report's speed does not depend on them). Timings depend on the machine
 and its load.
@@ -102,7 +102,7 @@ def main() -> None:
     ap.add_argument("--height", type=int, default=270)
     ap.add_argument("--viewer-frames", type=int, default=24)
     args = ap.parse_args()
-    from benchmarks.webreport.site import ReportOptions, build_report
+    from benchmarks.reporting.webreport.site import ReportOptions, build_report
 
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)

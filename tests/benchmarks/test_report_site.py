@@ -14,8 +14,8 @@ import pytest
 from typer.testing import CliRunner
 
 from benchmarks.cli import app
-from benchmarks.webreport import site
-from benchmarks.webreport.images import ERROR_VMAX, error_map, fit_width, mask_view
+from benchmarks.reporting.webreport import site
+from benchmarks.reporting.webreport.images import ERROR_VMAX, error_map, fit_width, mask_view
 from worldtree.folder_lock import FolderLock
 
 

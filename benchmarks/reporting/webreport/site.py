@@ -23,7 +23,7 @@ import pandas as pd
 import worldtree
 from benchmarks.reporting.results import GROUP_KEYS, HARNESS_METRICS, collect_runs, higher_is_better, select
 from benchmarks.reporting.tables import LABELS, WideTable, build_wide, column_marks, format_value, to_csv
-from benchmarks.webreport.gather import (
+from benchmarks.reporting.webreport.gather import (
     RunEntry,
     frame_times,
     gather_runs,
@@ -247,7 +247,7 @@ def _viewer(
 ) -> tuple[list[dict[str, Any]], list[str]]:
     """Write the viewer's images of ``scene`` under ``root/img/<scene>/`` and return (frames, notes); a frame
     holds its name, ground truth, mask and one row per run (render, error map, scores)."""
-    from benchmarks.webreport.images import error_map, fit_width, mask_view, write_jpeg
+    from benchmarks.reporting.webreport.images import error_map, fit_width, mask_view, write_jpeg
     from worldtree.imageio import read_image, read_mask
 
     notes: list[str] = []
@@ -321,7 +321,7 @@ def _environment():
     import jinja2
 
     return jinja2.Environment(
-        loader=jinja2.PackageLoader("benchmarks.webreport", "templates"),
+        loader=jinja2.PackageLoader("benchmarks.reporting.webreport", "templates"),
         autoescape=jinja2.select_autoescape(["html"]),
         undefined=jinja2.StrictUndefined,
         trim_blocks=True,
@@ -478,7 +478,7 @@ def build_report(
                 st: sum(e.state == st for e in runs) for st in ("done", "running", "unfinished", "damaged")
             }
             scene_cards.append({"name": s, "page": scene_page[s], "thumb": thumb, "counts": counts})
-        from benchmarks.webreport.images import write_colorbar
+        from benchmarks.reporting.webreport.images import write_colorbar
 
         write_colorbar(tmp / "plots" / "error_colorbar.png")
 
@@ -503,6 +503,6 @@ def build_report(
 
 
 def _error_vmax() -> float:
-    from benchmarks.webreport.images import ERROR_VMAX
+    from benchmarks.reporting.webreport.images import ERROR_VMAX
 
     return ERROR_VMAX
