@@ -25,6 +25,11 @@ def register(app: typer.Typer) -> None:
         depth_fit: bool = typer.Option(
             False, help="Fit a per-frame scale/shift of the imported depth to the classical depth."
         ),
+        depth_merge: str = typer.Option(
+            "replace",
+            help="replace: the imported depth is the prior; fill: keep confident classical depth, "
+            "imported (fitted, needs --depth-fit) on moving objects and unconfident pixels.",
+        ),
         depth_png_scale: float = typer.Option(
             DepthImportConfig.png_scale, help="16-bit depth PNG values are divided by this."
         ),
@@ -45,16 +50,17 @@ def register(app: typer.Typer) -> None:
         ),
         planes: int = typer.Option(64, help="Depth hypotheses of the plane sweep."),
         epi_from_flow: bool = typer.Option(
-            False, help="Epipolar errors from fundamental matrices estimated on the flow (LMedS), not from the "
+            False,
+            help="Epipolar errors from fundamental matrices estimated on the flow (LMedS), not from the "
             "poses: for a clip imported with `nvls import --no-poses`.",
         ),
     ) -> None:
         _run(scene, depth, depth_kind, depth_fit, depth_png_scale, tracks, flow, masks, cache, preview,
-             downscale, epi_threshold, planes, epi_from_flow)  # fmt: skip
+             downscale, epi_threshold, planes, epi_from_flow, depth_merge)  # fmt: skip
 
 
 def _run(scene_dir, depth, depth_kind, depth_fit, depth_png_scale, tracks, flow, masks, cache, preview,
-         downscale, epi_threshold, planes, epi_from_flow=False) -> None:  # fmt: skip
+         downscale, epi_threshold, planes, epi_from_flow=False, depth_merge="replace") -> None:  # fmt: skip
     import dataclasses
 
     from rich.console import Console
@@ -70,6 +76,10 @@ def _run(scene_dir, depth, depth_kind, depth_fit, depth_png_scale, tracks, flow,
         raise UserError(f"--planes {planes}: need at least 2 depth hypotheses")
     if not epi_threshold > 0:
         raise UserError(f"--epi-threshold {epi_threshold}: must be a positive number of pixels")
+    if depth_merge not in ("replace", "fill"):
+        raise UserError(f"--depth-merge {depth_merge!r}: choose replace or fill")
+    if depth_merge == "fill" and not depth_fit:
+        raise UserError("--depth-merge fill needs --depth-fit (the import must be in the classical scale)")
     if depth_fit and depth == "classical":
         raise UserError("--depth-fit applies to imported depth; pass --depth DIR or drop --depth-fit")
     console = Console(stderr=True)
@@ -77,7 +87,9 @@ def _run(scene_dir, depth, depth_kind, depth_fit, depth_png_scale, tracks, flow,
     cfg = PriorsConfig(
         depth=dataclasses.replace(DepthConfig(), num_planes=planes),
         epi=dataclasses.replace(EpiConfig(), threshold_px=epi_threshold, use_poses=not epi_from_flow),
-        depth_import=DepthImportConfig(kind=depth_kind, png_scale=depth_png_scale, fit_scale_shift=depth_fit),
+        depth_import=DepthImportConfig(
+            kind=depth_kind, png_scale=depth_png_scale, fit_scale_shift=depth_fit, merge=depth_merge
+        ),
         depth_source=depth,
         tracks_source=tracks,
         flow_source=flow,

@@ -55,7 +55,7 @@ def test_imported_priors_equal_the_exact_ones(exported, imported):
     assert rec["priors"]["depth"]["kind"] == "disparity"
     args = run_args(imported)
     assert args[args.index("--flow") + 1] == str((imported / "imported" / "flow").resolve())
-    assert "priors.depth_import.fit_scale_shift=true" in args
+    assert "priors.depth_import.fit_scale_shift=true" in args and "priors.depth_import.merge=fill" in args
     H, W = CFG.height, CFG.width
     disp = read_depth(imported / "imported" / "disp", T, H, W, DepthImportConfig(kind="disparity"))
     np.testing.assert_allclose(disp, 3.0 / gt["depth"] + 0.1, rtol=1e-6)

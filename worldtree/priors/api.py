@@ -174,23 +174,39 @@ def _with_notes(source: str, notes: list[str]) -> str:
 
 
 def _depth(imgs, Ks, w2cs, scene, cfg: PriorsConfig, cache, fp, progress, notes=None):
-    """(depth [T,H,W], conf [T,H,W], source, key of the metric depth or None when it is not metric)."""
+    """(depth [T,H,W], conf [T,H,W], source, key of the metric depth or None when it is not metric, the
+    fitted imported depth [T,H,W] under ``merge="fill"`` or None)."""
     T, H, W = imgs.shape[:3]
     if cfg.depth_source == "classical":
         d, c, key = _classical_depth(imgs, Ks, w2cs, scene.near, scene.far, cfg, cache, fp, progress)
-        return d, c, "classical", key
-    raw = imported.read_depth(cfg.depth_source, T, H, W, cfg.depth_import, notes=notes)
+        return d, c, "classical", key, None
+    di = cfg.depth_import
+    if di.merge not in ("replace", "fill"):
+        raise UserError(f"priors.depth_import.merge={di.merge!r}: choose replace or fill")
+    if di.merge == "fill" and not di.fit_scale_shift:
+        raise UserError(
+            "priors.depth_import.merge=fill needs priors.depth_import.fit_scale_shift=true (--depth-fit): "
+            "the imported depth must be in the classical depth's scale to fill it"
+        )
+    raw = imported.read_depth(cfg.depth_source, T, H, W, di, notes=notes)
     ref = ref_conf = None
     key = None
-    if cfg.depth_import.fit_scale_shift:
+    if di.fit_scale_shift:
         ref, ref_conf, ref_key = _classical_depth(
             imgs, Ks, w2cs, scene.near, scene.far, cfg, cache, fp, progress
         )
-        key = hash_key("depth-imported", _path_digest(cfg.depth_source), cfg.depth_import, ref_key)
-    d = imported.imported_to_depth(raw, cfg.depth_import, ref, ref_conf)
-    fit = ", scale/shift fitted to classical" if cfg.depth_import.fit_scale_shift else ""
+        key = hash_key("depth-imported", _path_digest(cfg.depth_source), di, ref_key)
+    d = imported.imported_to_depth(raw, di, ref, ref_conf)
+    fit = ", scale/shift fitted to classical" if di.fit_scale_shift else ""
+    src = f"imported:{cfg.depth_source} ({di.kind}{fit})"
+    if di.merge == "fill":
+        keep = ref_conf >= di.fill_min_conf
+        depth = np.where(keep, ref, d).astype(np.float32)
+        conf = np.where(keep, ref_conf, di.fill_conf).astype(np.float32)
+        # The fitted import is kept aside: dynamic pixels get it once the masks are known (_fill_dynamic).
+        return depth, conf, f"classical, filled from {src} where unconfident and on dynamic pixels", key, d
     # Network depth carries no confidence of its own: trust it everywhere.
-    return d, np.ones_like(d), f"imported:{cfg.depth_source} ({cfg.depth_import.kind}{fit})", key
+    return d, np.ones_like(d), src, key, None
 
 
 def _tracks(
@@ -305,7 +321,7 @@ def compute_priors(
     if cfg.flow_source != "classical":
         fields = imported.read_flows(cfg.flow_source, T, H, W, notes=resized["flow"])
     # Depth first: metric depth and the poses predict where static pixels go, which guides flow and tracks.
-    depth, depth_conf, depth_src, depth_key = _depth(
+    depth, depth_conf, depth_src, depth_key, fill = _depth(
         imgs, Ks, w2cs, scene, cfg, cache, fp, progress, notes=resized["depth"]
     )
     init = (depth, Ks, w2cs, depth_key) if depth_key is not None else None
@@ -326,6 +342,10 @@ def compute_priors(
     dynamic = epipolar.label_dynamic_tracks(xy, vis, mask, cfg.epi.track_min_frames)
     if depth_src == "classical":
         depth, depth_conf = _refill_dynamic(depth, depth_conf, mask, imgs, cfg)
+    elif fill is not None:
+        # Stereo on moving objects is noise even where it looks confident: the network depth replaces it.
+        depth = np.where(mask, fill, depth).astype(np.float32)
+        depth_conf = np.where(mask, cfg.depth_import.fill_conf, depth_conf).astype(np.float32)
 
     sources = {"flow": flow_src, "depth": depth_src, "tracks": tracks_src, "masks": mask_src}
     pri = Priors(depth, depth_conf, flows, xy, vis, dynamic, err, mask, sources, cfg,

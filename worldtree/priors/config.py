@@ -124,6 +124,20 @@ class DepthImportConfig:
     """16-bit PNG values are divided by this (1000 = millimetres to metres)."""
     fit_scale_shift: bool = False
     """Fit a per-frame scale and shift to the classical depth (in the file's own space: depth or disparity)."""
+    fit_trim: float | None = 2.5
+    """Robust fit: after the weighted least squares, pixels whose residual exceeds this many robust standard
+    deviations (1.4826 MAD) are dropped and the fit repeated (3 rounds); None keeps the plain fit. Multi-view
+    stereo has gross errors (occlusions, repeated texture) that would otherwise tilt the line."""
+    merge: Literal["replace", "fill"] = "replace"
+    """"replace": the imported depth is the depth prior. "fill": keep the classical depth where it is a
+    measurement (confidence >= ``fill_min_conf``, outside dynamic masks) and use the fitted imported depth only
+    elsewhere (moving objects, textureless areas); needs ``fit_scale_shift``. On real footage relative network
+    depth (MiDaS) is less accurate than stereo on the static background but is the only measurement on moving
+    objects."""
+    fill_min_conf: float = 0.5
+    """Classical confidence from which the classical depth is kept under ``merge="fill"``."""
+    fill_conf: float = 1.0
+    """Confidence given to the imported depth where it fills (network depth carries none of its own)."""
 
 
 @dataclass(frozen=True)

@@ -138,6 +138,33 @@ def fit_scale_shift(pred: np.ndarray, target: np.ndarray, weight: np.ndarray) ->
     return float(a), float(my - a * mx)
 
 
+def fit_scale_shift_robust(
+    pred: np.ndarray, target: np.ndarray, weight: np.ndarray, trim: float | None, rounds: int = 3
+) -> tuple[float, float]:
+    """:func:`fit_scale_shift`, then ``rounds`` refits without the pixels whose residual exceeds ``trim``
+    robust standard deviations (1.4826 x the weighted median absolute residual); ``trim=None``: plain fit."""
+    a, b = fit_scale_shift(pred, target, weight)
+    if trim is None:
+        return a, b
+    x = pred.astype(np.float64).ravel()
+    y = target.astype(np.float64).ravel()
+    w = weight.astype(np.float64).ravel()
+    use = w > 0
+    for _ in range(rounds):
+        r = np.abs(a * x + b - y)
+        if use.sum() < 3:
+            break
+        sigma = 1.4826 * float(np.median(r[use]))
+        # Floor: exact data has residuals at rounding level; never trim those.
+        floor = 1e-9 * max(float(np.abs(y[use]).max()), 1e-12)
+        keep = use & (r <= trim * max(sigma, floor))
+        if keep.sum() < 3 or keep.sum() == use.sum():
+            break
+        use = keep
+        a, b = fit_scale_shift(x[use], y[use], w[use])
+    return a, b
+
+
 def imported_to_depth(
     raw: np.ndarray,
     cfg: DepthImportConfig,
@@ -159,7 +186,7 @@ def imported_to_depth(
                 raise ValueError("fit_scale_shift needs the classical depth")
             target = 1.0 / np.maximum(ref_depth[t], 1e-9) if cfg.kind == "disparity" else ref_depth[t]
             w = (ref_conf[t] if ref_conf is not None else np.ones_like(x)) * (x > 0)
-            a, b = fit_scale_shift(x, target, w)
+            a, b = fit_scale_shift_robust(x, target, w, cfg.fit_trim)
             x = a * x + b
         if cfg.kind == "disparity":
             pos = x > 1e-9

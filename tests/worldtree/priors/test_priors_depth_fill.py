@@ -1,0 +1,72 @@
+"""Imported depth fitted robustly and merged with stereo: ``depth_import.fit_trim`` and ``merge="fill"``."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from worldtree.errors import UserError
+from worldtree.imageio import write_image
+from worldtree.priors import DepthConfig, PriorsConfig, compute_priors
+from worldtree.priors.config import DepthImportConfig
+from worldtree.priors.imported import fit_scale_shift, fit_scale_shift_robust
+
+
+def test_robust_fit_ignores_gross_outliers():
+    rng = np.random.default_rng(0)
+    x = rng.uniform(1.0, 3.0, 2000)
+    y = 0.4 * x + 0.3 + rng.normal(0, 1e-3, x.size)
+    y[:200] += rng.uniform(0.5, 2.0, 200)  # 10% gross errors, all on one side (occlusions)
+    w = np.ones_like(x)
+    a_ls, b_ls = fit_scale_shift(x, y, w)
+    a, b = fit_scale_shift_robust(x, y, w, trim=2.5)
+    assert abs(a - 0.4) < 2e-3 and abs(b - 0.3) < 5e-3
+    # The plain fit is pulled up by about the outliers' mean share (10% x 1.25): the test tells them apart.
+    assert a_ls * 2.0 + b_ls - 1.1 > 0.08
+    assert fit_scale_shift_robust(x, y, w, trim=None) == (a_ls, b_ls)
+    # Exact data: trimming never removes points at rounding level, the result is the exact line.
+    a0, b0 = fit_scale_shift_robust(x, 2 * x - 1, w, trim=2.5)
+    np.testing.assert_allclose([a0, b0], [2.0, -1.0], atol=1e-9)
+
+
+@pytest.fixture(scope="module")
+def planar_scene_files(planar, tmp_path_factory):
+    """The planar scene with exact masks and a relative disparity (0.5 / depth + 0.2) written as files."""
+    sc, fr = planar
+    root = tmp_path_factory.mktemp("fill")
+    for t in range(len(fr["rgb"])):
+        write_image(root / "masks" / f"{t:05d}.png", fr["mask"][t])
+        (root / "disp").mkdir(exist_ok=True)
+        np.save(root / "disp" / f"{t:05d}.npy", (0.5 / fr["depth"][t] + 0.2).astype(np.float32))
+    return sc.to_scene(fr), fr, root
+
+
+def test_fill_keeps_stereo_and_gives_moving_objects_the_imported_depth(planar_scene_files, tmp_path):
+    scene, fr, root = planar_scene_files
+    base = PriorsConfig(depth=DepthConfig(num_planes=32), masks_source=str(root / "masks"))
+    classical = compute_priors(scene, base, tmp_path / "c")
+    di = DepthImportConfig(kind="disparity", fit_scale_shift=True, merge="fill")
+    pri = compute_priors(scene, dataclasses.replace(base, depth_source=str(root / "disp"), depth_import=di),
+                         tmp_path / "c")  # fmt: skip
+    mask = fr["mask"]
+    keep = (classical.depth_conf >= 0.5) & ~mask
+    # Stereo kept where it is a measurement.
+    np.testing.assert_allclose(pri.depth[keep], classical.depth[keep], rtol=1e-6)
+    # On the moving square the imported depth (fitted to stereo) is close to the truth; the classical prior
+    # there is a fill from the wall around it, far off (the square is at 2.2, the wall at 4).
+    rel = np.abs(pri.depth[mask] - fr["depth"][mask]) / fr["depth"][mask]
+    rel_classical = np.abs(classical.depth[mask] - fr["depth"][mask]) / fr["depth"][mask]
+    assert np.median(rel) < 0.05 and np.median(rel_classical) > 0.2
+    assert np.all(pri.depth_conf[mask] == 1.0)
+    assert "filled from" in pri.sources["depth"]
+
+
+def test_fill_needs_the_fit(planar_scene_files, tmp_path):
+    scene, _, root = planar_scene_files
+    cfg = PriorsConfig(
+        depth_source=str(root / "disp"), depth_import=DepthImportConfig(kind="disparity", merge="fill")
+    )
+    with pytest.raises(UserError, match="fit_scale_shift=true"):
+        compute_priors(scene, cfg, None)
