@@ -1,9 +1,12 @@
-"""Side-by-side mp4 of a run's test-view renders next to the ground truth (and the mask, when present)."""
+"""Side-by-side mp4 of a run's test-view renders next to the ground truth (and the mask, when present), and its
+WebM re-encoding for browsers."""
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
+import sys
 import tempfile
 from pathlib import Path
 
@@ -83,3 +86,51 @@ def write_video(frames: list[np.ndarray], out: str | Path, fps: float = 10.0) ->
         if os.path.exists(tmp):
             os.unlink(tmp)
     return out
+
+
+@contextlib.contextmanager
+def _quiet_stderr():
+    """Silence file descriptor 2 (C code's stderr) for the duration: OpenCV's FFmpeg backend prints a line
+    about WebM codec tags when a VP8 writer opens, although the file it writes is fine."""
+    sys.stderr.flush()
+    saved = os.dup(2)
+    try:
+        with open(os.devnull, "wb") as null:
+            os.dup2(null.fileno(), 2)
+            yield
+    finally:
+        os.dup2(saved, 2)
+        os.close(saved)
+
+
+def to_webm(src: str | Path, dst: str | Path) -> int:
+    """Re-encode the video ``src`` (e.g. the mp4v of :func:`write_video`, which browsers such as Chromium do not
+    play) as VP8 WebM at ``dst``, which every current browser plays. Returns the number of frames written; 0
+    when OpenCV cannot read ``src`` or write WebM here (``dst`` is then not left behind)."""
+    src, dst = Path(src), Path(dst)
+    cap = cv2.VideoCapture(str(src))
+    if not cap.isOpened():
+        return 0
+    fps = cap.get(cv2.CAP_PROP_FPS)
+    fps = fps if np.isfinite(fps) and fps > 0 else 10.0
+    writer, n = None, 0
+    try:
+        while True:
+            ok, frame = cap.read()
+            if not ok:
+                break
+            if writer is None:
+                h, w = frame.shape[:2]
+                with _quiet_stderr():
+                    writer = cv2.VideoWriter(str(dst), cv2.VideoWriter_fourcc(*"VP80"), fps, (w, h))
+                if not writer.isOpened():
+                    return 0
+            writer.write(frame)
+            n += 1
+    finally:
+        cap.release()
+        if writer is not None:
+            writer.release()
+        if n == 0 and dst.exists():
+            dst.unlink()
+    return n

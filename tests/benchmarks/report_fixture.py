@@ -1,5 +1,5 @@
 """A tiny generated sweep for the report tests: two scenes, three configurations, one unfinished run and a
-failure recorded in a sweep report.
+failure recorded in a sweep report; one run has a video.
 
 Scenes come from tests/methods/scene_fixture.py; each finished run's "renders" are the ground truth plus
 noise of a per-configuration strength, scored by the real harness (:func:`benchmarks.evaluation.evaluate.evaluate_folder`),
@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from benchmarks.evaluation.evaluate import evaluate_folder
+from benchmarks.reporting.video import compose_frames, write_video
 from worldtree.imageio import read_image, write_image
 
 
@@ -39,6 +40,8 @@ CONFIGS = (
     ("worldtree", "quick-nosac", ["sac"], 12.0, 50.0),
 )
 FRAMES = 4
+#: Image size of the fixture's scenes (scene_fixture's default).
+WIDTH, HEIGHT = 64, 36
 
 
 def write_sweep(root: Path) -> tuple[Path, Path]:
@@ -60,6 +63,9 @@ def write_sweep(root: Path) -> tuple[Path, Path]:
                 folder.renders, scene / "gt_images", scene / "masks", lpips_weights=False,
                 out_csv=folder.metrics_csv,
             )  # fmt: skip
+    # One run has its video (`wtbench video`'s render | ground truth | mask mp4).
+    video_run = runs / SCENES[0] / CONFIGS[1][0] / CONFIGS[1][1]
+    write_video(compose_frames(video_run)[0], video_run / "test_view.mp4")
     # A run of a fourth configuration that has not finished: listed with its state, not in the table.
     rf.write_run(runs, "SceneA", "base", "quick", {}, done=False, scene_dir=scenes / "SceneA")
     report = {

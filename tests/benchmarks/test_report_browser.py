@@ -2,7 +2,7 @@
 
 The report of a generated sweep (report_fixture.py) is opened from the file system; checked: no console
 error, one table row per configuration, every image loads, clicking a column header sorts the rows, the frame
-viewer steps through frames. Skips with one reason where the browser or Selenium is missing (`.ci/run`
+viewer steps through frames, the run's video loads. Skips with one reason where the browser or Selenium is missing (`.ci/run`
 installs both with apt-get/pip when it can).
 """
 
@@ -156,4 +156,12 @@ def test_scene_page_viewer(report, browser):
     )
     assert [f.get_attribute("data-name") for f in shown()] == [f"v001_t{fx.FRAMES - 1:03d}"]
     assert _all_images_load(browser) == 4 * len(fx.CONFIGS) + 2
+    # The run's video plays here: its metadata loads, three panels (render | ground truth | mask) wide.
+    from selenium.webdriver.support.ui import WebDriverWait
+
+    video = browser.find_element("css selector", "#videos video")
+    browser.execute_script("arguments[0].scrollIntoView(); arguments[0].load()", video)
+    WebDriverWait(browser, 20).until(lambda d: d.execute_script("return arguments[0].readyState", video) >= 1)
+    size = browser.execute_script("return [arguments[0].videoWidth, arguments[0].videoHeight]", video)
+    assert size == [3 * fx.WIDTH, fx.HEIGHT]
     assert _errors(browser) == []

@@ -121,6 +121,24 @@ def test_report_lists_every_configuration_and_state(sweep, report):
         assert len(list((out / "img" / scene).glob("*_e*.jpg"))) == fx.FRAMES * len(fx.CONFIGS)
 
 
+def test_video_is_reencoded_for_browsers(sweep, report, tmp_path):
+    import cv2
+
+    from benchmarks.reporting.video import to_webm
+
+    webm = sorted((report / "videos").glob("*.webm"))
+    assert len(webm) == 1
+    cap = cv2.VideoCapture(str(webm[0]))
+    n = 0
+    while (frame := cap.read()[1]) is not None:
+        assert frame.shape == (fx.HEIGHT, 3 * fx.WIDTH, 3)
+        n += 1
+    assert n == fx.FRAMES
+    (tmp_path / "bad.mp4").write_bytes(b"not a video")
+    assert to_webm(tmp_path / "bad.mp4", tmp_path / "bad.webm") == 0
+    assert not (tmp_path / "bad.webm").exists()
+
+
 def test_running_and_stopped_runs_are_named(sweep, tmp_path, no_plots):
     runs, _ = sweep
     run = runs / "SceneA" / "base" / "quick"

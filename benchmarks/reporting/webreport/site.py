@@ -314,6 +314,19 @@ def _viewer(
     return frames, notes
 
 
+def _video(e: RunEntry, label: str, root: Path, stem: str, notes: list[str]) -> dict[str, str]:
+    """The run's ``test_view.mp4`` as WebM under ``root/<stem>.webm`` (browsers do not play OpenCV's mp4v);
+    the mp4 copied as it is, with a note, where OpenCV cannot re-encode it."""
+    from benchmarks.reporting.video import to_webm
+
+    (root / "videos").mkdir(exist_ok=True)
+    if to_webm(e.video, root / f"{stem}.webm"):
+        return {"label": label, "file": f"{stem}.webm", "type": "video/webm"}
+    notes.append(f"{e.video}: could not be re-encoded as WebM; copied as mp4 (some browsers cannot play it)")
+    shutil.copyfile(e.video, root / f"{stem}.mp4")
+    return {"label": label, "file": f"{stem}.mp4", "type": "video/mp4"}
+
+
 # ---------------------------------------------------------------------------------------------- the site
 
 
@@ -455,10 +468,7 @@ def build_report(
             videos = []
             for i, e in enumerate(done):
                 if e.video is not None:
-                    name = f"videos/{slug(s)}_{i}.mp4"
-                    (tmp / "videos").mkdir(exist_ok=True)
-                    shutil.copyfile(e.video, tmp / name)
-                    videos.append({"label": labels[str(e.folder)], "file": name})
+                    videos.append(_video(e, labels[str(e.folder)], tmp, f"videos/{slug(s)}_{i}", scene_notes))
             page = env.get_template("scene.html").render(
                 **common,
                 root="../",
