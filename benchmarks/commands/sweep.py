@@ -18,10 +18,12 @@ def register(app: typer.Typer) -> None:
         ),
     )
     def _cmd(
-        scenes: list[Path] = typer.Option(
-            ..., "--scenes", help="Scene folders, or folders of scene folders (repeatable)."
+        scenes: list[Path] | None = typer.Option(
+            None, "--scenes", help="Scene folders, or folders of scene folders (repeatable)."
         ),
-        grid: str = typer.Option("paper-ablation", "--grid", help="paper-ablation, depth, chain or split."),
+        grid: str = typer.Option(
+            "paper-ablation", "--grid", help="paper-ablation, depth, chain, split or seeds."
+        ),
         method: str = typer.Option("worldtree", "--method", "-m", help="Registered method to sweep."),
         runs_dir: Path = typer.Option(Path("runs"), "--out", "-o", help="Root folder of the run folders."),
         preset: str = typer.Option("paper", "--preset", help="Config preset: quick or paper."),
@@ -43,16 +45,90 @@ def register(app: typer.Typer) -> None:
         depth_maps: Path | None = typer.Option(None, "--depth-maps", help=PRIOR_HELP["depth_maps"]),
         flow: Path | None = typer.Option(None, "--flow", help=PRIOR_HELP["flow"]),
         dry_run: bool = typer.Option(False, "--dry-run", help="List the runs and exit."),
+        executor: str = typer.Option(
+            "local",
+            "--executor",
+            help="local (this machine: one run per GPU, or CPU workers), slurm (one Slurm job per run, "
+            "through submitit) or auto (slurm when sbatch is on PATH).",
+        ),
+        max_parallel: int | None = typer.Option(
+            None,
+            "--max-parallel",
+            min=1,
+            help="Most runs at once (local default: one per GPU, 1 on CPU, which runs in this process; "
+            "slurm default: all, the queue decides).",
+        ),
+        slurm_partition: str | None = typer.Option(None, "--slurm-partition", help="Slurm partition."),
+        slurm_time: str = typer.Option(
+            "24:00:00",
+            "--slurm-time",
+            help="Time limit per job (minutes or [D-]HH:MM:SS); a job reaching it is requeued and resumes.",
+        ),
+        slurm_gpus_per_job: int = typer.Option(
+            1, "--slurm-gpus-per-job", min=0, help="GPUs per job (none when --device cpu)."
+        ),
+        slurm_cpus_per_job: int = typer.Option(4, "--slurm-cpus-per-job", min=1, help="CPUs per job."),
+        slurm_mem: str | None = typer.Option(None, "--slurm-mem", help="Memory per job, e.g. 32G."),
+        slurm_arg: list[str] | None = typer.Option(
+            None,
+            "--slurm-arg",
+            metavar="KEY=VALUE",
+            help="More sbatch options, e.g. account=myproject or qos=high; repeatable.",
+        ),
+        status: Path | None = typer.Option(
+            None,
+            "--status",
+            metavar="RUNS_DIR",
+            help="Show each run's state under RUNS_DIR (done, running, queued, failed) and exit.",
+        ),
     ) -> None:
         from benchmarks.runner.runs import resolve_prior_paths
+        from benchmarks.runner.sweep_executors import (
+            ExecutorConfig,
+            SlurmOptions,
+            parse_slurm_args,
+            parse_slurm_time,
+        )
+        from worldtree.errors import UserError
 
+        if status is not None:
+            show_status(status)
+            return
+        if not scenes:
+            raise UserError("`wtbench sweep` needs --scenes FOLDER (or --status RUNS_DIR)")
         priors = resolve_prior_paths(
             {"masks": masks, "tracks": tracks, "depth_maps": depth_maps, "flow": flow}
+        )
+        slurm = SlurmOptions(
+            partition=slurm_partition,
+            time_min=parse_slurm_time(slurm_time),
+            gpus_per_job=slurm_gpus_per_job,
+            cpus_per_job=slurm_cpus_per_job,
+            mem=slurm_mem,
+            extra=parse_slurm_args(slurm_arg or []),
         )
         sweep(
             scenes, grid, method, runs_dir, preset, device, steps, seed, lpips_weights, dry_run,
             sets=list(set_ or []), priors=priors,
+            executor=ExecutorConfig(kind=executor, max_parallel=max_parallel, slurm=slurm),
         )  # fmt: skip
+
+
+def show_status(runs_dir: Path) -> None:
+    """Print one line per run folder under ``runs_dir`` (state, run, job id, detail) and the counts."""
+    from benchmarks.runner.sweep_executors import run_states
+    from worldtree.errors import UserError
+
+    states = run_states(runs_dir)
+    if not states:
+        raise UserError(f"--status {runs_dir}: holds no run folder (RUNS_DIR/<scene>/<method>/<tag>)")
+    width = max(len(r.run) for r in states)
+    for r in states:
+        job = f"job {r.job_id}" if r.job_id else "-"
+        print(f"{r.state:10s} {r.run:{width}s}  {job:12s} {r.detail}".rstrip())
+    order = ("done", "running", "queued", "failed", "unfinished")
+    counts = [f"{sum(r.state == k for r in states)} {k}" for k in order]
+    print(f"{len(states)} runs: " + ", ".join(counts))
 
 
 def sweep(
@@ -68,16 +144,21 @@ def sweep(
     dry_run,
     sets=None,
     priors=None,
+    executor=None,
 ) -> None:
     """Resolve scenes and grid, run them, print a summary and write RUNS_DIR/sweep-<grid>.json. ``sets``
     (``KEY=VALUE``) and ``priors`` (``benchmarks.runner.runs.PRIOR_OPTIONS`` name -> path) go to every run; they are
-    checked against the method's config once, before the first run."""
+    checked against the method's config once, before the first run. ``executor``
+    (:class:`benchmarks.runner.sweep_executors.ExecutorConfig`; None: in this process) says where runs execute: one
+    local run at a time without GPUs runs in this process, anything else as submitit jobs."""
+    import dataclasses
     import warnings
 
     from benchmarks.commands.run import _command_line, _one_line_warning
     from benchmarks.runner.config_overrides import split_assignment
-    from benchmarks.runner.runs import RunRequest, execute, resolve_config
+    from benchmarks.runner.runs import RunRequest, execute, resolve_config, run_folder_of
     from benchmarks.runner.sweep import find_scenes, grid_points, run_sweep, write_report
+    from benchmarks.runner.sweep_executors import JOBS_DIR, Task, resolve_kind, run_tasks
     from methods.registry import get_method
     from worldtree.errors import UserError
     from worldtree.folder_lock import FolderLock
@@ -87,7 +168,9 @@ def sweep(
     found = find_scenes(scenes)
     points = grid_points(grid)
     overrides = {k: v for k, v in (("steps", steps), ("seed", seed)) if v is not None}
-    grid_keys = {k for p in points for k in p.options}
+    for k in sorted({k for p in points for k in p.overrides} & set(overrides)):
+        raise UserError(f"--{k}: the {grid} grid sets {k} itself; drop --{k}")
+    grid_keys = {k for p in points for k in p.options} | {k for p in points for k in p.overrides}
     for item in sets:
         key = split_assignment(item)[0]
         if key in grid_keys:
@@ -103,12 +186,13 @@ def sweep(
             for p in points:
                 extra = f"  set {sets}" if sets else ""
                 extra += f"  priors {priors}" if priors else ""
-                print(f"{s.name}: {p.label}  {p.options}{extra}")
+                print(f"{s.name}: {p.label}  {p.options or p.overrides}{extra}")
         return
 
     def make_request(scene: Path, pt) -> RunRequest:
+        run_overrides = {**overrides, **pt.overrides}
         cmd = _command_line(
-            method, scene, runs_dir, preset, device, overrides, lpips_weights, False, None, pt.options,
+            method, scene, runs_dir, preset, device, run_overrides, lpips_weights, False, None, pt.options,
             sets=sets, priors=priors,
         )  # fmt: skip
         return RunRequest(
@@ -117,7 +201,7 @@ def sweep(
             runs_dir=runs_dir,
             preset=preset,
             device=device,
-            overrides=overrides,
+            overrides=run_overrides,
             options=dict(pt.options),
             sets=list(sets),
             priors=dict(priors),
@@ -127,21 +211,37 @@ def sweep(
 
     check_output_folder(runs_dir, "-o")
     report = runs_dir / f"sweep-{grid}.json"
+    kind = resolve_kind(executor.kind) if executor is not None else "local"
+    in_process = kind == "local" and (executor is None or _local_in_process(executor, device))
+    report_cfg = _report_config(method, preset, device, overrides, sets, priors, found)
+    report_cfg["executor"] = kind if not in_process else "in-process"
+    report_cfg["executor_config"] = dataclasses.asdict(executor) if not in_process else None
     # One sweep per report: a second `wtbench sweep` of the same grid into the same RUNS_DIR stops at once
     # (each run folder is locked by `wtbench run`'s execute as well).
     with FolderLock(report, "sweep report"), warnings.catch_warnings():
         warnings.showwarning = _one_line_warning
-        outcomes = run_sweep(found, points, make_request, execute)
-        write_report(
-            report, grid, outcomes, _report_config(method, preset, device, overrides, sets, priors, found)
-        )
-    counts = {s: sum(o.status == s for o in outcomes) for s in ("done", "skipped", "failed")}
+        if in_process:
+            outcomes = run_sweep(found, points, make_request, execute)
+        else:
+            tasks = []
+            for s in found:
+                for p in points:
+                    req = make_request(s, p)
+                    req.progress = False  # job logs are files: no progress bar redrawn in them
+                    try:
+                        tasks.append(Task(s.name, p.label, req, run_folder_of(req)))
+                    except UserError as e:  # this run's config is refused; the others still run
+                        tasks.append(Task(s.name, p.label, req, None, error=str(e)))
+            outcomes = run_tasks(tasks, dataclasses.replace(executor, kind=kind), runs_dir / JOBS_DIR)
+        write_report(report, grid, outcomes, report_cfg)
+    counts = {s: sum(o.status == s for o in outcomes) for s in ("done", "skipped", "failed", "elsewhere")}
     print(
         f"sweep {grid}: {counts['done']} done, {counts['skipped']} already finished, {counts['failed']} failed"
+        + (f", {counts['elsewhere']} left to another sweep" if counts["elsewhere"] else "")
     )
     for o in outcomes:
         if o.status == "failed":
-            print(f"  failed: {o.scene} {o.label}: {o.error}")
+            print(f"  failed: {o.scene} {o.label}: {o.error}" + (f" (log: {o.log})" if o.log else ""))
     print(f"report: {report}; tables: wtbench table {runs_dir} -o table.csv")
     if counts["failed"]:
         raise typer.Exit(1)
@@ -158,3 +258,14 @@ def _report_config(method, preset, device, overrides, sets, priors, scenes) -> d
         "imported_priors": priors,
         "scenes": scenes,
     }
+
+
+def _local_in_process(executor, device: str) -> bool:
+    """Whether a local sweep runs in this process: one run at a time and no GPU to fan out over."""
+    if executor.max_parallel not in (None, 1):
+        return False
+    if device == "cpu":
+        return True
+    from benchmarks.runner.sweep_executors import local_gpus
+
+    return local_gpus() <= 1

@@ -378,6 +378,16 @@ def _execute_locked(req, spec, cfg, folder, root, view, device, timer, method, b
     return RunResult(folder, skipped=False, mean=mean)
 
 
+def run_folder_of(req: RunRequest) -> RunFolder:
+    """The folder :func:`execute` writes for ``req`` (its config resolved the same way; nothing is written)."""
+    from methods.registry import get_method
+
+    spec = get_method(req.method)
+    _, sets = resolve_config(spec, req)
+    tag = req.tag or run_tag(req.preset, req.overrides, req.options, sets)
+    return RunFolder(Path(req.runs_dir) / Path(req.scene).name / spec.name / tag)
+
+
 def resolve_config(spec, req: RunRequest) -> tuple[Any, list[str]]:
     """The config of ``req``: ``spec``'s preset, then the overrides, the method options, and last the
     ``--set`` assignments with the imported priors (as ``priors.<field>=<absolute path>``). Returns the config

@@ -10,6 +10,7 @@ puts them into every request (``RunRequest.sets`` / ``RunRequest.priors``), so t
 from __future__ import annotations
 
 import json
+import socket
 import time
 import traceback
 from collections.abc import Callable, Sequence
@@ -24,10 +25,12 @@ from worldtree.errors import UserError
 
 @dataclass(frozen=True)
 class GridPoint:
-    """One configuration of a grid: a label and the method options it sets."""
+    """One configuration of a grid: a label, the method options it sets (``RunRequest.options``) and the
+    common fields it overrides (``RunRequest.overrides``: steps, seed, downscale)."""
 
     label: str
     options: dict[str, Any] = field(default_factory=dict)
+    overrides: dict[str, int] = field(default_factory=dict)
 
 
 def _ablation_rows() -> list[GridPoint]:
@@ -57,6 +60,10 @@ GRIDS: dict[str, tuple[str, Callable[[], list[GridPoint]]]] = {
     "split": (
         "split strategies binary, gradient, flow",
         lambda: [GridPoint(f"split {s}", {"split": s}) for s in ("binary", "gradient", "flow")],
+    ),
+    "seeds": (
+        "seeds 0..3 of one configuration (run-to-run spread; works with every method)",
+        lambda: [GridPoint(f"seed {k}", overrides={"seed": k}) for k in range(4)],
     ),
 }
 
@@ -90,10 +97,19 @@ class SweepOutcome:
 
     scene: str
     label: str
-    status: str  # "done", "skipped" (finished before) or "failed"
+    status: str  # "done", "skipped" (finished before), "failed" or "elsewhere" (another sweep has it)
     folder: str | None = None
     error: str | None = None
     mean: dict[str, float] = field(default_factory=dict)
+    # Where and how it ran (None for runs not run by this sweep): the executor, its job id, the host and
+    # device, seconds from submission to start and from start to end, and the job's log.
+    executor: str | None = None
+    job_id: str | None = None
+    host: str | None = None
+    device: str | None = None
+    queue_wait_s: float | None = None
+    wall_s: float | None = None
+    log: str | None = None
 
 
 def run_sweep(
@@ -111,6 +127,7 @@ def run_sweep(
         for pt in points:
             i += 1
             log(f"[{i}/{total}] {scene.name}: {pt.label}")
+            t0 = time.time()
             try:
                 res = execute(make_request(scene, pt))
             except KeyboardInterrupt:
@@ -124,10 +141,20 @@ def run_sweep(
                 outcomes.append(SweepOutcome(scene.name, pt.label, "failed", error=detail))
                 continue
             status = "skipped" if res.skipped else "done"
-            outcomes.append(
-                SweepOutcome(scene.name, pt.label, status, str(res.folder.root), mean=dict(res.mean))
-            )
+            outcome = SweepOutcome(scene.name, pt.label, status, str(res.folder.root), mean=dict(res.mean))
+            if not res.skipped:
+                outcome.executor, outcome.host = "in-process", socket.gethostname()
+                outcome.device, outcome.wall_s = run_device(Path(res.folder.root)), time.time() - t0
+            outcomes.append(outcome)
     return outcomes
+
+
+def run_device(root: Path) -> str | None:
+    """The device a finished run trained on, from its ``timing.json`` (None when unreadable)."""
+    try:
+        return json.loads((root / "timing.json").read_text()).get("device")
+    except (OSError, ValueError, AttributeError):
+        return None
 
 
 def write_report(path: Path, grid: str, outcomes: Sequence[SweepOutcome], config: dict[str, Any]) -> None:

@@ -1,0 +1,552 @@
+"""Where a sweep's runs execute: local worker processes (one per GPU, or CPU shares) or Slurm jobs, through
+submitit; and what a sweep's run folders say about their state (``wtbench sweep --status``).
+
+Each run is one job that calls :func:`benchmarks.runner.runs.execute` on its request; the job is a submitit
+``Checkpointable``, so a Slurm job warned of preemption or of its time limit is requeued and resumes from the
+run's own checkpoints. Before submitting, a run already finished is skipped, and a run that another process
+holds (its run-folder lock) or that a live job of another sweep will run is left to it; the run-folder lock in
+``execute`` catches the rest, so two sweeps never train one run twice.
+
+Bookkeeping: the sweep writes ``job.json`` into each run folder it submits (one entry per submission: executor,
+job id, submission time, log, then its end: state, host, device, queue wait, wall time, error). submitit's own
+files (pickled job, stdout/stderr logs) live in ``RUNS_DIR/.sweep-jobs/``.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import shutil
+import socket
+import subprocess
+import time
+import warnings
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import submitit
+
+from benchmarks.runner.runs import RunFolder, RunRequest
+from benchmarks.runner.sweep import SweepOutcome, run_device
+from worldtree.atomic import atomic_write_json
+from worldtree.errors import UserError
+from worldtree.folder_lock import is_locked, read_holder
+
+EXECUTORS = ("local", "slurm", "auto")
+JOB_RECORD = "job.json"
+JOBS_DIR = ".sweep-jobs"
+# Slurm job states (squeue %T) of a job that will still run or is running.
+SLURM_ALIVE = {
+    "PENDING", "RUNNING", "CONFIGURING", "COMPLETING", "REQUEUED", "REQUEUE_HOLD", "REQUEUE_FED", "RESIZING",
+    "SUSPENDED", "SIGNALING", "STAGE_OUT", "STOPPED",
+}  # fmt: skip
+# Seconds a Slurm job may be gone from the queue before its result file shows up (shared file systems lag).
+RESULT_GRACE_S = 10.0
+
+
+@dataclass(frozen=True)
+class SlurmOptions:
+    """Resources of every Slurm job of a sweep (one run per job)."""
+
+    partition: str | None = None
+    time_min: int = 24 * 60
+    """Time limit per job, minutes; a job reaching it is requeued and resumes from its checkpoint."""
+    gpus_per_job: int = 1
+    cpus_per_job: int = 4
+    mem: str | None = None
+    """Memory per job in Slurm's syntax (16G); None: the partition's default."""
+    extra: dict[str, str] = field(default_factory=dict)
+    """More sbatch options, ``--KEY=VALUE`` (``--slurm-arg KEY=VALUE``), e.g. account, qos, constraint."""
+
+
+@dataclass(frozen=True)
+class ExecutorConfig:
+    """How a sweep runs its runs."""
+
+    kind: str = "local"
+    """local or slurm (resolve ``auto`` with :func:`resolve_kind`)."""
+    max_parallel: int | None = None
+    """Most runs at once; None: local, one per GPU or 1 on CPU; Slurm, every run (the queue decides)."""
+    slurm: SlurmOptions = field(default_factory=SlurmOptions)
+    poll_s: float = 1.0
+    """Seconds between looks at the jobs."""
+
+
+def resolve_kind(kind: str) -> str:
+    """``auto`` -> ``slurm`` when ``sbatch`` is on PATH, else ``local``; other names checked."""
+    if kind not in EXECUTORS:
+        raise UserError(f"--executor {kind}: choose one of {', '.join(EXECUTORS)}")
+    if kind == "auto":
+        return "slurm" if shutil.which("sbatch") else "local"
+    if kind == "slurm" and not shutil.which("sbatch"):
+        raise UserError(
+            "--executor slurm: `sbatch` is not on PATH; run on a Slurm login node or use --executor local"
+        )
+    return kind
+
+
+def parse_slurm_time(text: str) -> int:
+    """A Slurm time limit (``MM``, ``MM:SS``, ``HH:MM:SS``, ``D-HH``, ``D-HH:MM``, ``D-HH:MM:SS``) in whole
+    minutes, seconds rounded up."""
+    m = re.fullmatch(r"(?:(\d+)-)?(\d+)(?::(\d+))?(?::(\d+))?", text.strip())
+    if not m:
+        raise UserError(
+            f"--slurm-time {text}: give minutes (90), HH:MM:SS (1:30:00) or D-HH:MM:SS (1-00:00:00)"
+        )
+    days, a, b, c = (int(x) if x is not None else None for x in m.groups())
+    if days is not None:  # D-HH[:MM[:SS]]
+        h, mins, sec = a, b or 0, c or 0
+    elif c is not None:  # HH:MM:SS
+        h, mins, sec = a, b, c
+    else:  # MM[:SS]
+        h, mins, sec = 0, a, b or 0
+    minutes = (days or 0) * 1440 + h * 60 + mins + (1 if sec else 0)
+    if minutes < 1:
+        raise UserError(f"--slurm-time {text}: must be at least one minute")
+    return minutes
+
+
+def parse_slurm_args(items: Sequence[str]) -> dict[str, str]:
+    """``--slurm-arg KEY=VALUE`` items as sbatch options (``account=abc`` -> ``--account=abc``)."""
+    out: dict[str, str] = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        key = key.strip().lstrip("-").replace("_", "-")
+        if not sep or not key:
+            raise UserError(f"--slurm-arg {item}: give KEY=VALUE, e.g. --slurm-arg account=myproject")
+        out[key] = value
+    return out
+
+
+@dataclass
+class Task:
+    """One run of a sweep: its grid coordinates, request and folder."""
+
+    scene: str
+    label: str
+    request: RunRequest
+    folder: RunFolder | None
+    error: str | None = None
+    """Why the run cannot start (its config was refused); it is reported failed without a job."""
+
+
+# -- the job ------------------------------------------------------------------------------------------------
+
+
+class RunJob(submitit.helpers.Checkpointable):
+    """The callable a job runs: one :func:`benchmarks.runner.runs.execute`. submitit pickles it into the job;
+    ``checkpoint()`` (from ``Checkpointable``) resubmits it unchanged when Slurm warns of preemption or the
+    time limit, and ``execute`` then resumes the run from its newest checkpoint."""
+
+    def __init__(self, request: RunRequest, threads: int | None) -> None:
+        self.request = request
+        self.threads = threads
+
+    def __call__(self) -> dict[str, Any]:
+        return run_in_job(self.request, self.threads)
+
+
+def run_in_job(request: RunRequest, threads: int | None) -> dict[str, Any]:
+    """Execute ``request`` inside a job (``threads``: torch CPU threads, None: torch's default); returns the
+    folder, whether it was skipped, its mean scores, the job id, host, device and start/end times."""
+    import torch
+
+    from benchmarks.commands.run import _one_line_warning
+    from benchmarks.runner.runs import execute
+
+    started = time.time()
+    if threads:
+        torch.set_num_threads(threads)
+    with warnings.catch_warnings():
+        warnings.showwarning = _one_line_warning
+        res = execute(request)
+    return {
+        "folder": str(res.folder.root),
+        "skipped": res.skipped,
+        "mean": dict(res.mean),
+        "job_id": submitit.JobEnvironment().job_id,
+        "host": socket.gethostname(),
+        "device": run_device(res.folder.root),
+        "started": started,
+        "ended": time.time(),
+    }
+
+
+# -- job records in run folders -------------------------------------------------------------------------------
+
+
+def read_jobs(folder: RunFolder) -> list[dict[str, Any]]:
+    """The submissions recorded in ``folder/job.json``, oldest first ([] when none or unreadable)."""
+    try:
+        jobs = json.loads((folder.root / JOB_RECORD).read_text()).get("jobs", [])
+    except (OSError, ValueError, AttributeError):
+        return []
+    return [j for j in jobs if isinstance(j, dict)]
+
+
+def _write_jobs(folder: RunFolder, jobs: list[dict[str, Any]]) -> None:
+    folder.root.mkdir(parents=True, exist_ok=True)
+    atomic_write_json(folder.root / JOB_RECORD, {"jobs": jobs})
+
+
+def _update_last_job(folder: RunFolder, **fields: Any) -> None:
+    jobs = read_jobs(folder)
+    if jobs:
+        jobs[-1].update(fields)
+        _write_jobs(folder, jobs)
+
+
+def slurm_states(job_ids: Sequence[str]) -> dict[str, str] | None:
+    """squeue's state of each job still known to Slurm (jobs it has forgotten are absent); None when
+    squeue could not be asked."""
+    if not job_ids:
+        return {}
+    cmd = ["squeue", "-h", "-o", "%i|%T", "--states=all", "-j", ",".join(job_ids)]
+    try:
+        out = subprocess.run(cmd, capture_output=True, text=True, timeout=60)
+    except (OSError, subprocess.TimeoutExpired):
+        return None
+    if out.returncode != 0 and "invalid job id" not in out.stderr.lower():
+        return None
+    states = {}
+    for line in out.stdout.splitlines():
+        jid, _, state = line.strip().partition("|")
+        if jid:
+            states[jid] = state.split()[0] if state else "UNKNOWN"
+    return states
+
+
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def live_job(job: dict[str, Any], slurm: dict[str, str] | None = None) -> str | None:
+    """The state of a submitted job that will still run it (``PENDING``, ``RUNNING``...), else None.
+    ``slurm``: squeue states already fetched (else squeue is asked)."""
+    if job.get("state") != "submitted" or not job.get("job_id"):
+        return None
+    jid = str(job["job_id"])
+    if job.get("executor") == "slurm":
+        states = slurm if slurm is not None else slurm_states([jid])
+        if states is None:
+            return "UNKNOWN"  # Slurm cannot be asked: assume the job lives rather than run the run twice
+        state = states.get(jid)
+        return state if state in SLURM_ALIVE else None
+    if job.get("host") == socket.gethostname() and jid.isdigit() and _pid_alive(int(jid)):
+        return "RUNNING"
+    return None
+
+
+# -- running a sweep's tasks ----------------------------------------------------------------------------------
+
+
+def _first_error_line(text: str) -> str:
+    """The exception line of a traceback (submitit reports a job's failure as its whole traceback)."""
+    lines = [ln.strip() for ln in str(text).splitlines() if ln.strip()]
+    for ln in reversed(lines):
+        if ln.startswith("worldtree.errors.UserError: "):
+            return ln.removeprefix("worldtree.errors.UserError: ")
+        if ":" in ln and not ln.startswith(("File ", "raise ", "^")) and "Error" in ln.split(":")[0]:
+            return ln
+    return lines[-1] if lines else "failed"
+
+
+def claimed_elsewhere(folder: RunFolder) -> str | None:
+    """Why another process will finish ``folder``'s run (it holds the lock, or a live job of another sweep
+    is queued for it), or None."""
+    if is_locked(folder.root):
+        holder = read_holder(folder.root)
+        return f"in use by {holder.describe() if holder else 'another process'}"
+    jobs = read_jobs(folder)
+    if jobs:
+        state = live_job(jobs[-1])
+        if state:
+            return f"{jobs[-1].get('executor')} job {jobs[-1]['job_id']} is {state.lower()}"
+    return None
+
+
+def local_gpus() -> int:
+    """How many CUDA devices this process sees (0 without torch CUDA)."""
+    import torch
+
+    return torch.cuda.device_count() if torch.cuda.is_available() else 0
+
+
+def run_tasks(
+    tasks: Sequence[Task],
+    cfg: ExecutorConfig,
+    jobs_dir: Path,
+    log: Callable[[str], None] = print,
+) -> list[SweepOutcome]:
+    """Run ``tasks`` as jobs of ``cfg.kind`` (local or slurm), at most ``cfg.max_parallel`` at once, and
+    wait for them all. Finished runs are skipped, runs claimed by another sweep are left to it
+    (status ``elsewhere``), a failed job is reported with its log and the others go on. Returns one outcome
+    per task, in task order."""
+    logging_quiet()
+    total = len(tasks)
+    outcomes: list[SweepOutcome | None] = [None] * total
+    todo: list[int] = []
+    for i, t in enumerate(tasks):
+        if t.folder is None:
+            outcomes[i] = SweepOutcome(t.scene, t.label, "failed", error=t.error)
+            log(f"[{i + 1}/{total}] {t.scene}: {t.label}: failed: {t.error}")
+            continue
+        if t.folder.is_done():
+            outcomes[i] = _with_last_job(
+                SweepOutcome(t.scene, t.label, "skipped", str(t.folder.root), mean=_done_mean(t.folder)),
+                t.folder,
+            )
+            log(f"[{i + 1}/{total}] {t.scene}: {t.label}: already finished")
+            continue
+        why = claimed_elsewhere(t.folder)
+        if why:
+            outcomes[i] = SweepOutcome(t.scene, t.label, "elsewhere", str(t.folder.root), error=why)
+            log(f"[{i + 1}/{total}] {t.scene}: {t.label}: left to another sweep ({why})")
+            continue
+        todo.append(i)
+
+    gpus: list[int] = []
+    if cfg.kind == "local":
+        executor = submitit.LocalExecutor(folder=str(jobs_dir / "%j"))
+        if tasks and tasks[0].request.device != "cpu":
+            gpus = list(range(local_gpus()))
+        limit = cfg.max_parallel or max(1, len(gpus))
+        if gpus:
+            limit = min(limit, len(gpus))  # one run per GPU
+        threads = None if gpus else max(1, (os.cpu_count() or 1) // limit)
+        executor.update_parameters(timeout_min=cfg.slurm.time_min)
+    else:
+        executor = submitit.SlurmExecutor(folder=str(jobs_dir / "%j"))
+        s = cfg.slurm
+        params: dict[str, Any] = {
+            "time": s.time_min,
+            "cpus_per_task": s.cpus_per_job,
+            "nodes": 1,
+            "ntasks_per_node": 1,
+            "additional_parameters": dict(s.extra),
+        }
+        if s.partition:
+            params["partition"] = s.partition
+        if s.mem:
+            params["mem"] = s.mem
+        if s.gpus_per_job > 0 and tasks and tasks[0].request.device != "cpu":
+            params["gpus_per_node"] = s.gpus_per_job
+        executor.update_parameters(**params)
+        limit = cfg.max_parallel or max(1, len(todo))
+        threads = s.cpus_per_job
+
+    free_gpus = list(gpus)
+    running: dict[int, tuple[Any, int | None, float]] = {}  # task index -> (job, gpu, submitted time)
+    gone_since: dict[int, float] = {}
+    pending = list(todo)
+    last_squeue = 0.0
+    squeue: dict[str, str] | None = None
+    try:
+        while pending or running:
+            while pending and len(running) < limit:
+                i = pending.pop(0)
+                t = tasks[i]
+                gpu = free_gpus.pop(0) if gpus else None
+                if cfg.kind == "local":
+                    executor.update_parameters(
+                        gpus_per_node=1 if gpu is not None else 0,
+                        visible_gpus=(gpu,) if gpu is not None else (),
+                    )
+                else:
+                    executor.update_parameters(job_name=f"wtbench-{t.scene}-{t.folder.root.name}"[:120])
+                submitted = time.time()
+                job = executor.submit(RunJob(t.request, threads))
+                running[i] = (job, gpu, submitted)
+                entry = {
+                    "executor": cfg.kind,
+                    "job_id": str(job.job_id),
+                    "host": socket.gethostname() if cfg.kind == "local" else None,
+                    "submitted": submitted,
+                    "state": "submitted",
+                    "log": str(job.paths.stderr),
+                }
+                earlier = read_jobs(t.folder)
+                if earlier and earlier[-1].get("state") == "submitted":
+                    earlier[-1]["state"] = (
+                        "lost"  # its sweep stopped watching it, and it is gone (checked above)
+                    )
+                _write_jobs(t.folder, [*earlier, entry])
+                where = f" on GPU {gpu}" if gpu is not None else ""
+                log(f"[{i + 1}/{total}] {t.scene}: {t.label}: {cfg.kind} job {job.job_id}{where}")
+
+            if cfg.kind == "slurm" and running and time.time() - last_squeue > 5 * cfg.poll_s:
+                squeue = slurm_states([str(j.job_id) for j, _, _ in running.values()])
+                last_squeue = time.time()
+            for i in list(running):
+                job, gpu, submitted = running[i]
+                finished = _job_finished(job, cfg.kind, squeue, gone_since, i)
+                if not finished:
+                    continue
+                del running[i]
+                gone_since.pop(i, None)
+                if gpu is not None:
+                    free_gpus.append(gpu)
+                outcomes[i] = _collect(tasks[i], job, cfg.kind, submitted, log, f"[{i + 1}/{total}]")
+            if pending or running:
+                time.sleep(cfg.poll_s)
+    except KeyboardInterrupt:
+        if cfg.kind == "local":
+            for job, _, _ in running.values():
+                job.cancel(check=False)
+            log(f"interrupted: stopped {len(running)} local job(s); run the sweep again to resume them")
+        else:
+            ids = ", ".join(str(j.job_id) for j, _, _ in running.values())
+            log(f"interrupted: Slurm jobs {ids} go on; `wtbench sweep --status RUNS_DIR` follows them")
+        raise
+    return [o for o in outcomes if o is not None]
+
+
+def logging_quiet() -> None:
+    """submitit warns on every status poll where Slurm has no accounting (sacct); this sweep polls squeue."""
+    import logging
+
+    logging.getLogger("submitit").setLevel(logging.ERROR)
+
+
+def _job_finished(
+    job, kind: str, squeue: dict[str, str] | None, gone_since: dict[int, float], i: int
+) -> bool:
+    """Whether a job has ended: a local process has exited; a Slurm job has written its result, or has been
+    out of the queue (or in an end state) for ``RESULT_GRACE_S`` without writing one."""
+    if kind == "local":
+        return job.done()
+    if job.paths.result_pickle.exists():
+        return True
+    if squeue is None:
+        return False  # not asked yet, or squeue failed: look again later
+    if squeue.get(str(job.job_id)) in SLURM_ALIVE:
+        gone_since.pop(i, None)
+        return False
+    first = gone_since.setdefault(i, time.time())
+    return time.time() - first > RESULT_GRACE_S
+
+
+def _collect(t: Task, job, kind: str, submitted: float, log, prefix: str) -> SweepOutcome:
+    """The outcome of a finished job, recorded in the run folder's job.json."""
+    log_path = str(job.paths.stderr)
+    try:
+        if kind == "slurm" and not job.paths.result_pickle.exists():
+            raise RuntimeError(
+                f"job {job.job_id} ended without a result (cancelled, preempted without requeue, or killed)"
+            )
+        res = job.result()
+    except Exception as e:  # a failed job must not stop the sweep
+        msg = _first_error_line(str(e))
+        _update_last_job(t.folder, state="failed", error=msg, ended=time.time())
+        log(f"{prefix} {t.scene}: {t.label}: failed: {msg} (log: {log_path})")
+        return SweepOutcome(
+            t.scene, t.label, "failed", str(t.folder.root), error=msg, executor=kind,
+            job_id=str(job.job_id), log=log_path,
+        )  # fmt: skip
+    wait = max(0.0, res["started"] - submitted)
+    wall = res["ended"] - res["started"]
+    state = "skipped" if res["skipped"] else "done"
+    _update_last_job(
+        t.folder, state=state, host=res["host"], device=res["device"], started=res["started"],
+        ended=res["ended"], queue_wait_s=wait, wall_s=wall,
+    )  # fmt: skip
+    log(f"{prefix} {t.scene}: {t.label}: {state} ({kind} job {job.job_id} on {res['host']}, {wall:.0f} s)")
+    return SweepOutcome(
+        t.scene, t.label, state, res["folder"], mean=res["mean"], executor=kind, job_id=str(job.job_id),
+        host=res["host"], device=res["device"], queue_wait_s=wait, wall_s=wall, log=log_path,
+    )  # fmt: skip
+
+
+def _with_last_job(outcome: SweepOutcome, folder: RunFolder) -> SweepOutcome:
+    """``outcome`` of a run finished earlier, with the job that finished it (from job.json), if any."""
+    done = [j for j in read_jobs(folder) if j.get("state") == "done"]
+    if done:
+        j = done[-1]
+        outcome.executor, outcome.job_id, outcome.host = j.get("executor"), j.get("job_id"), j.get("host")
+        outcome.device, outcome.log = j.get("device"), j.get("log")
+        outcome.queue_wait_s, outcome.wall_s = j.get("queue_wait_s"), j.get("wall_s")
+    return outcome
+
+
+def _done_mean(folder: RunFolder) -> dict[str, float]:
+    try:
+        return dict(json.loads(folder.done.read_text()).get("mean", {}))
+    except (OSError, ValueError, AttributeError):
+        return {}
+
+
+# -- status ---------------------------------------------------------------------------------------------------
+
+
+@dataclass
+class RunState:
+    """What one run folder says about its run."""
+
+    run: str  # scene/method/tag
+    state: str  # done, running, queued, failed or unfinished
+    job_id: str | None = None
+    detail: str = ""
+
+
+def run_states(runs_dir: Path) -> list[RunState]:
+    """The state of every run folder ``runs_dir/<scene>/<method>/<tag>`` (hidden folders skipped):
+    ``done`` (DONE written), ``running`` (its lock is held, or its Slurm job runs), ``queued`` (its job
+    waits), ``failed`` (its last job failed or vanished), ``unfinished`` (stopped outside a job; the next
+    sweep resumes it)."""
+    if not runs_dir.is_dir():
+        raise UserError(f"--status {runs_dir}: no such folder; give the sweep's RUNS_DIR (-o)")
+    folders = [
+        RunFolder(p)
+        for p in sorted(runs_dir.glob("*/*/*"))
+        if p.is_dir()
+        and not any(part.startswith(".") for part in p.relative_to(runs_dir).parts)
+        and any((p / f).is_file() for f in ("config.json", "DONE", JOB_RECORD))
+    ]
+    last = {f.root: (read_jobs(f) or [{}])[-1] for f in folders}
+    slurm_ids = [
+        str(j["job_id"])
+        for j in last.values()
+        if j.get("executor") == "slurm" and j.get("state") == "submitted" and j.get("job_id")
+    ]
+    squeue = slurm_states(slurm_ids)
+    out = []
+    for f in folders:
+        rel = str(f.root.relative_to(runs_dir))
+        job = last[f.root]
+        jid = str(job["job_id"]) if job.get("job_id") else None
+        log_note = f"log: {job['log']}" if job.get("log") else ""
+        if f.is_done():
+            out.append(RunState(rel, "done", jid, _done_detail(f)))
+        elif is_locked(f.root):
+            holder = read_holder(f.root)
+            out.append(RunState(rel, "running", jid, holder.describe() if holder else ""))
+        elif job.get("state") == "submitted":
+            state = live_job(job, squeue)
+            if state == "RUNNING":
+                out.append(RunState(rel, "running", jid, log_note))
+            elif state:
+                out.append(RunState(rel, "queued", jid, state.lower()))
+            else:
+                why = "its job ended without finishing (cancelled, preempted or killed); run the sweep again"
+                out.append(RunState(rel, "failed", jid, f"{why}; {log_note}".strip("; ")))
+        elif job.get("state") == "failed":
+            out.append(RunState(rel, "failed", jid, f"{job.get('error', '')}; {log_note}".strip("; ")))
+        else:
+            out.append(
+                RunState(rel, "unfinished", jid, "stopped before finishing; the next sweep resumes it")
+            )
+    return out
+
+
+def _done_detail(folder: RunFolder) -> str:
+    mean = _done_mean(folder)
+    return "  ".join(f"{k} {mean[k]:.3f}" for k in ("psnr", "mpsnr") if isinstance(mean.get(k), int | float))
