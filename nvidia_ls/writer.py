@@ -7,8 +7,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-SCHEMA = 1
-CONVENTION = "opencv: x right, y down, z forward; w2c maps world to camera"
+from worldtree.scene_schema import CameraEntry, CamerasDoc, FrameEntry
 
 
 def frame_file(index: int) -> str:
@@ -40,7 +39,7 @@ def cameras_document(
     has_masks: bool,
     world_transform: dict,
 ) -> dict:
-    """The ``cameras.json`` content.
+    """The ``cameras.json`` content (:class:`worldtree.scene_schema.CamerasDoc`, the one schema readers check).
 
     Args:
         width, height: stored image size.
@@ -52,46 +51,44 @@ def cameras_document(
         has_masks: whether test masks are written.
         world_transform: ``{"scale", "R", "t", "note"}`` from the SfM frame to the stored world.
     """
-    cams = []
-    for i, cid in enumerate(cameras):
-        cams.append(
-            {
-                "id": int(cid),
-                "K": np.asarray(Ks[i]).tolist(),
-                "dist": [0.0, 0.0, 0.0, 0.0, 0.0],
-                "w2c": np.asarray(w2cs[i]).tolist(),
-                "near": float(bounds[i, 0]),
-                "far": float(bounds[i, 1]),
-            }
+    cams = [
+        CameraEntry(
+            id=int(cid),
+            K=np.asarray(Ks[i]).tolist(),
+            w2c=np.asarray(w2cs[i]).tolist(),
+            dist=[0.0, 0.0, 0.0, 0.0, 0.0],
+            near=float(bounds[i, 0]),
+            far=float(bounds[i, 1]),
         )
+        for i, cid in enumerate(cameras)
+    ]
     frames = [
-        {"index": i, "file": frame_file(i), "camera": int(c), "time": i, "source_time": int(source_times[i])}
+        FrameEntry(index=i, file=frame_file(i), camera=int(c), time=i, source_time=int(source_times[i]))
         for i, c in enumerate(frame_cameras)
     ]
     test_frames = [
-        {
-            "index": t,
-            "file": test_file(t),
-            "mask": mask_file(t) if has_masks else None,
-            "camera": int(test_camera),
-            "time": t,
-            "source_time": int(s),
-        }
+        FrameEntry(
+            index=t,
+            file=test_file(t),
+            mask=mask_file(t) if has_masks else None,
+            camera=int(test_camera),
+            time=t,
+            source_time=int(s),
+        )
         for t, s in enumerate(source_times)
     ]
-    return {
-        "schema": SCHEMA,
-        "width": int(width),
-        "height": int(height),
-        "convention": CONVENTION,
-        "test_camera": int(test_camera),
-        "cameras": cams,
-        "frames": frames,
-        "test_frames": test_frames,
-        "near": float(bounds[:, 0].min()),
-        "far": float(bounds[:, 1].max()),
-        "world_transform": world_transform,
-    }
+    doc = CamerasDoc(
+        width=int(width),
+        height=int(height),
+        test_camera=int(test_camera),
+        cameras=cams,
+        frames=frames,
+        test_frames=test_frames,
+        near=float(bounds[:, 0].min()),
+        far=float(bounds[:, 1].max()),
+        world_transform=world_transform,
+    )
+    return doc.to_json()
 
 
 def save_image(path: str | Path, image: np.ndarray) -> None:

@@ -1,11 +1,11 @@
-"""The typed scene contract every method reads: a monocular training video plus a held-out test camera.
+"""The loaded scene every method trains on: a monocular training video plus a held-out test camera.
 
-One loader, :func:`load_scene`, reads the NVIDIA-LS layout written by ``nvls build`` (``docs/scene_format.md``).
+One loader, :func:`load_scene`, reads the NVIDIA-LS layout written by ``nvls build`` (``docs/scene_format.md``)
+through the typed document of :mod:`worldtree.scene_schema`.
 """
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -15,8 +15,7 @@ import torch
 
 from worldtree.errors import UserError
 from worldtree.imageio import read_image, read_mask
-
-SCHEMA_VERSION = 1
+from worldtree.scene_schema import read_cameras, resolve_inside
 
 
 @dataclass
@@ -93,22 +92,6 @@ def _scaled_K(K: np.ndarray, scale: int) -> np.ndarray:
     return K
 
 
-def read_cameras_json(root: str | Path) -> dict:
-    """Parse and check ``cameras.json`` of a scene folder."""
-    path = Path(root) / "cameras.json"
-    if not path.is_file():
-        raise UserError(f"{path}: missing; is {root} a scene written by `nvls build`?")
-    try:
-        meta = json.loads(path.read_text())
-    except json.JSONDecodeError as e:
-        raise UserError(f"{path}: not valid JSON ({e.msg} at line {e.lineno}); rebuild the scene") from e
-    if meta.get("schema") != SCHEMA_VERSION:
-        raise UserError(
-            f"{path}: schema {meta.get('schema')!r}, this tool reads {SCHEMA_VERSION}; rebuild it"
-        )
-    return meta
-
-
 def load_scene(root: str | Path, downscale: int = 1, load_masks: bool = True) -> Scene:
     """Load a scene folder written by ``nvls build``.
 
@@ -120,41 +103,38 @@ def load_scene(root: str | Path, downscale: int = 1, load_masks: bool = True) ->
     root = Path(root)
     if downscale < 1:
         raise UserError(f"--downscale {downscale}: must be an integer >= 1")
-    meta = read_cameras_json(root)
-    cams = {int(c["id"]): c for c in meta["cameras"]}
+    doc = read_cameras(root)
+    path = root / "cameras.json"
 
     def cam_arrays(cid: int) -> tuple[np.ndarray, np.ndarray]:
-        if cid not in cams:
-            raise UserError(f"{root / 'cameras.json'}: frame refers to camera {cid}, which is not listed")
-        c = cams[cid]
-        return _scaled_K(np.asarray(c["K"], dtype=np.float64), downscale), np.asarray(c["w2c"], np.float64)
+        c = doc.camera(cid, path)
+        return _scaled_K(np.asarray(c.K, dtype=np.float64), downscale), np.asarray(c.w2c, np.float64)
 
     images, Ks, w2cs, fcams, times = [], [], [], [], []
-    for fr in meta["frames"]:
-        images.append(_resize(read_image(root / fr["file"]), downscale))
-        K, w2c = cam_arrays(int(fr["camera"]))
+    for fr in doc.frames:
+        images.append(_resize(read_image(resolve_inside(root, fr.file, path)), downscale))
+        K, w2c = cam_arrays(fr.camera)
         Ks.append(K)
         w2cs.append(w2c)
-        fcams.append(int(fr["camera"]))
-        times.append(int(fr["time"]))
+        fcams.append(fr.camera)
+        times.append(fr.time)
     if not images:
-        raise UserError(f"{root / 'cameras.json'}: lists no training frames")
+        raise UserError(f"{path}: lists no training frames")
 
     test_imgs, test_masks, test_times, test_files = [], [], [], []
     have_masks = load_masks
-    for fr in meta.get("test_frames", []):
-        test_imgs.append(_resize(read_image(root / fr["file"]), downscale))
-        test_times.append(int(fr["time"]))
-        test_files.append(Path(fr["file"]).name)
-        if have_masks and fr.get("mask"):
-            m = read_mask(root / fr["mask"])
+    for fr in doc.test_frames:
+        test_imgs.append(_resize(read_image(resolve_inside(root, fr.file, path)), downscale))
+        test_times.append(fr.time)
+        test_files.append(Path(fr.file).name)
+        if have_masks and fr.mask:
+            m = read_mask(resolve_inside(root, fr.mask, path))
             if downscale > 1:
                 m = _resize(m.astype(np.uint8) * 255, downscale) > 127
             test_masks.append(m)
         else:
             have_masks = False
-    test_cam = int(meta.get("test_camera", 1))
-    tK, tw2c = cam_arrays(test_cam) if test_imgs else (np.eye(3), np.eye(4))
+    tK, tw2c = cam_arrays(doc.test_camera) if test_imgs else (np.eye(3), np.eye(4))
 
     def f32(a) -> torch.Tensor:
         return torch.from_numpy(np.ascontiguousarray(np.asarray(a), dtype=np.float32))
@@ -176,6 +156,6 @@ def load_scene(root: str | Path, downscale: int = 1, load_masks: bool = True) ->
         test_times=torch.tensor(test_times, dtype=torch.long),
         test_masks=torch.from_numpy(np.stack(test_masks)) if have_masks and test_masks else None,
         test_files=test_files,
-        near=float(meta.get("near", 0.01)),
-        far=float(meta.get("far", 100.0)),
+        near=doc.near,
+        far=doc.far,
     )

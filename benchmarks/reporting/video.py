@@ -15,6 +15,7 @@ import numpy as np
 
 from worldtree.errors import UserError
 from worldtree.imageio import read_image, read_mask
+from worldtree.scene_schema import read_cameras, resolve_inside
 
 
 def _label(img: np.ndarray, text: str) -> np.ndarray:
@@ -47,17 +48,17 @@ def compose_frames(run_dir: str | Path) -> tuple[list[np.ndarray], list[str]]:
     if not meta_path.is_file():
         raise UserError(f"{meta_path}: missing; the run's scene has moved (config.json names {scene})")
     frames, names = [], []
-    for fr in json.loads(meta_path.read_text()).get("test_frames", []):
-        name = Path(fr["file"]).stem
+    for fr in read_cameras(scene).test_frames:
+        name = Path(fr.file).stem
         render = run_dir / "renders" / f"{name}.png"
         if not render.is_file():
             raise UserError(f"{render}: missing render; finish the run with `wtbench run` first")
-        pred, gt = read_image(render), read_image(scene / fr["file"])
+        pred, gt = read_image(render), read_image(resolve_inside(scene, fr.file, meta_path))
         if pred.shape != gt.shape:
             raise UserError(f"{render}: size {pred.shape[:2]} differs from the ground truth's {gt.shape[:2]}")
         panels = [_label(pred, "render"), _label(gt, "ground truth")]
-        if fr.get("mask"):
-            panels.append(_label(mask_overlay(gt, read_mask(scene / fr["mask"])), "mask"))
+        if fr.mask:
+            panels.append(_label(mask_overlay(gt, read_mask(resolve_inside(scene, fr.mask, meta_path))), "mask"))
         frames.append(np.concatenate(panels, axis=1))
         names.append(name)
     if not frames:

@@ -164,23 +164,20 @@ class TestView:
 
 def native_test_view(root: Path) -> TestView:
     """The test camera of scene ``root`` at the stored (not down-scaled) image size, from ``cameras.json``."""
-    from worldtree.scene import read_cameras_json
+    from worldtree.scene_schema import read_cameras
 
-    meta = read_cameras_json(root)
-    frames = meta.get("test_frames") or []
-    if not frames:
-        raise UserError(f"{root / 'cameras.json'}: lists no test frames, so nothing can be scored")
-    cams = {int(c["id"]): c for c in meta["cameras"]}
-    cid = int(meta.get("test_camera", 1))
-    if cid not in cams:
-        raise UserError(f"{root / 'cameras.json'}: test camera {cid} is not listed under 'cameras'")
+    doc = read_cameras(root)
+    path = root / "cameras.json"
+    if not doc.test_frames:
+        raise UserError(f"{path}: lists no test frames, so nothing can be scored")
+    cam = doc.camera(doc.test_camera, path)
     return TestView(
-        K=torch.tensor(cams[cid]["K"], dtype=torch.float32),
-        w2c=torch.tensor(cams[cid]["w2c"], dtype=torch.float32),
-        width=int(meta["width"]),
-        height=int(meta["height"]),
-        times=[int(f["time"]) for f in frames],
-        files=[Path(f["file"]).name for f in frames],
+        K=torch.tensor(cam.K, dtype=torch.float32),
+        w2c=torch.tensor(cam.w2c, dtype=torch.float32),
+        width=doc.width,
+        height=doc.height,
+        times=[f.time for f in doc.test_frames],
+        files=[Path(f.file).name for f in doc.test_frames],
     )
 
 
