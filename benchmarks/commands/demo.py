@@ -91,6 +91,14 @@ def run_demo(
         priors = {"masks": str(gt_dir / "masks"), "tracks": str(gt_dir / "tracks.npz"),
                   "depth_maps": str(gt_dir / "depth")}  # fmt: skip
 
+    from worldtree.device import pick_device
+
+    if pick_device(device).type == "cpu":
+        from worldtree.render.cpu_kernel import prepare
+
+        target, seconds = prepare()
+        what = f"{target} build" if target else "unavailable, using the PyTorch reference"
+        console.print(f"C++ rasterizer: {what} ({seconds:.0f} s; compiled once per machine, then cached)")
     for m in methods:
         given = priors if priors and _uses_priors(m, preset) else {}
         flags = "".join(f" --{k.replace('_', '-')} {v}" for k, v in given.items())

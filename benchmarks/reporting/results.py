@@ -186,7 +186,8 @@ def _first(places: Sequence[Mapping[str, Any] | None], keys: Sequence[str]) -> f
 def cost_metrics(timing: Mapping[str, Any] | None, model_info: Mapping[str, Any] | None) -> dict[str, float]:
     """The :data:`COST_METRICS` of one run from its ``timing.json`` and ``model/model.json`` (NaN if absent).
 
-    ``wall_time_s``: the sum of ``stages_s`` except ``eval`` (scoring is not the method's cost), with the
+    ``wall_time_s``: the sum of ``stages_s`` except ``eval`` and ``kernel_build`` (scoring and the C++
+    rasterizer's one-time compile are not the method's cost), with the
     ``train`` stage replaced by ``train.wall_s_all_sessions`` so that a resumed run counts every session;
     ``total_s`` when ``stages_s`` is missing. ``peak_memory_mb``: ``cuda_peak_allocated_mib`` when the run
     was on CUDA, else ``peak_rss_mib`` (MiB). Sizes: the first of ``num_*``/``n_*`` keys found in
@@ -196,7 +197,7 @@ def cost_metrics(timing: Mapping[str, Any] | None, model_info: Mapping[str, Any]
     stages = timing.get("stages_s")
     wall = math.nan
     if isinstance(stages, Mapping) and stages:
-        vals = {str(k): _number(v) for k, v in stages.items() if k != "eval"}
+        vals = {str(k): _number(v) for k, v in stages.items() if k not in ("eval", "kernel_build")}
         train = timing.get("train")
         all_sessions = _number(train.get("wall_s_all_sessions")) if isinstance(train, Mapping) else math.nan
         if "train" in vals and not math.isnan(all_sessions):

@@ -289,6 +289,12 @@ def execute(req: RunRequest) -> RunResult:
     timer = StageTimer()
 
     def build_method():
+        if device.type == "cpu":
+            # The C++ rasterizer's one-time build is timed apart, so that the method's stages time the method.
+            from worldtree.render.cpu_kernel import prepare
+
+            with timer.stage("kernel_build"):
+                prepare()
         seed_everything(cfg.seed)  # before building: a method may draw its initial points
         with timer.stage("load"):
             scene = load_scene(root, downscale=cfg.downscale)
@@ -306,6 +312,15 @@ def execute(req: RunRequest) -> RunResult:
     method = None if (folder.is_done() and not req.force) else build_method()
     with FolderLock(folder.root, "run folder"):
         return _execute_locked(req, spec, cfg, folder, root, view, device, timer, method, build_method)
+
+
+def _kernel_target(device: torch.device) -> str | None:
+    """The C++ rasterizer build the run used on the CPU (native or portable), None elsewhere or without it."""
+    if device.type != "cpu":
+        return None
+    from worldtree.render.cpu_kernel import loaded_target
+
+    return loaded_target()
 
 
 def _execute_locked(req, spec, cfg, folder, root, view, device, timer, method, build_method) -> RunResult:
@@ -364,6 +379,7 @@ def _execute_locked(req, spec, cfg, folder, root, view, device, timer, method, b
         ),
         "num_gaussians": stats.get("num_gaussians"),
         "backend": stats.get("backend"),
+        "rasterizer_target": _kernel_target(device),
         "device": str(device),
         "torch_threads": torch.get_num_threads(),
         "method_stats": stats,

@@ -109,6 +109,9 @@ def test_cost_metrics_fallbacks():
     # A resumed run: this session trained 3 s, all sessions 8 s.
     t = {"stages_s": {"train": 3.0, "render": 1.0, "eval": 4.0}, "train": {"wall_s_all_sessions": 8.0}}
     assert cost_metrics(t, None)["wall_time_s"] == pytest.approx(9.0)
+    # The C++ rasterizer's one-time build is not the method's time.
+    t["stages_s"]["kernel_build"] = 50.0
+    assert cost_metrics(t, None)["wall_time_s"] == pytest.approx(9.0)
     assert all(math.isnan(v) for v in cost_metrics(None, None).values())
 
 

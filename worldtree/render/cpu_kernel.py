@@ -1,70 +1,58 @@
 """Compiled CPU backend: C++/OpenMP projection and tile compositing, backward by hand (csrc/rasterize_cpu.cpp).
 
-The extension is compiled on first use with :func:`torch.utils.cpp_extension.load` and cached under
-``$TORCH_EXTENSIONS_DIR`` (default ``~/.cache/torch_extensions``); the module name carries a hash of the
-source, the flags and the CPU's instruction-set flags, so an edited source or another CPU gets its own build.
-If the build fails (no compiler, no ninja), :func:`available` returns False and the caller falls back to the
-PyTorch reference with one logged warning.
+The extension is built on first use (or ahead of time by :func:`prepare`) and cached; see
+:mod:`worldtree.render.kernel_build` for the targets (``native``, ``portable``), the cache key and the lock that
+makes concurrent processes share one build. If no target builds (no compiler, no ninja), :func:`available`
+returns False and the caller falls back to the PyTorch reference with one logged warning.
 """
 
 from __future__ import annotations
 
-import hashlib
 import logging
-import platform
 import threading
-from pathlib import Path
 
 import torch
 from torch import Tensor
 
-log = logging.getLogger("worldtree.render")
+from worldtree.render import kernel_build
 
-_SRC = Path(__file__).parent / "csrc" / "rasterize_cpu.cpp"
-# -ffp-contract=off: no fused multiply-adds, so the compositing rounds exactly like the PyTorch reference.
-# No -ffast-math: the kernel's NaN guards (comparisons that are false for NaN) must keep their meaning.
-_CFLAGS = ["-O3", "-fopenmp", "-ffp-contract=off", "-march=native", "-std=c++17"]
-_LDFLAGS = ["-fopenmp"]
+log = logging.getLogger("worldtree.render")
 
 _lock = threading.Lock()
 _module = None
+_target: str | None = None
+_seconds = 0.0
 _error: str | None = None
 
 
-def _cpu_signature() -> str:
-    """Instruction-set flags of this CPU (a -march=native build must not be reused on another CPU)."""
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("flags"):
-                return line
-    except OSError:
-        pass
-    return platform.processor() or platform.machine()
+def _describe(e: Exception) -> str:
+    text = str(e).strip()
+    return f"{type(e).__name__}: {text.splitlines()[-1] if text else ''}"
 
 
 def _load():
-    global _module, _error
+    """The loaded extension module, or None when no target builds (reason in :func:`build_error`)."""
+    global _module, _target, _seconds, _error
     with _lock:
         if _module is not None or _error is not None:
             return _module
-        try:
-            from torch.utils.cpp_extension import load, verify_ninja_availability
-
-            verify_ninja_availability()
-            h = hashlib.sha256()
-            h.update(_SRC.read_bytes())
-            h.update(" ".join(_CFLAGS + _LDFLAGS).encode())
-            h.update(_cpu_signature().encode())
-            h.update(torch.__version__.encode())
-            name = f"worldtree_raster_cpu_{h.hexdigest()[:12]}"
-            log.info("loading the C++ rasterizer %s (compiled on first use, then cached)", name)
-            _module = load(
-                name=name, sources=[str(_SRC)], extra_cflags=_CFLAGS, extra_ldflags=_LDFLAGS, verbose=False
-            )
-        except Exception as e:  # compiler missing, ninja missing, build error: all mean "use the reference"
-            _error = f"{type(e).__name__}: {str(e).strip().splitlines()[-1] if str(e).strip() else ''}"
-            log.warning("C++ rasterizer unavailable, using the PyTorch reference instead (%s)", _error)
-        return _module
+        requested = kernel_build.requested_target()
+        order = ("native", "portable") if requested == "auto" else (requested,)
+        errors = []
+        for target in order:
+            try:
+                built = kernel_build.build(target)
+            except Exception as e:  # compiler missing, ninja missing, build error: try the next target
+                errors.append(f"{target}: {_describe(e)}")
+                continue
+            _module, _target, _seconds = built.module, built.target, built.seconds
+            if errors:
+                log.warning("C++ rasterizer: %s; using the %s build", "; ".join(errors), built.target)
+            log.info("C++ rasterizer: %s build %s loaded in %.1f s", built.target, built.name, built.seconds)
+            return _module
+        _error = "; ".join(errors)
+        log.warning("C++ rasterizer unavailable, using the PyTorch reference instead (%s)", _error)
+        return None
 
 
 def available() -> bool:
@@ -76,6 +64,34 @@ def build_error() -> str:
     """Why the build failed ('' when it did not)."""
     _load()
     return _error or ""
+
+
+def loaded_target() -> str | None:
+    """The target in use (``native`` or ``portable``), building it if needed; None when none builds."""
+    _load()
+    return _target
+
+
+def prepare() -> tuple[str | None, float]:
+    """Build (or load the cached build of) the kernel now, so that a later timed run does not pay for it.
+
+    Returns (target or None when no target builds, seconds spent in this process building or loading).
+    """
+    _load()
+    return _target, _seconds
+
+
+def use_target(target: str) -> str | None:
+    """Switch this process to ``target``'s build (building it if needed); returns the previous target.
+
+    For tests and speed scripts that compare the two builds; raises what the build raises.
+    """
+    global _module, _target, _seconds, _error
+    built = kernel_build.build(target)
+    with _lock:
+        previous = _target
+        _module, _target, _seconds, _error = built.module, built.target, built.seconds, None
+    return previous
 
 
 class _RasterizeCPU(torch.autograd.Function):

@@ -171,13 +171,15 @@ def test_bad_arguments_raise():
 
 def test_auto_falls_back_to_reference_when_the_build_fails(monkeypatch, caplog, tmp_path):
     """A real failed build (a source that does not compile): one warning, then the reference, logged once."""
-    from worldtree.render import backends
+    from worldtree.render import backends, kernel_build
 
     broken = tmp_path / "broken.cpp"
     broken.write_text("#error simulated build failure\n")
     monkeypatch.setenv("TORCH_EXTENSIONS_DIR", str(tmp_path / "ext"))
-    monkeypatch.setattr(cpu_kernel, "_SRC", broken)
+    monkeypatch.setattr(kernel_build, "SOURCE", broken)
+    monkeypatch.delenv(kernel_build.ENV_TARGET, raising=False)
     monkeypatch.setattr(cpu_kernel, "_module", None)
+    monkeypatch.setattr(cpu_kernel, "_target", None)
     monkeypatch.setattr(cpu_kernel, "_error", None)
     monkeypatch.setattr(backends, "_logged", set())
     p, w, h = _single([0.0, 0.0, 2.0])
@@ -187,6 +189,7 @@ def test_auto_falls_back_to_reference_when_the_build_fails(monkeypatch, caplog, 
     assert out.backend == "reference"
     warnings = [r for r in caplog.records if r.levelname == "WARNING"]
     assert len(warnings) == 1 and "C++ rasterizer unavailable" in warnings[0].getMessage()
+    assert "native:" in warnings[0].getMessage() and "portable:" in warnings[0].getMessage()  # both tried
     assert sum("backend on cpu: reference" in r.getMessage() for r in caplog.records) == 1  # logged once
     with pytest.raises(UserError, match="did not build"):
         rasterize(width=w, height=h, backend="cpu", **p)

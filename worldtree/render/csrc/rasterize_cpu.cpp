@@ -113,13 +113,24 @@ inline bool reach_box(T mx, T my, T a, T b, T c, T o, int px0, int px1, int py0,
   return x0 < x1 && y0 < y1;
 }
 
-// One row of a tile (16 pixels) is one GCC vector; the per-pixel loops below are written on whole rows, so
-// they compile to SIMD instructions without relying on the auto-vectoriser. M is the matching lane mask.
+// SIMD width of the instruction set this file is compiled for: a tile row (16 pixels) is TILE / W vectors of W
+// lanes. A GCC vector wider than the target's registers is lowered to slow generic code (a 16-float row vector
+// ran about 15x slower on AVX2 than on AVX-512), so the lane count follows the target.
+#if defined(__AVX512F__)
+constexpr int VBYTES = 64;
+#elif defined(__AVX__)
+constexpr int VBYTES = 32;
+#else
+constexpr int VBYTES = 16;
+#endif
+
 template <typename T>
-struct Row {
-  typedef T V __attribute__((vector_size(TILE * sizeof(T))));
+struct Simd {
+  static constexpr int W = std::min<int>(VBYTES / sizeof(T), TILE);  // lanes per vector
+  static constexpr int N = TILE / W;                                  // vectors per tile row
+  typedef T V __attribute__((vector_size(W * sizeof(T))));
   typedef std::conditional_t<sizeof(T) == 4, int32_t, int64_t> I;
-  typedef I M __attribute__((vector_size(TILE * sizeof(T))));
+  typedef I M __attribute__((vector_size(W * sizeof(T))));
 };
 
 template <typename V, typename S>
@@ -131,15 +142,15 @@ inline V splat(S x) {
 template <typename V>
 inline auto hsum(const V& v) {
   auto s = v[0];
-  for (int i = 1; i < TILE; ++i) s += v[i];
+  for (int i = 1; i < int(sizeof(V) / sizeof(s)); ++i) s += v[i];
   return s;
 }
 
-// exp on a row. float: Cody-Waite reduction and a degree-7 polynomial (about 2 ulp), branch-free SIMD.
+// exp on a vector. float: Cody-Waite reduction and a degree-7 polynomial (about 2 ulp), branch-free SIMD.
 // double (used by the tests): std::exp per lane.
-inline Row<float>::V vexp(Row<float>::V x) {
-  using V = Row<float>::V;
-  using M = Row<float>::M;
+inline Simd<float>::V vexp(Simd<float>::V x) {
+  using V = Simd<float>::V;
+  using M = Simd<float>::M;
   const V lo = splat<V>(-87.0f);  // below this exp underflows; such alphas are far under 1/255 anyway
   x = x < lo ? lo : x;
   const V kf = (x * 1.44269504088896341f + 12582912.0f) - 12582912.0f;  // round(x / ln 2)
@@ -155,17 +166,25 @@ inline Row<float>::V vexp(Row<float>::V x) {
   const M bits = (__builtin_convertvector(kf, M) + 127) << 23;
   return p * reinterpret_cast<const V&>(bits);
 }
-inline Row<double>::V vexp(Row<double>::V x) {
-  for (int i = 0; i < TILE; ++i) x[i] = std::exp(x[i]);
+inline Simd<double>::V vexp(Simd<double>::V x) {
+  for (int i = 0; i < Simd<double>::W; ++i) x[i] = std::exp(x[i]);
   return x;
+}
+
+// The vectors [c0, c1) of a tile row that hold pixels x0..x1-1 (tile starting at px0).
+template <int W>
+inline void lane_span(int x0, int x1, int px0, int& c0, int& c1) {
+  c0 = (x0 - px0) / W;
+  c1 = (x1 - px0 + W - 1) / W;
 }
 
 template <typename T>
 void forward_impl(const T* means2d, const T* conics, const T* opac, const T* colors, const T* depths, const T* bg,
                   const Bins& bins, int width, int height, int threads, T* out_rgb, T* out_alpha, T* out_depth,
                   T* out_T, int32_t* out_last) {
-  using V = typename Row<T>::V;
-  using M = typename Row<T>::M;
+  using V = typename Simd<T>::V;
+  using M = typename Simd<T>::M;
+  constexpr int W = Simd<T>::W, N = Simd<T>::N;
   const int tw = (width + TILE - 1) / TILE, th = (height + TILE - 1) / TILE;
   const int n_tiles = tw * th;
   const V amax = splat<V>(Consts<T>::alpha_max), zero = splat<V>(0), one = splat<V>(1);
@@ -175,64 +194,74 @@ void forward_impl(const T* means2d, const T* conics, const T* opac, const T* col
     const int px0 = (t % tw) * TILE, py0 = (t / tw) * TILE;
     const int px1 = std::min(px0 + TILE, width), py1 = std::min(py0 + TILE, height);
     const int n_pix = (px1 - px0) * (py1 - py0);
-    // Per row: transmittance, accumulated r, g, b, depth, index+1 of the last composited Gaussian (as T:
-    // exact below 2^24 per tile, checked by the caller), and a finished flag.
-    V Tr[TILE], ar[TILE], ag[TILE], ab[TILE], az[TILE], last[TILE], done[TILE];
-    V xs;
-    for (int i = 0; i < TILE; ++i) xs[i] = T(px0 + i);
-    for (int r = 0; r < TILE; ++r) {
-      Tr[r] = one;
-      ar[r] = ag[r] = ab[r] = az[r] = last[r] = zero;
-      // Pixels of a partial tile that lie outside the image are born finished.
-      for (int i = 0; i < TILE; ++i) done[r][i] = (px0 + i < px1 && py0 + r < py1) ? T(0) : T(1);
-    }
-    M stopped = splat<M>(0);  // lanes hold -(number of pixels of that column that finished)
+    // Per pixel: transmittance, accumulated r, g, b, depth, index+1 of the last composited Gaussian (as T:
+    // exact below 2^24 per tile, checked by the caller), and a finished flag; [row][vector] with W lanes.
+    V Tr[TILE][N], ar[TILE][N], ag[TILE][N], ab[TILE][N], az[TILE][N], last[TILE][N], done[TILE][N];
+    V xs[N];
+    for (int c = 0; c < N; ++c)
+      for (int i = 0; i < W; ++i) xs[c][i] = T(px0 + c * W + i);
+    for (int r = 0; r < TILE; ++r)
+      for (int c = 0; c < N; ++c) {
+        Tr[r][c] = one;
+        ar[r][c] = ag[r][c] = ab[r][c] = az[r][c] = last[r][c] = zero;
+        // Pixels of a partial tile that lie outside the image are born finished.
+        for (int i = 0; i < W; ++i) done[r][c][i] = (px0 + c * W + i < px1 && py0 + r < py1) ? T(0) : T(1);
+      }
+    M stopped = splat<M>(0);  // lanes hold -(number of pixels of that lane that finished)
     const int64_t s = bins.start[t], cnt = bins.count[t];
     for (int64_t k = 0; k < cnt; ++k) {
       const int32_t g = bins.ids[s + k];
       const T mx = means2d[2 * g], my = means2d[2 * g + 1];
       const T ca = conics[3 * g], cb = conics[3 * g + 1], cc = conics[3 * g + 2];
       const T o = opac[g];
-      int x0, x1, y0, y1;
+      int x0, x1, y0, y1, c0, c1;
       if (!reach_box<T>(mx, my, ca, cb, cc, o, px0, px1, py0, py1, x0, x1, y0, y1)) continue;
+      lane_span<W>(x0, x1, px0, c0, c1);
       const T cr = colors[3 * g], cg = colors[3 * g + 1], cbl = colors[3 * g + 2], z = depths[g];
       const V kk = splat<V>(k + 1);
-      const V dx = xs - mx;
-      const V cdx = ca * dx * dx;
+      V dx[N], cdx[N];
+      for (int c = c0; c < c1; ++c) {
+        dx[c] = xs[c] - mx;
+        cdx[c] = ca * dx[c] * dx[c];
+      }
       for (int y = y0; y < y1; ++y) {
         const int r = y - py0;
         const T dy = T(y) - my;
-        const V power = T(-0.5) * (cdx + cc * dy * dy) - cb * dx * dy;
-        V alpha = o * vexp(power);
-        alpha = alpha < amax ? alpha : amax;
-        const M ok = (done[r] == T(0)) & (power <= T(0)) & (alpha >= amin);
-        const V next = Tr[r] * (T(1) - alpha);
-        const M stop = ok & (next < tmin);
-        const M use = ok & ~stop;
-        const V w = use ? alpha * Tr[r] : zero;
-        ar[r] += w * cr;
-        ag[r] += w * cg;
-        ab[r] += w * cbl;
-        az[r] += w * z;
-        Tr[r] = use ? next : Tr[r];
-        last[r] = use ? kk : last[r];
-        done[r] = stop ? one : done[r];
-        stopped += stop;
+        const T cdy = cc * dy * dy;
+        for (int c = c0; c < c1; ++c) {
+          const V power = T(-0.5) * (cdx[c] + cdy) - cb * dx[c] * dy;
+          V alpha = o * vexp(power);
+          alpha = alpha < amax ? alpha : amax;
+          V& tr = Tr[r][c];
+          const M ok = (done[r][c] == T(0)) & (power <= T(0)) & (alpha >= amin);
+          const V next = tr * (T(1) - alpha);
+          const M stop = ok & (next < tmin);
+          const M use = ok & ~stop;
+          const V w = use ? alpha * tr : zero;
+          ar[r][c] += w * cr;
+          ag[r][c] += w * cg;
+          ab[r][c] += w * cbl;
+          az[r][c] += w * z;
+          tr = use ? next : tr;
+          last[r][c] = use ? kk : last[r][c];
+          done[r][c] = stop ? one : done[r][c];
+          stopped += stop;
+        }
       }
       if (-hsum(stopped) >= n_pix) break;
     }
     for (int y = py0; y < py1; ++y)
       for (int x = px0; x < px1; ++x) {
-        const int r = y - py0, i = x - px0;
+        const int r = y - py0, c = (x - px0) / W, i = (x - px0) % W;
         const int64_t q = static_cast<int64_t>(y) * width + x;
-        const T tr = Tr[r][i];
-        out_rgb[3 * q] = ar[r][i] + tr * bg[0];
-        out_rgb[3 * q + 1] = ag[r][i] + tr * bg[1];
-        out_rgb[3 * q + 2] = ab[r][i] + tr * bg[2];
+        const T tr = Tr[r][c][i];
+        out_rgb[3 * q] = ar[r][c][i] + tr * bg[0];
+        out_rgb[3 * q + 1] = ag[r][c][i] + tr * bg[1];
+        out_rgb[3 * q + 2] = ab[r][c][i] + tr * bg[2];
         out_alpha[q] = T(1) - tr;
-        out_depth[q] = az[r][i];
+        out_depth[q] = az[r][c][i];
         out_T[q] = tr;
-        out_last[q] = static_cast<int32_t>(last[r][i]);
+        out_last[q] = static_cast<int32_t>(last[r][c][i]);
       }
   }
 }
@@ -242,8 +271,9 @@ void backward_impl(const T* means2d, const T* conics, const T* opac, const T* co
                    const int32_t* ids, const int64_t* tstart, const int64_t* tcount, const T* final_T,
                    const int32_t* last_in, const T* g_rgb, const T* g_alpha, const T* g_depth, int width, int height,
                    int threads, T* pair_grad) {
-  using V = typename Row<T>::V;
-  using M = typename Row<T>::M;
+  using V = typename Simd<T>::V;
+  using M = typename Simd<T>::M;
+  constexpr int W = Simd<T>::W, N = Simd<T>::N;
   const int tw = (width + TILE - 1) / TILE, th = (height + TILE - 1) / TILE;
   const int n_tiles = tw * th;
   const V amax = splat<V>(Consts<T>::alpha_max), zero = splat<V>(0);
@@ -254,72 +284,82 @@ void backward_impl(const T* means2d, const T* conics, const T* opac, const T* co
     if (tcount[t] == 0) continue;
     const int px0 = (t % tw) * TILE, py0 = (t / tw) * TILE;
     const int px1 = std::min(px0 + TILE, width), py1 = std::min(py0 + TILE, height);
-    // Per row: Tr = transmittance behind the Gaussians still to visit; B* = normalised colour behind them
-    // (r, g, b, depth, alpha channel); G* = dL/d(output); last = composited count (pixels outside: 0).
-    V Tr[TILE], Br[TILE], Bg[TILE], Bb[TILE], Bz[TILE], Ba[TILE];
-    V Gr[TILE], Gg[TILE], Gb[TILE], Gz[TILE], Ga[TILE], last[TILE];
-    V xs;
-    for (int i = 0; i < TILE; ++i) xs[i] = T(px0 + i);
-    for (int r = 0; r < TILE; ++r) {
-      Tr[r] = splat<V>(1);
-      Br[r] = splat<V>(bg[0]), Bg[r] = splat<V>(bg[1]), Bb[r] = splat<V>(bg[2]);
-      Bz[r] = Ba[r] = Gr[r] = Gg[r] = Gb[r] = Gz[r] = Ga[r] = last[r] = zero;
-    }
+    // Per pixel ([row][vector], W lanes): Tr = transmittance behind the Gaussians still to visit; B* = normalised
+    // colour behind them (r, g, b, depth, alpha channel); G* = dL/d(output); last = composited count (0 outside).
+    V Tr[TILE][N], Br[TILE][N], Bg[TILE][N], Bb[TILE][N], Bz[TILE][N], Ba[TILE][N];
+    V Gr[TILE][N], Gg[TILE][N], Gb[TILE][N], Gz[TILE][N], Ga[TILE][N], last[TILE][N];
+    V xs[N];
+    for (int c = 0; c < N; ++c)
+      for (int i = 0; i < W; ++i) xs[c][i] = T(px0 + c * W + i);
+    for (int r = 0; r < TILE; ++r)
+      for (int c = 0; c < N; ++c) {
+        Tr[r][c] = splat<V>(1);
+        Br[r][c] = splat<V>(bg[0]), Bg[r][c] = splat<V>(bg[1]), Bb[r][c] = splat<V>(bg[2]);
+        Bz[r][c] = Ba[r][c] = Gr[r][c] = Gg[r][c] = Gb[r][c] = Gz[r][c] = Ga[r][c] = last[r][c] = zero;
+      }
     int32_t max_last = 0;
     for (int y = py0; y < py1; ++y)
       for (int x = px0; x < px1; ++x) {
-        const int r = y - py0, i = x - px0;
+        const int r = y - py0, c = (x - px0) / W, i = (x - px0) % W;
         const int64_t q = static_cast<int64_t>(y) * width + x;
-        Tr[r][i] = final_T[q];
-        last[r][i] = T(last_in[q]);
+        Tr[r][c][i] = final_T[q];
+        last[r][c][i] = T(last_in[q]);
         max_last = std::max(max_last, last_in[q]);
-        Gr[r][i] = g_rgb[3 * q], Gg[r][i] = g_rgb[3 * q + 1], Gb[r][i] = g_rgb[3 * q + 2];
-        Gz[r][i] = g_depth[q], Ga[r][i] = g_alpha[q];
+        Gr[r][c][i] = g_rgb[3 * q], Gg[r][c][i] = g_rgb[3 * q + 1], Gb[r][c][i] = g_rgb[3 * q + 2];
+        Gz[r][c][i] = g_depth[q], Ga[r][c][i] = g_alpha[q];
       }
     for (int64_t k = max_last - 1; k >= 0; --k) {
       const int32_t g = ids[s + k];
       const T mx = means2d[2 * g], my = means2d[2 * g + 1];
       const T ca = conics[3 * g], cb = conics[3 * g + 1], cc = conics[3 * g + 2];
       const T o = opac[g];
-      int x0, x1, y0, y1;
+      int x0, x1, y0, y1, c0, c1;
       if (!reach_box<T>(mx, my, ca, cb, cc, o, px0, px1, py0, py1, x0, x1, y0, y1)) continue;
+      lane_span<W>(x0, x1, px0, c0, c1);
       const T cr = colors[3 * g], cg = colors[3 * g + 1], cbl = colors[3 * g + 2], z = depths[g];
       const V kk = splat<V>(k);
-      const V dx = xs - mx;
-      const V cdx = ca * dx * dx;
+      V dx[N], cdx[N];
+      for (int c = c0; c < c1; ++c) {
+        dx[c] = xs[c] - mx;
+        cdx[c] = ca * dx[c] * dx[c];
+      }
       V d_mx = zero, d_my = zero, d_a = zero, d_b = zero, d_c = zero, d_o = zero;
       V d_r = zero, d_g = zero, d_bl = zero, d_z = zero;
       for (int y = y0; y < y1; ++y) {
         const int r = y - py0;
         const T dy = T(y) - my;
-        const V power = T(-0.5) * (cdx + cc * dy * dy) - cb * dx * dy;
-        const V gauss = vexp(power);
-        const V raw = o * gauss;
-        const V alpha = raw < amax ? raw : amax;
-        const M active = (kk < last[r]) & (power <= T(0)) & (alpha >= amin);
-        const V t_k = Tr[r] / (T(1) - alpha);  // transmittance in front of this Gaussian
-        const V w = active ? alpha * t_k : zero;
-        d_r += w * Gr[r];
-        d_g += w * Gg[r];
-        d_bl += w * Gb[r];
-        d_z += w * Gz[r];
-        V d_alpha = Gr[r] * (cr - Br[r]) + Gg[r] * (cg - Bg[r]) + Gb[r] * (cbl - Bb[r]) + Gz[r] * (z - Bz[r]) +
-                    Ga[r] * (T(1) - Ba[r]);
-        d_alpha = (active & (raw <= amax)) ? d_alpha * t_k : zero;  // clamped alpha: no gradient
-        const V keep = T(1) - alpha;
-        Br[r] = active ? alpha * cr + keep * Br[r] : Br[r];
-        Bg[r] = active ? alpha * cg + keep * Bg[r] : Bg[r];
-        Bb[r] = active ? alpha * cbl + keep * Bb[r] : Bb[r];
-        Bz[r] = active ? alpha * z + keep * Bz[r] : Bz[r];
-        Ba[r] = active ? alpha + keep * Ba[r] : Ba[r];
-        Tr[r] = active ? t_k : Tr[r];
-        d_o += gauss * d_alpha;
-        const V d_pow = raw * d_alpha;
-        d_a += T(-0.5) * dx * dx * d_pow;
-        d_c += T(-0.5) * dy * dy * d_pow;
-        d_b += -dx * dy * d_pow;
-        d_mx += (ca * dx + cb * dy) * d_pow;
-        d_my += (cb * dx + cc * dy) * d_pow;
+        const T cdy = cc * dy * dy;
+        for (int c = c0; c < c1; ++c) {
+          const V power = T(-0.5) * (cdx[c] + cdy) - cb * dx[c] * dy;
+          const V gauss = vexp(power);
+          const V raw = o * gauss;
+          const V alpha = raw < amax ? raw : amax;
+          const M active = (kk < last[r][c]) & (power <= T(0)) & (alpha >= amin);
+          V& tr = Tr[r][c];
+          const V t_k = tr / (T(1) - alpha);  // transmittance in front of this Gaussian
+          const V w = active ? alpha * t_k : zero;
+          d_r += w * Gr[r][c];
+          d_g += w * Gg[r][c];
+          d_bl += w * Gb[r][c];
+          d_z += w * Gz[r][c];
+          V d_alpha = Gr[r][c] * (cr - Br[r][c]) + Gg[r][c] * (cg - Bg[r][c]) + Gb[r][c] * (cbl - Bb[r][c]) +
+                      Gz[r][c] * (z - Bz[r][c]) + Ga[r][c] * (T(1) - Ba[r][c]);
+          d_alpha = (active & (raw <= amax)) ? d_alpha * t_k : zero;  // clamped alpha: no gradient
+          const V keep = T(1) - alpha;
+          Br[r][c] = active ? alpha * cr + keep * Br[r][c] : Br[r][c];
+          Bg[r][c] = active ? alpha * cg + keep * Bg[r][c] : Bg[r][c];
+          Bb[r][c] = active ? alpha * cbl + keep * Bb[r][c] : Bb[r][c];
+          Bz[r][c] = active ? alpha * z + keep * Bz[r][c] : Bz[r][c];
+          Ba[r][c] = active ? alpha + keep * Ba[r][c] : Ba[r][c];
+          tr = active ? t_k : tr;
+          d_o += gauss * d_alpha;
+          const V d_pow = raw * d_alpha;
+          d_a += T(-0.5) * dx[c] * dx[c] * d_pow;
+          d_c += T(-0.5) * dy * dy * d_pow;
+          d_b += -dx[c] * dy * d_pow;
+          d_mx += (ca * dx[c] + cb * dy) * d_pow;
+          d_my += (cb * dx[c] + cc * dy) * d_pow;
+        }
       }
       T* slot = pair_grad + (s + k) * NGRAD;
       slot[0] = hsum(d_mx), slot[1] = hsum(d_my), slot[2] = hsum(d_a), slot[3] = hsum(d_b), slot[4] = hsum(d_c);

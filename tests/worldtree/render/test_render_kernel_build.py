@@ -1,0 +1,103 @@
+"""The C++ rasterizer's build cache: what its key covers, and one shared build for concurrent processes."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import pytest
+
+from worldtree.errors import UserError
+from worldtree.render import kernel_build
+
+REPO = Path(__file__).resolve().parents[3]
+
+
+def test_key_covers_source_flags_target_and_cpu(monkeypatch, tmp_path):
+    src = tmp_path / "k.cpp"
+    src.write_text("int a;\n")
+    monkeypatch.setattr(kernel_build, "SOURCE", src)
+    base = {t: kernel_build.build_key(t) for t in kernel_build.TARGETS}
+    assert base["native"] != base["portable"]  # different targets never share a build
+
+    src.write_text("int b;\n")
+    assert all(kernel_build.build_key(t) != base[t] for t in kernel_build.TARGETS)  # any source edit
+    src.write_text("int a;\n")
+    assert {t: kernel_build.build_key(t) for t in kernel_build.TARGETS} == base  # and back: same key
+
+    monkeypatch.setattr(kernel_build, "COMMON_CFLAGS", (*kernel_build.COMMON_CFLAGS, "-g"))
+    assert all(kernel_build.build_key(t) != base[t] for t in kernel_build.TARGETS)  # any flag
+    monkeypatch.undo()
+    monkeypatch.setattr(kernel_build, "SOURCE", src)
+
+    # -march=native compiles for this CPU: another CPU needs another native build, not another portable one.
+    monkeypatch.setattr(kernel_build, "cpu_signature", lambda: "Other CPU|sse2 avx2")
+    assert kernel_build.build_key("native") != base["native"]
+    assert kernel_build.build_key("portable") == base["portable"]
+    # Another compiler, or another torch, changes every build.
+    monkeypatch.setattr(kernel_build, "compiler_identity", lambda: "c++ (Other) 99.1")
+    assert kernel_build.build_key("portable") != base["portable"]
+    monkeypatch.setattr(kernel_build.torch, "__version__", "0.0.1")
+    assert kernel_build.build_key("portable") != base["portable"]
+
+
+def test_target_flags_and_choice(monkeypatch):
+    assert kernel_build.target_cflags("native") == ("-march=native",)
+    monkeypatch.setattr(kernel_build.platform, "machine", lambda: "x86_64")
+    assert "-march=x86-64" in kernel_build.target_cflags("portable")
+    with pytest.raises(ValueError, match="unknown rasterizer target"):
+        kernel_build.target_cflags("fastest")
+    monkeypatch.setenv(kernel_build.ENV_TARGET, "Portable")
+    assert kernel_build.requested_target() == "portable"
+    monkeypatch.delenv(kernel_build.ENV_TARGET)
+    assert kernel_build.requested_target() == "auto"
+    monkeypatch.setenv(kernel_build.ENV_TARGET, "avx9")
+    with pytest.raises(UserError, match="WORLDTREE_RASTER_TARGET"):
+        kernel_build.requested_target()
+
+
+_BUILD_ONE = textwrap.dedent(
+    """
+    import json, sys
+    from pathlib import Path
+    from worldtree.render import kernel_build
+    kernel_build.SOURCE = Path(sys.argv[1])
+    built = kernel_build.build("portable")
+    print(json.dumps({"name": built.name, "value": built.module.value()}))
+    """
+)
+
+
+def test_concurrent_processes_share_one_build(tmp_path):
+    """Two processes asking for the same build at once: one compiles, the other waits and loads it."""
+    pytest.importorskip("ninja")
+    src = tmp_path / "tiny.cpp"
+    src.write_text(
+        "#include <pybind11/pybind11.h>\n"
+        "PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) { m.def(\"value\", [] { return 42; }); }\n"
+    )
+    env = {**os.environ, "TORCH_EXTENSIONS_DIR": str(tmp_path / "ext"), "PYTHONPATH": str(REPO)}
+    procs = [
+        subprocess.Popen(
+            [sys.executable, "-c", _BUILD_ONE, str(src)], env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+            text=True,
+        )
+        for _ in range(2)
+    ]  # fmt: skip
+    results = []
+    for p in procs:
+        out, err = p.communicate(timeout=600)
+        if p.returncode != 0 and "compiler" in err.lower():
+            pytest.skip("no C++ compiler here")
+        assert p.returncode == 0, err
+        results.append(json.loads(out.strip().splitlines()[-1]))
+    assert results[0] == results[1] and results[0]["value"] == 42
+    folder = tmp_path / "ext" / "worldtree" / results[0]["name"]
+    # ninja's log has one line per command it ran: one compile and one link, whoever ran them.
+    ran = [ln for ln in (folder / ".ninja_log").read_text().splitlines() if not ln.startswith("#")]
+    assert len(ran) == 2, ran
+    assert (folder / src.name).read_text() == src.read_text()  # the build compiled its own copy of the source

@@ -1,0 +1,178 @@
+"""Building and caching the C++ rasterizer (csrc/rasterize_cpu.cpp): one build per target, shared by processes.
+
+Two targets are compiled from the same source:
+
+- ``native``: ``-march=native``, the instruction set of this CPU (AVX-512, AVX2, ...); the fastest.
+- ``portable``: the architecture's baseline (``-march=x86-64`` on x86-64: SSE2 only), runs on any CPU of the
+  architecture; used when the native build fails, or when asked for.
+
+``WORLDTREE_RASTER_TARGET`` (``auto``, ``native`` or ``portable``) chooses; ``auto`` (the default) takes
+``native`` and falls back to ``portable``. The kernel sizes its SIMD vectors from the target's instruction set,
+so both targets compute the same image formation; their float results differ only by summation order.
+
+Cache: ``$TORCH_EXTENSIONS_DIR/worldtree/<name>`` (default root ``~/.cache/torch_extensions``), where the name
+carries a hash of everything that changes the built library: the source, the compile flags, the target, the
+torch version and install path, the Python version, the compiler (its ``--version``) and, for ``native``, the
+CPU's model and instruction-set flags. The source is copied into the build folder, so checkouts in different
+places share one build. A file lock around the build makes concurrent processes wait for one build instead of
+compiling the same library twice; the first build takes about a minute, later loads a second.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import logging
+import os
+import platform
+import shutil
+import subprocess
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+
+log = logging.getLogger("worldtree.render")
+
+SOURCE = Path(__file__).parent / "csrc" / "rasterize_cpu.cpp"
+TARGETS = ("native", "portable")
+ENV_TARGET = "WORLDTREE_RASTER_TARGET"
+
+# -ffp-contract=off: no fused multiply-adds, so the compositing rounds exactly like the PyTorch reference.
+# No -ffast-math: the kernel's NaN guards (comparisons that are false for NaN) must keep their meaning.
+COMMON_CFLAGS = ("-O3", "-fopenmp", "-ffp-contract=off", "-std=c++17")
+LDFLAGS = ("-fopenmp",)
+
+
+def target_cflags(target: str) -> tuple[str, ...]:
+    """The instruction-set flags of ``target`` on this machine's architecture."""
+    if target == "native":
+        return ("-march=native",)
+    if target == "portable":
+        machine = platform.machine().lower()
+        if machine in ("x86_64", "amd64"):
+            return ("-march=x86-64", "-mtune=generic")
+        if machine in ("aarch64", "arm64"):
+            return ("-march=armv8-a",)
+        return ()  # the compiler's default target is its portable baseline
+    raise ValueError(f"unknown rasterizer target {target!r}; use one of {', '.join(TARGETS)}")
+
+
+def cpu_signature() -> str:
+    """This CPU's model name and instruction-set flags (what ``-march=native`` compiles for)."""
+    model, flags = "", ""
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            key = line.split(":", 1)[0].strip()
+            if key in ("model name", "cpu model") and not model:
+                model = line.split(":", 1)[1].strip()
+            elif key in ("flags", "Features") and not flags:
+                flags = line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return f"{model}|{flags}" if (model or flags) else platform.processor() or platform.machine()
+
+
+def compiler_identity() -> str:
+    """First line of ``$CXX --version`` (the compiler torch's build will call); '' when it cannot run."""
+    cxx = os.environ.get("CXX", "c++")
+    try:
+        out = subprocess.run([cxx, "--version"], capture_output=True, text=True, timeout=30).stdout
+    except (OSError, subprocess.SubprocessError):
+        return ""
+    return out.strip().splitlines()[0] if out.strip() else ""
+
+
+def build_key(target: str) -> str:
+    """Hash (hex, 16 digits) of everything that changes the library built for ``target``."""
+    h = hashlib.sha256()
+    parts = [
+        SOURCE.read_bytes(),
+        " ".join(COMMON_CFLAGS + target_cflags(target) + LDFLAGS).encode(),
+        target.encode(),
+        torch.__version__.encode(),
+        str(Path(torch.__file__).parent).encode(),
+        sys.version.encode(),
+        platform.machine().encode(),
+        compiler_identity().encode(),
+    ]
+    if target == "native":
+        parts.append(cpu_signature().encode())
+    for p in parts:
+        h.update(len(p).to_bytes(8, "little"))
+        h.update(p)
+    return h.hexdigest()[:16]
+
+
+def cache_root() -> Path:
+    """Folder holding the builds: ``$TORCH_EXTENSIONS_DIR/worldtree`` (default ``~/.cache/torch_extensions``)."""
+    from torch.utils.cpp_extension import get_default_build_root
+
+    return Path(os.environ.get("TORCH_EXTENSIONS_DIR") or get_default_build_root()) / "worldtree"
+
+
+def module_name(target: str) -> str:
+    """Python module name of ``target``'s build (unique per build key)."""
+    return f"worldtree_raster_{target}_{build_key(target)}"
+
+
+@dataclass
+class Built:
+    """A loaded build."""
+
+    module: object
+    """The extension module (project_forward, project_backward, forward, backward)."""
+    target: str
+    """``native`` or ``portable``."""
+    name: str
+    """Module name, also the name of its build folder."""
+    seconds: float
+    """Time spent building or loading it in this process."""
+
+
+def build(target: str, *, verbose: bool = False) -> Built:
+    """Build ``target`` (or load its cached build) and import it; raises whatever the build raises.
+
+    Holds ``<cache>/<name>.lock`` (a file lock, released if the process dies) while building and loading, so a
+    second process waits for the first's build and then loads it.
+    """
+    from filelock import FileLock
+    from torch.utils.cpp_extension import load, verify_ninja_availability
+
+    verify_ninja_availability()
+    t0 = time.perf_counter()
+    name = module_name(target)
+    folder = cache_root() / name
+    folder.mkdir(parents=True, exist_ok=True)
+    with FileLock(str(folder.parent / f"{name}.lock")):
+        # torch's own lock file inside the folder is left behind by a build that was killed; under our lock
+        # nobody else is building, so one found now is stale and would make torch wait for ever.
+        (folder / "lock").unlink(missing_ok=True)
+        src = folder / SOURCE.name
+        if not src.is_file() or src.read_bytes() != SOURCE.read_bytes():
+            tmp = folder / (SOURCE.name + ".tmp")
+            shutil.copyfile(SOURCE, tmp)
+            os.replace(tmp, src)
+        cached = any(folder.glob(f"{name}*.so")) or any(folder.glob(f"{name}*.pyd"))
+        if not cached:
+            log.info("compiling the C++ rasterizer (%s target) into %s; about a minute, once", target, folder)
+        module = load(
+            name=name,
+            sources=[str(src)],
+            extra_cflags=list(COMMON_CFLAGS + target_cflags(target)),
+            extra_ldflags=list(LDFLAGS),
+            build_directory=str(folder),
+            verbose=verbose,
+        )
+    return Built(module, target, name, time.perf_counter() - t0)
+
+
+def requested_target() -> str:
+    """The target asked for by ``WORLDTREE_RASTER_TARGET``: ``auto`` (default), ``native`` or ``portable``."""
+    value = os.environ.get(ENV_TARGET, "auto").strip().lower() or "auto"
+    if value not in ("auto", *TARGETS):
+        from worldtree.errors import UserError
+
+        raise UserError(f"{ENV_TARGET}={value!r} is unknown; use auto, native or portable")
+    return value
