@@ -218,14 +218,15 @@ def cost_metrics(timing: Mapping[str, Any] | None, model_info: Mapping[str, Any]
 
 
 def find_run_folders(runs_dir: Path) -> list[Path]:
-    """Folders ``runs_dir/<scene>/<method>/<tag>`` holding a ``config.json`` or ``DONE``, sorted; hidden
-    names (temporary folders of atomic writes) are left out."""
+    """Folders ``runs_dir/<scene>/<method>/<tag>`` holding a ``config.json``, ``DONE`` or ``job.json`` (a run
+    a sweep has submitted, perhaps still queued), sorted; hidden names (temporary folders of atomic writes,
+    locks) are left out."""
     return sorted(
         p
         for p in runs_dir.glob("*/*/*")
         if p.is_dir()
         and not any(part.startswith(".") for part in p.relative_to(runs_dir).parts)
-        and ((p / "config.json").is_file() or (p / "DONE").is_file())
+        and any((p / name).is_file() for name in ("config.json", "DONE", "job.json"))
     )
 
 

@@ -504,13 +504,9 @@ def run_states(runs_dir: Path) -> list[RunState]:
     sweep resumes it)."""
     if not runs_dir.is_dir():
         raise UserError(f"--status {runs_dir}: no such folder; give the sweep's RUNS_DIR (-o)")
-    folders = [
-        RunFolder(p)
-        for p in sorted(runs_dir.glob("*/*/*"))
-        if p.is_dir()
-        and not any(part.startswith(".") for part in p.relative_to(runs_dir).parts)
-        and any((p / f).is_file() for f in ("config.json", "DONE", JOB_RECORD))
-    ]
+    from benchmarks.reporting.results import find_run_folders
+
+    folders = [RunFolder(p) for p in find_run_folders(runs_dir)]
     last = {f.root: (read_jobs(f) or [{}])[-1] for f in folders}
     slurm_ids = [
         str(j["job_id"])

@@ -56,6 +56,9 @@ def test_long_table_values_and_skips(tmp_path):
         cuda_peak_mib=1234.0,
     )
     rf.write_run(tmp_path, "Jumping", "static", "quick", FULL, done=False)  # unfinished
+    queued = tmp_path / "Truck" / "static" / "quick-seed1"  # a sweep's job not started yet: job.json only
+    queued.mkdir(parents=True)
+    (queued / "job.json").write_text('{"jobs": [{"executor": "slurm", "job_id": "7", "state": "submitted"}]}')
     broken = rf.write_run(tmp_path, "Truck", "static", "quick", FULL)
     broken.metrics_csv.write_text("frame,psnr\nv001_t000,3\n")  # no mean row
 
@@ -63,7 +66,10 @@ def test_long_table_values_and_skips(tmp_path):
     long = got.long
     assert list(long.columns) == list(LONG_COLUMNS)
     assert len(long) == 2 * len(METRICS)  # two readable finished runs, every metric listed once each
-    assert any("1 unfinished run" in n and "Jumping/static/quick" in n for n in got.notes)
+    assert any(
+        "2 unfinished run" in n and "Jumping/static/quick" in n and "Truck/static/quick-seed1" in n
+        for n in got.notes
+    )
     assert any("Truck" in n and "metrics.csv" in n for n in got.notes)
 
     a = long[(long["scene"] == "Balloon1")].set_index("metric")["value"]
