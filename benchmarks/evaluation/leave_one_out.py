@@ -1,0 +1,267 @@
+"""Leave-one-out scoring on a real capture without its test views (e.g. Balloon1 in the DynamicNeRF layout).
+
+For each held-out training frame k: train a method on the other frames (re-indexed 0..T-2, times kept in
+order), render frame k's camera at time k -- a view and a time the model never saw -- and score it against
+frame k at the method's working size: PSNR on uint8 images, and masked PSNR (`worldtree` protocol: pixels
+outside the mask set to white in both) when the scene has a mask for frame k (``--masks DIR``, one per frame).
+
+Time k lies between the kept frames k-1 and k+1 (new indices k-1 and k), so a method with motion (Base) is
+rendered with every Gaussian at the midpoint of its positions at those two frames (rotations nlerped): the
+model's own motion, interpolated; the static model ignores time. k must have both neighbours (1..T-2). The
+held-out camera's pose is the given one mapped by the method's Sim(3) alignment (no test-time pose
+refinement, which would look at frame k). Imported priors (``--depth-maps``, ``--flow``, ``--masks``: the
+folders `nvls import` writes) are re-indexed without frame k (flow pairs touching k are dropped).
+
+WorldTree does not apply to a 12-frame protocol: its tree makes no child for an interval under 12 frames,
+so its root is the whole model (the Base stages); it is not run here.
+
+Usage (results appended to OUT/loo.json; finished (k, method) pairs are skipped, so an interrupted run
+resumes)::
+
+    nice python -m benchmarks.evaluation.leave_one_out SCENE --frames 3,6,9 --methods static,base -o runs/loo \\
+        [--preset quick] [--steps N] [--depth-maps DIR --depth-kind disparity --depth-fit] [--flow DIR]
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import shutil
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+import worldtree
+from worldtree.atomic import atomic_write_json
+from worldtree.device import pick_device
+from worldtree.errors import UserError
+from worldtree.imageio import read_mask, write_image
+from worldtree.scene import Scene, load_scene
+
+
+def drop_frame(scene: Scene, k: int) -> Scene:
+    """The scene without training frame ``k`` (frames re-indexed 0..T-2) and without test views."""
+    keep = torch.tensor([t for t in range(scene.num_frames) if t != k])
+    return dataclasses.replace(
+        scene,
+        images=scene.images[keep].clone(),
+        Ks=scene.Ks[keep].clone(),
+        w2cs=scene.w2cs[keep].clone(),
+        frame_cameras=scene.frame_cameras[keep].clone(),
+        times=torch.arange(scene.num_frames - 1),
+        test_images=torch.zeros(0, 1, 1, 3),
+        test_times=torch.zeros(0, dtype=torch.long),
+        test_masks=None,
+        test_files=[],
+    )
+
+
+def _reindex(t: int, k: int) -> int:
+    return t if t < k else t - 1
+
+
+def subset_priors(folders: dict[str, Path], k: int, T: int, tmp: Path) -> dict[str, Path]:
+    """Copies of imported prior folders without frame ``k``: per-frame files (sorted) minus the k-th; flow
+    files ``<i>_<j>`` with i, j != k renamed to the new indices."""
+    import re
+
+    out = {}
+    for name, src in folders.items():
+        dst = tmp / name
+        dst.mkdir(parents=True)
+        if name == "flow":
+            for p in sorted(src.iterdir()):
+                m = re.match(r"^(\d+)[_-](\d+)$", p.stem)
+                if m and k not in (int(m.group(1)), int(m.group(2))):
+                    i, j = _reindex(int(m.group(1)), k), _reindex(int(m.group(2)), k)
+                    shutil.copy(p, dst / f"{i:05d}_{j:05d}{p.suffix}")
+        else:
+            files = sorted(p for p in src.iterdir() if p.is_file())
+            if len(files) != T:
+                raise UserError(f"{src}: {len(files)} files for {T} frames; one per frame")
+            for n, p in enumerate(f for t, f in enumerate(files) if t != k):
+                shutil.copy(p, dst / f"{n:05d}{p.suffix}")
+        out[name] = dst
+    return out
+
+
+def psnr_u8(a: np.ndarray, b: np.ndarray) -> float:
+    """PSNR (dB) of two uint8 images, peak 255."""
+    mse = float(np.mean((a.astype(np.float64) - b.astype(np.float64)) ** 2))
+    return float("inf") if mse == 0 else 10.0 * np.log10(255.0**2 / mse)
+
+
+def masked_psnr_u8(a: np.ndarray, b: np.ndarray, mask: np.ndarray) -> float | None:
+    """The `worldtree` protocol's mPSNR: pixels outside ``mask`` [H, W] white in both, PSNR over the masked
+    pixels' values; None for an empty mask."""
+    if not mask.any():
+        return None
+    return psnr_u8(a[mask], b[mask])
+
+
+@torch.no_grad()
+def render_between(
+    method, K: torch.Tensor, w2c: torch.Tensor, width: int, height: int, a: int
+) -> torch.Tensor:
+    """``[H, W, 3]`` of a Base-family model halfway between its frames ``a`` and ``a + 1``: every Gaussian at
+    the midpoint of its two positions, rotations nlerped (static Gaussians are the same at both)."""
+    from worldtree.render import rasterize
+
+    fit = method.fit_state
+    ma, qa, ls, o, c = fit.gaussians_at(a)
+    mb, qb, _, _, _ = fit.gaussians_at(a + 1)
+    qb = torch.where((qa * qb).sum(-1, keepdim=True) < 0, -qb, qb)  # same hemisphere before blending
+    q = qa + qb
+    q = q / q.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+    pose = method.sim3.apply_w2c(w2c.to(method.device, torch.float32))
+    out = rasterize(0.5 * (ma + mb), q, ls, o, c, K.to(method.device, torch.float32), pose, width, height,
+                    backend=fit.cfg.backend)  # fmt: skip
+    return out.rgb.clamp(0.0, 1.0)
+
+
+def _to_u8(img: torch.Tensor) -> np.ndarray:
+    return np.clip(np.round(img.detach().cpu().numpy() * 255.0), 0, 255).astype(np.uint8)
+
+
+def run_one(args, spec, cfg, scene: Scene, k: int, device, prior_dirs: dict[str, Path], out: Path) -> dict:
+    """Train ``spec`` on ``scene`` minus frame k, render frame k's camera at time k, score it."""
+    from worldtree.trainer import TrainContext
+
+    sub = drop_frame(scene, k)
+    with tempfile.TemporaryDirectory(dir=out) as tmp:
+        if prior_dirs and hasattr(cfg, "priors"):
+            dirs = subset_priors(prior_dirs, k, scene.num_frames, Path(tmp))
+            rep = {"depth": "depth_source", "flow": "flow_source", "masks": "masks_source"}
+            cfg = dataclasses.replace(
+                cfg, priors=dataclasses.replace(cfg.priors, **{rep[n]: str(p) for n, p in dirs.items()})
+            )
+        if hasattr(cfg, "priors_cache"):
+            cfg = dataclasses.replace(cfg, priors_cache=False)  # the subset's priors are not the scene's
+        torch.manual_seed(cfg.seed)
+        method = spec.build(cfg, sub, device)
+        t0 = time.perf_counter()
+        method.fit(TrainContext(checkpoint_dir=None, progress=args.progress, resume=False))
+        train_s = time.perf_counter() - t0
+    H, W = scene.height, scene.width
+    K, w2c = scene.Ks[k], scene.w2cs[k]
+    if getattr(method, "fit_state", None) is not None and getattr(method, "sim3", None) is not None:
+        img = render_between(method, K, w2c, W, H, k - 1)
+    else:
+        img = method.render(K, w2c, W, H, k)
+    pred, gt = _to_u8(img), _to_u8(scene.images[k])
+    write_image(out / f"k{k:02d}_{spec.name}.png", pred)
+    row = {"k": k, "method": spec.name, "psnr": psnr_u8(pred, gt), "train_s": round(train_s, 1)}
+    if args.masks is not None:
+        files = sorted(p for p in Path(args.masks).iterdir() if p.is_file())
+        m = read_mask(files[k])
+        if m.shape != (H, W):
+            import cv2
+
+            m = cv2.resize(m.astype(np.uint8) * 255, (W, H), interpolation=cv2.INTER_NEAREST) > 127
+        row["mpsnr"] = masked_psnr_u8(pred, gt, m)
+    stats = method.stats()
+    row["stats"] = {
+        key: stats[key] for key in ("num_static", "num_dynamic", "scaffold_nodes_final") if key in stats
+    }
+    info = getattr(method, "info", {})
+    for key in ("dynamic_tracks", "scaffold_nodes", "priors"):
+        if key in info:
+            row["stats"][key] = info[key]
+    return row
+
+
+def main(argv: list[str] | None = None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("scene", type=Path)
+    ap.add_argument(
+        "--frames", required=True, help="Held-out frames, e.g. 3,6,9 (each needs both neighbours)."
+    )
+    ap.add_argument("--methods", default="static,base")
+    ap.add_argument("-o", "--out", type=Path, default=Path("runs/loo"))
+    ap.add_argument("--preset", default="quick")
+    ap.add_argument("--steps", type=int, default=None, help="Override the steps of every method.")
+    ap.add_argument("--static-steps", type=int, default=None, help="Override the static method's steps only.")
+    ap.add_argument("--seed", type=int, default=None)
+    ap.add_argument("--downscale", type=int, default=None, help="Override the preset's image shrink.")
+    ap.add_argument("--device", default="auto")
+    ap.add_argument("--depth-maps", type=Path, default=None)
+    ap.add_argument("--depth-kind", default="depth", choices=("depth", "disparity"))
+    ap.add_argument("--depth-fit", action="store_true")
+    ap.add_argument("--flow", type=Path, default=None)
+    ap.add_argument(
+        "--masks", type=Path, default=None, help="Per-frame dynamic masks: used as priors and for mPSNR."
+    )
+    ap.add_argument(
+        "--label", default="", help="Name of this configuration in the results (e.g. before/after)."
+    )
+    ap.add_argument("--progress", action="store_true")
+    args = ap.parse_args(argv)
+
+    from methods.registry import get_method
+
+    try:
+        frames = [int(v) for v in args.frames.split(",") if v.strip()]
+    except ValueError:
+        raise UserError(f"--frames {args.frames!r}: expected comma-separated frame indices") from None
+    device = pick_device(args.device)
+    out = args.out
+    out.mkdir(parents=True, exist_ok=True)
+    res_path = out / "loo.json"
+    results = json.loads(res_path.read_text()) if res_path.is_file() else {"runs": []}
+    done = {(r["label"], r["k"], r["method"]) for r in results["runs"]}
+    prior_dirs = {
+        n: p for n, p in (("depth", args.depth_maps), ("flow", args.flow), ("masks", args.masks)) if p
+    }
+    for name in args.methods.split(","):
+        spec = get_method(name.strip())
+        cfg = spec.config(args.preset)
+        for field_, v in (("steps", args.steps), ("seed", args.seed), ("downscale", args.downscale)):
+            if v is not None:
+                cfg = dataclasses.replace(cfg, **{field_: v})
+        if spec.name == "static" and args.static_steps is not None:
+            cfg = dataclasses.replace(cfg, steps=args.static_steps)
+        if hasattr(cfg, "priors"):
+            cfg = dataclasses.replace(
+                cfg, priors=dataclasses.replace(cfg.priors, depth_import=dataclasses.replace(
+                    cfg.priors.depth_import, kind=args.depth_kind, fit_scale_shift=args.depth_fit)))  # fmt: skip
+        scene = load_scene(args.scene, downscale=cfg.downscale, load_masks=False)
+        for k in frames:
+            if not 1 <= k <= scene.num_frames - 2:
+                raise UserError(f"--frames: {k} needs a frame on each side (1..{scene.num_frames - 2})")
+            if (args.label, k, spec.name) in done:
+                continue
+            print(f"[loo] {args.label or '-'} k={k} {spec.name}: training on {scene.num_frames - 1} frames",
+                  file=sys.stderr, flush=True)  # fmt: skip
+            row = run_one(
+                args, spec, cfg, scene, k, device, prior_dirs if hasattr(cfg, "priors") else {}, out
+            )
+            row.update(label=args.label, preset=args.preset, seed=cfg.seed, steps=cfg.steps,
+                       downscale=cfg.downscale, version=worldtree.__version__, command=" ".join(sys.argv))  # fmt: skip
+            results["runs"].append(row)
+            atomic_write_json(res_path, results)
+            mp = f" mPSNR {row['mpsnr']:.2f}" if row.get("mpsnr") is not None else ""
+            print(f"[loo] k={k} {spec.name}: PSNR {row['psnr']:.2f}{mp} ({row['train_s']:.0f} s)", flush=True)
+    _summary(results, args.label)
+
+
+def _summary(results: dict, label: str) -> None:
+    rows = [r for r in results["runs"] if r["label"] == label]
+    by = {}
+    for r in rows:
+        by.setdefault(r["method"], []).append(r)
+    for m, rs in sorted(by.items()):
+        ks = ",".join(str(r["k"]) for r in rs)
+        print(f"{label or '-'} {m:8s} frames {ks}: mean PSNR {np.mean([r['psnr'] for r in rs]):.2f}")
+
+
+if __name__ == "__main__":
+    try:
+        main()
+    except UserError as e:
+        print(f"error: {e}", file=sys.stderr)
+        raise SystemExit(2) from None

@@ -1,0 +1,45 @@
+"""Leave-one-out scoring pieces: the held-out frame leaves the scene and its priors; the scores are PSNRs."""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+from skimage.metrics import peak_signal_noise_ratio
+
+from benchmarks.evaluation.leave_one_out import drop_frame, masked_psnr_u8, psnr_u8, subset_priors
+from benchmarks.fixtures.planar_scene import PlanarScene, PlanarSceneConfig
+
+
+def test_drop_frame_reindexes():
+    sc = PlanarScene(PlanarSceneConfig(width=32, height=24, num_frames=5, supersample=1)).to_scene()
+    sub = drop_frame(sc, 2)
+    assert sub.num_frames == 4 and sub.times.tolist() == [0, 1, 2, 3]
+    torch.testing.assert_close(sub.images[2], sc.images[3])
+    torch.testing.assert_close(sub.w2cs[1], sc.w2cs[1])
+    assert sub.test_images.shape[0] == 0
+
+
+def test_subset_priors_drops_and_renames(tmp_path):
+    (tmp_path / "flow").mkdir()
+    (tmp_path / "disp").mkdir()
+    for i, j in [(0, 1), (1, 0), (1, 2), (2, 1), (2, 3), (3, 2), (1, 3)]:
+        np.save(tmp_path / "flow" / f"{i}_{j}.npy", np.full((2, 2, 2), 10 * i + j, np.float32))
+    for t in range(4):
+        np.save(tmp_path / "disp" / f"{t:03d}.npy", np.full((2, 2), t, np.float32))
+    out = subset_priors({"flow": tmp_path / "flow", "depth": tmp_path / "disp"}, 2, 4, tmp_path / "sub")
+    names = sorted(p.name for p in out["flow"].iterdir())
+    # Pairs touching frame 2 are gone; frame 3 becomes 2.
+    assert names == ["00000_00001.npy", "00001_00000.npy", "00001_00002.npy"]
+    assert np.load(out["flow"] / "00001_00002.npy")[0, 0, 0] == 13  # the old (1, 3) pair
+    assert [float(np.load(p)[0, 0]) for p in sorted(out["depth"].iterdir())] == [0.0, 1.0, 3.0]
+
+
+def test_psnr_against_scikit_image():
+    rng = np.random.default_rng(1)
+    a = rng.integers(0, 256, (20, 30, 3), dtype=np.uint8)
+    b = np.clip(a.astype(int) + rng.integers(-20, 21, a.shape), 0, 255).astype(np.uint8)
+    np.testing.assert_allclose(psnr_u8(a, b), peak_signal_noise_ratio(a, b, data_range=255), rtol=1e-9)
+    m = np.zeros((20, 30), bool)
+    m[5:10, 3:20] = True
+    np.testing.assert_allclose(masked_psnr_u8(a, b, m), peak_signal_noise_ratio(a[m], b[m], data_range=255))
+    assert masked_psnr_u8(a, b, np.zeros_like(m)) is None
