@@ -197,6 +197,10 @@ def main(argv: list[str] | None = None) -> None:
         "--masks", type=Path, default=None, help="Per-frame dynamic masks: used as priors and for mPSNR."
     )
     ap.add_argument(
+        "--set", dest="sets", action="append", default=[], metavar="KEY=VALUE",
+        help="Change a config field of the methods that have it (as wtbench run --set); repeatable.",
+    )  # fmt: skip
+    ap.add_argument(
         "--label", default="", help="Name of this configuration in the results (e.g. before/after)."
     )
     ap.add_argument("--progress", action="store_true")
@@ -223,6 +227,11 @@ def main(argv: list[str] | None = None) -> None:
         for field_, v in (("steps", args.steps), ("seed", args.seed), ("downscale", args.downscale)):
             if v is not None:
                 cfg = dataclasses.replace(cfg, **{field_: v})
+        mine = [item for item in args.sets if _has_field(cfg, item.split("=", 1)[0])]
+        if mine:
+            from benchmarks.runner.config_overrides import apply_overrides
+
+            cfg = apply_overrides(cfg, mine)
         if spec.name == "static" and args.static_steps is not None:
             cfg = dataclasses.replace(cfg, steps=args.static_steps)
         if hasattr(cfg, "priors"):
@@ -247,6 +256,15 @@ def main(argv: list[str] | None = None) -> None:
             mp = f" mPSNR {row['mpsnr']:.2f}" if row.get("mpsnr") is not None else ""
             print(f"[loo] k={k} {spec.name}: PSNR {row['psnr']:.2f}{mp} ({row['train_s']:.0f} s)", flush=True)
     _summary(results, args.label)
+
+
+def _has_field(cfg, dotted: str) -> bool:
+    obj = cfg
+    for part in dotted.strip().split("."):
+        if not dataclasses.is_dataclass(obj) or part not in {f.name for f in dataclasses.fields(obj)}:
+            return False
+        obj = getattr(obj, part)
+    return True
 
 
 def _summary(results: dict, label: str) -> None:
