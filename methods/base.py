@@ -31,10 +31,12 @@ import torch
 from methods.registry import CommonConfig, MethodSpec, register_method
 from methods.static3dgs import scene_extent
 from worldtree.atomic import atomic_write_json
+from worldtree.budget import node_budget
 from worldtree.dynamic import DynamicGaussians
 from worldtree.errors import UserError
 from worldtree.motion.lift import fill_gaps, lift_tracks
 from worldtree.motion.scaffold import Scaffold, ScaffoldConfig, build_scaffold
+from worldtree.plateau import PlateauDetector
 from worldtree.priors import PriorsConfig, compute_priors
 from worldtree.scene import Scene
 from worldtree.stages.bundle_adjust import BAResult, BundleAdjustConfig, bundle_adjust
@@ -282,6 +284,7 @@ class BaseMethod:
         fit = PhotometricFit(
             pcfg, s.images, depth, s.Ks, w2cs, static, dyn, scf, tracks, vis, extent, seed=c.seed
         )
+        stop = self._adapt_before(fit)
         trainer = Trainer(
             TrainerConfig(steps=c.steps, checkpoint_every=c.checkpoint_every, log_every=c.log_every),
             fit,
@@ -290,12 +293,40 @@ class BaseMethod:
             tensorboard_dir=ctx.tensorboard_dir,
             progress=ctx.progress,
             description="photometric",
+            stop=stop,
         )
         summary = self._timed("photometric", trainer.fit, resume=ctx.resume)
+        self._timed("prune", self._adapt_after, fit, summary, stop)
         self.fit_state = fit
         self._timed("test_pose", self._test_pose)
         self.backend = fit.backend
         return summary
+
+    def _adapt_before(self, fit: PhotometricFit) -> PlateauDetector | None:
+        """Budget (growth caps from the image size and the starting error) and the early-stop detector of the
+        photometric fit, when on; recorded in ``info["adaptive"]``."""
+        c = self.cfg
+        rec: dict[str, Any] = {"budget_on": c.budget_on(), "early_stop_on": c.early_stop_on()}
+        if c.budget_on():
+            H, W = fit.images.shape[1:3]
+            err = fit.mean_error()
+            rec["budget"] = {"error_start": err, **fit.set_budget(node_budget(W, H, err, c.budget))}
+        self.info["adaptive"] = rec
+        if not c.early_stop_on():
+            return None
+        # Never before density control and camera optimisation have had their turn.
+        pc = fit.cfg
+        settle = max(pc.static_strategy.refine_stop, pc.dynamic_strategy.refine_stop, pc.camera_start_step)
+        return c.early_stop.detector(fit.T, min(settle, c.steps))
+
+    def _adapt_after(self, fit: PhotometricFit, summary: TrainSummary, stop: PlateauDetector | None) -> None:
+        """Prune negligible Gaussians (budget on) and record the steps taken."""
+        rec = self.info["adaptive"]
+        rec["steps_max"], rec["steps_taken"] = self.cfg.steps, summary.end_step
+        if stop is not None:
+            rec["early_stop"] = stop.report()
+        if self.cfg.budget_on():
+            rec["prune"] = fit.prune_negligible(self.cfg.budget.prune_contribution)
 
     def _test_render(self, K: torch.Tensor, w2c: torch.Tensor, width: int, height: int, t: int):
         """Differentiable render used by test-pose refinement (WorldTree renders through its tree)."""

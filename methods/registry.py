@@ -12,13 +12,15 @@ from __future__ import annotations
 
 import importlib
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any, Protocol
 
 import torch
 
+from worldtree.budget import BudgetConfig
 from worldtree.errors import UserError
+from worldtree.plateau import PlateauRule
 from worldtree.scene import Scene
 from worldtree.trainer import TrainContext, TrainSummary
 
@@ -38,6 +40,22 @@ class CommonConfig:
     """Optimisation steps of the main training stage."""
     downscale: int = 1
     """Train on images shrunk by this integer factor (renders are still made at the test images' size)."""
+    budget: BudgetConfig = field(default_factory=BudgetConfig)
+    """Gaussian budget and contribution pruning (:mod:`worldtree.budget`; ``budget.enabled``)."""
+    early_stop: PlateauRule = field(default_factory=PlateauRule)
+    """Stop a fit when its loss plateaus (:mod:`worldtree.plateau`; ``early_stop.enabled``)."""
+
+    def adaptive_default(self) -> bool:
+        """Whether ``budget`` / ``early_stop`` with ``enabled=None`` are on (WorldTree: with ``--depth auto``)."""
+        return False
+
+    def budget_on(self) -> bool:
+        """Whether the Gaussian budget and pruning apply."""
+        return self.adaptive_default() if self.budget.enabled is None else bool(self.budget.enabled)
+
+    def early_stop_on(self) -> bool:
+        """Whether fits stop at a loss plateau."""
+        return self.adaptive_default() if self.early_stop.enabled is None else bool(self.early_stop.enabled)
 
 
 class Method(Protocol):

@@ -11,6 +11,7 @@ time, which is the point of the baseline: moving content is averaged away.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -20,13 +21,14 @@ import torch
 
 from methods.registry import CommonConfig, MethodSpec, register_method
 from worldtree.atomic import atomic_write_json
+from worldtree.budget import growth_cap, negligible, node_budget, render_contributions
 from worldtree.errors import UserError
 from worldtree.gaussians import GaussianSet
 from worldtree.losses import photometric_loss
 from worldtree.optim import ConstantLR, GroupedAdam, gaussian_schedules
 from worldtree.render import rasterize
 from worldtree.scene import Scene
-from worldtree.strategy import DensifyStrategy
+from worldtree.strategy import DensifyStrategy, remove
 from worldtree.trainer import (
     DensifiedGaussianTrainable,
     StepOutput,
@@ -236,9 +238,17 @@ class StaticGaussians(DensifiedGaussianTrainable):
 
     # ------------------------------------------------------------------ Method
     def fit(self, ctx: TrainContext) -> TrainSummary:
-        tcfg = TrainerConfig(
-            steps=self.cfg.steps, checkpoint_every=self.cfg.checkpoint_every, log_every=self.cfg.log_every
-        )
+        c = self.cfg
+        tcfg = TrainerConfig(steps=c.steps, checkpoint_every=c.checkpoint_every, log_every=c.log_every)
+        self.adaptive: dict[str, Any] = {"budget_on": c.budget_on(), "early_stop_on": c.early_stop_on()}
+        if c.budget_on():
+            err = self._mean_error()
+            budget = node_budget(self.scene.width, self.scene.height, err, c.budget)
+            cap = growth_cap(budget, len(self.gaussians))
+            self.cfg = dataclasses.replace(c, strategy=dataclasses.replace(c.strategy, max_gaussians=cap))
+            self.adaptive["budget"] = {"error_start": err, "budget": budget, "cap": cap}
+        stop = c.early_stop.detector(self.frame_count, min(c.strategy.refine_stop, c.steps)) if (
+            c.early_stop_on()) else None  # fmt: skip
         trainer = Trainer(
             tcfg,
             self,
@@ -247,8 +257,39 @@ class StaticGaussians(DensifiedGaussianTrainable):
             tensorboard_dir=ctx.tensorboard_dir,
             progress=ctx.progress,
             description="static",
+            stop=stop,
         )
-        return trainer.fit(resume=ctx.resume)
+        summary = trainer.fit(resume=ctx.resume)
+        self.adaptive.update(steps_max=c.steps, steps_taken=summary.end_step)
+        if stop is not None:
+            self.adaptive["early_stop"] = stop.report()
+        if c.budget_on():
+            self.adaptive["prune"] = self._prune(c.budget.prune_contribution)
+        return summary
+
+    @torch.no_grad()
+    def _mean_error(self) -> float:
+        """Mean L1 of the current model over every training frame (colour units)."""
+        s = self.scene
+        errs = [float((self._render(s.Ks[i], s.w2cs[i], s.width, s.height, self.centres[i]).rgb - s.images[i])
+                      .abs().mean()) for i in range(s.num_frames)]  # fmt: skip
+        e = float(np.mean(errs))
+        return e if np.isfinite(e) else float("inf")
+
+    def _prune(self, threshold: float) -> dict[str, int]:
+        """Remove the Gaussians whose contribution over the training views is below ``threshold`` (pixels)."""
+        s, gs = self.scene, self.gaussians
+        views = [(i, s.Ks[i], s.w2cs[i]) for i in range(s.num_frames)]
+        contrib = render_contributions(
+            lambda _t: (gs.means, gs.quats, gs.log_scales, gs.opacities, gs.colors), views, s.width, s.height,
+            self.cfg.backend,
+        )  # fmt: skip
+        before = len(gs)
+        drop = negligible(contrib, threshold)
+        if bool(drop.any()):
+            remove(gs, self.optimizer, self.strategy_state, drop)
+        self._render_cache = None
+        return {"before": before, "after": len(self.gaussians)}
 
     @torch.no_grad()
     def render(self, K: torch.Tensor, w2c: torch.Tensor, width: int, height: int, time: int) -> torch.Tensor:
@@ -289,6 +330,7 @@ class StaticGaussians(DensifiedGaussianTrainable):
             "backend": self.backend,
             "scene_extent": self.extent,
             "init": self.init_source,
+            "adaptive": getattr(self, "adaptive", {}),
         }
 
 

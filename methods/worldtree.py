@@ -24,7 +24,7 @@ from __future__ import annotations
 import dataclasses
 import pickle
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -33,13 +33,17 @@ import torch
 from methods.base import BaseConfig, BaseMethod, paper_config, quick_config, smoke_config
 from methods.registry import MethodSpec, register_method
 from worldtree.atomic import atomic_write_bytes, atomic_write_json
+from worldtree.budget import BudgetConfig, negligible
 from worldtree.errors import UserError
+from worldtree.gaussians import inverse_sigmoid
+from worldtree.plateau import PlateauRule
 from worldtree.render import rasterize
 from worldtree.scene import Scene
 from worldtree.stages.photometric import PhotometricConfig, PhotometricFit
-from worldtree.strategy import DensifyStrategy
+from worldtree.strategy import DensifyStrategy, remove
 from worldtree.torchfile import save_torch
 from worldtree.trainer import TrainContext, Trainer, TrainerConfig, TrainSummary
+from worldtree.tree.adaptive import AutoSplitConfig, decide_split
 from worldtree.tree.build import TreeConfig, TreeResult, grow_tree, node_output, read_node_input
 from worldtree.tree.inherit import InheritConfig
 from worldtree.tree.node import NodeState
@@ -63,8 +67,14 @@ ABLATIONS = ("ba", "sw", "tpt", "sac")
 class WorldTreeConfig(BaseConfig):
     """WorldTree settings: the Base method's (root) plus the tree's. ``steps`` is the root's photometric fit."""
 
-    depth: int = 2
-    """Deepest tree layer (0 = the root only; the paper: 2)."""
+    depth: int | str = 2
+    """Deepest tree layer (0 = the root only; the paper: 2), or ``"auto"`` (sets ``auto_depth``)."""
+    auto_depth: bool = False
+    """``--depth auto``: split a trained node only when the measured criterion of ``auto_split`` says its
+    frames need it (:mod:`worldtree.tree.adaptive`); also turns on ``budget`` and ``early_stop`` unless they
+    are set explicitly."""
+    auto_split: AutoSplitConfig = field(default_factory=AutoSplitConfig)
+    """Thresholds of the ``--depth auto`` criterion and its depth bound."""
     chain_length: int | None = None
     """Ancestors rendered at test time (None: the whole chain; 0: none). Training always uses the chain."""
     split: str = "binary"
@@ -90,9 +100,22 @@ class WorldTreeConfig(BaseConfig):
         """``ba``, ``sw`` as in Base, plus ``tpt`` (root only) and ``sac`` (no ancestors)."""
         return ABLATIONS
 
+    def adaptive_default(self) -> bool:
+        """Budget and early stop follow ``--depth auto`` unless set explicitly."""
+        return self.auto_depth
+
     def __post_init__(self) -> None:
         super().__post_init__()
-        if self.depth < 0:
+        if isinstance(self.depth, str):
+            if self.depth.strip().lower() == "auto":
+                self.depth, self.auto_depth = "auto", True
+            elif self.depth.strip().isdigit():
+                self.depth = int(self.depth)
+            else:
+                raise UserError(f"--depth {self.depth}: give an integer >= 0 or 'auto'")
+        elif self.auto_depth:
+            self.depth = "auto"
+        if isinstance(self.depth, int) and self.depth < 0:
             raise UserError(f"--depth {self.depth}: must be >= 0 (0 = the root only)")
         if self.chain_length is not None and self.chain_length < 0:
             raise UserError(
@@ -108,7 +131,9 @@ class WorldTreeConfig(BaseConfig):
     @property
     def tree_depth(self) -> int:
         """The depth actually grown (0 under ``ablate tpt``)."""
-        return 0 if "tpt" in self.ablate else self.depth
+        if "tpt" in self.ablate:
+            return 0
+        return self.auto_split.max_depth if self.auto_depth else int(self.depth)
 
     def steps_at(self, depth: int) -> int:
         """Photometric steps of a node at ``depth`` (>= 1)."""
@@ -116,8 +141,15 @@ class WorldTreeConfig(BaseConfig):
 
     def tree_config(self) -> TreeConfig:
         policy = AncestorPolicy(optimised_nearest=self.ancestors_optimised)
-        inherit = InheritConfig(caps=self.inherit_caps, opacity_cap=self.inherit_opacity, policy=policy)
-        return TreeConfig(depth=self.tree_depth, min_len=self.min_len, split=self.split, inherit=inherit)
+        if self.budget_on():
+            # The child keeps what its own frames see (train_node prunes by contribution, then resets the
+            # opacities), so it inherits every Gaussian of its interval with the parent's opacities.
+            inherit = InheritConfig(caps=(2**62,), opacity_cap=1.0, policy=policy)
+        else:
+            inherit = InheritConfig(caps=self.inherit_caps, opacity_cap=self.inherit_opacity, policy=policy)
+        auto = self.auto_split if self.auto_depth and "tpt" not in self.ablate else None
+        return TreeConfig(depth=self.tree_depth, min_len=self.min_len, split=self.split, inherit=inherit,
+                          auto=auto)  # fmt: skip
 
 
 def _wt(factory, layer_steps: tuple[int, ...], inherit_caps: tuple[int, ...] | None = None):
@@ -152,6 +184,16 @@ class NodeTrainConfig:
     """Scene extent (world units) for the learning rates."""
     checkpoint_every: int
     log_every: int
+    min_len: int = DEFAULT_MIN_LEN
+    """The tree's minimum interval (for the auto criterion)."""
+    auto: AutoSplitConfig | None = None
+    """``--depth auto``: decide the node's split after training (None: fixed depth)."""
+    budget: BudgetConfig | None = None
+    """Contribution pruning of the inherited and trained Gaussians (None: off)."""
+    inherit_opacity: float = 0.05
+    """Opacity cap applied to the inherited dynamic Gaussians after the contribution pruning (budget on)."""
+    early_stop: PlateauRule | None = None
+    """Stop the node at a loss plateau (None: run ``steps_at(depth)``)."""
 
     def steps_at(self, depth: int) -> int:
         return self.layer_steps[min(depth, len(self.layer_steps)) - 1]
@@ -223,6 +265,25 @@ class NodeFit(PhotometricFit):
                 a.refresh_cache()
         return res
 
+    def prune_chain(self, threshold: float) -> dict[str, list[int]]:
+        """Remove from this node's ancestor copies the Gaussians whose contribution over the node's frames is
+        below ``threshold`` (the copies only ever render this node's frames, and its children's, which lie
+        inside). Call after training: the ancestor optimiser is rebuilt without moments."""
+        contrib = self.contributions()
+        at = len(self.static) + len(self.dynamic)
+        before, after = [], []
+        for a in self.chain:
+            n = len(a.dynamic)
+            drop = negligible(contrib[at : at + n], threshold)
+            at += n
+            before.append(n)
+            if bool(drop.any()):
+                remove(a.dynamic, None, {}, drop)
+                a.refresh_cache()
+            after.append(len(a.dynamic))
+        self._build_ancestor_optimizer()
+        return {"nodes": [a.node for a in self.chain], "before": before, "after": after}
+
     def state_dict(self) -> dict[str, Any]:
         d = super().state_dict()
         d["chain"] = [a.to_payload() for a in self.chain]
@@ -278,12 +339,26 @@ def train_node(payload: dict, ctx: NodeContext) -> dict:
     )
     tracks = data["tracks"][sl] if data["tracks"].shape[1] else None
     vis = data["track_vis"][sl] if tracks is not None else None
+    t0 = time.perf_counter()
+    adaptive: dict[str, Any] = {}
+    if cfg.budget is not None:
+        # Keep what this node's frames see: contributions with the parent's opacities, then the usual reset.
+        pre = NodeFit(
+            pcfg, data["images"][sl], data["depth"][sl], data["Ks"][sl], state.w2cs, state.static,
+            state.dynamic, state.scaffold, None, None, cfg.extent, seed=ctx.seed, t0=iv.start,
+            chain=state.chain, policy=cfg.policy,
+        )  # fmt: skip
+        adaptive["inherit_prune"] = pre.prune_negligible(cfg.budget.prune_contribution)
+        state.static, state.dynamic = pre.static, pre.dynamic
+        cap = inverse_sigmoid(torch.tensor(cfg.inherit_opacity)).item()
+        with torch.no_grad():
+            state.dynamic.params["opacity_logits"].clamp_(max=cap)
     fit = NodeFit(
         pcfg, data["images"][sl], data["depth"][sl], data["Ks"][sl], state.w2cs, state.static, state.dynamic,
         state.scaffold, tracks, vis, cfg.extent, seed=ctx.seed, t0=iv.start, chain=state.chain,
         policy=cfg.policy,
     )  # fmt: skip
-    t0 = time.perf_counter()
+    stop = cfg.early_stop.detector(iv.length) if cfg.early_stop is not None else None
     summary = Trainer(
         TrainerConfig(steps=steps, checkpoint_every=cfg.checkpoint_every, log_every=cfg.log_every),
         fit,
@@ -291,7 +366,16 @@ def train_node(payload: dict, ctx: NodeContext) -> dict:
         generators={"frame_order": fit.order},
         progress=False,
         description=f"node {state.index}",
+        stop=stop,
     ).fit(resume=True)
+    if stop is not None:
+        adaptive["early_stop"] = stop.report()
+    if cfg.budget is not None:
+        adaptive["prune"] = fit.prune_negligible(cfg.budget.prune_contribution)
+        adaptive["prune_ancestors"] = fit.prune_chain(cfg.budget.prune_contribution)
+    decision = None
+    if cfg.auto is not None:
+        decision = decide_split(fit.residuals(), data["masks"][sl], cfg.min_len, cfg.auto).to_dict()
     state.static, state.dynamic, state.scaffold = fit.static, fit.dynamic, fit.scaffold
     state.chain = fit.chain
     stats = {
@@ -305,7 +389,11 @@ def train_node(payload: dict, ctx: NodeContext) -> dict:
         "num_dynamic": len(state.dynamic),
         "num_ancestor_gaussians": sum(len(a.dynamic) for a in state.chain),
         "ancestors": [a.node for a in state.chain],
+        "steps_max": steps,
+        "adaptive": adaptive,
     }
+    if decision is not None:
+        stats["auto_split"] = decision
     return node_output(state, fit.profile.profile(), stats)
 
 
@@ -354,7 +442,7 @@ class WorldTreeMethod(BaseMethod):
 
     def _dynamic(self, P: dict, depth, w2cs):
         scf, dyn, tracks, vis = super()._dynamic(P, depth, w2cs)
-        self._data = {"depth": depth, "tracks": tracks, "track_vis": vis}
+        self._data = {"depth": depth, "tracks": tracks, "track_vis": vis, "masks": P["epi_mask"]}
         return scf, dyn, tracks, vis
 
     def _write_context(self, tree_dir: Path) -> None:
@@ -365,6 +453,7 @@ class WorldTreeMethod(BaseMethod):
             "Ks": s.Ks.detach().float().cpu(),
             "tracks": self._data["tracks"].detach().float().cpu().contiguous(),
             "track_vis": self._data["track_vis"].detach().cpu().contiguous(),
+            "masks": self._data["masks"].detach().bool().cpu().contiguous(),
         }
         save_torch(tree_dir / "context.pt", data)
         ncfg = NodeTrainConfig(
@@ -375,6 +464,11 @@ class WorldTreeMethod(BaseMethod):
             extent=fit.extent,
             checkpoint_every=c.checkpoint_every,
             log_every=c.log_every,
+            min_len=c.min_len,
+            auto=c.tree_config().auto,
+            budget=c.budget if c.budget_on() else None,
+            inherit_opacity=c.inherit_opacity,
+            early_stop=c.early_stop if c.early_stop_on() else None,
         )
         atomic_write_bytes(tree_dir / "node_config.pkl", pickle.dumps(ncfg))
 
@@ -383,10 +477,20 @@ class WorldTreeMethod(BaseMethod):
         T = self.scene.num_frames
         root = NodeState(1, Interval(0, T - 1), fit.scaffold, fit.dynamic, fit.static, fit.cameras(), [])
         tcfg = c.tree_config()
-        if tcfg.depth == 0 or T < tcfg.min_len:
+        root_decision = None
+        if tcfg.auto is not None:
+            masks = self._data["masks"].bool()
+            root_decision = decide_split(fit.residuals(), masks, tcfg.min_len, tcfg.auto).to_dict()
+        if (
+            tcfg.max_depth == 0
+            or T < tcfg.min_len
+            or (root_decision is not None and not root_decision["split"])
+        ):
             self.tree = TemporalPartitionTree(T, tcfg.min_len)
             self.states = {1: root}
             self.info["tree"] = {"nodes": [1], "layers": [], "note": "root only"}
+            if root_decision is not None:
+                self.info["tree"]["auto"] = {"1": {**root_decision, "applied": False}}
             return
         tree_dir = (self._ckpt if self._ckpt is not None else Path(self._tmp_tree())) / "tree"
         tree_dir.mkdir(parents=True, exist_ok=True)
@@ -394,7 +498,8 @@ class WorldTreeMethod(BaseMethod):
         root_cpu = NodeState.from_payload(root.to_payload(), "cpu")
         flow = self._flow_profile() if c.split == "flow" else None
         prof = self._root_profile() if c.split == "gradient" else None
-        res = grow_tree(root_cpu, tcfg, self._runner, tree_dir, seed=c.seed, root_profile=prof, flow=flow)
+        res = grow_tree(root_cpu, tcfg, self._runner, tree_dir, seed=c.seed, root_profile=prof, flow=flow,
+                        root_decision=root_decision)  # fmt: skip
         self.result, self.tree = res, res.tree
         self.states = {1: root}
         for j, st in res.states.items():
@@ -420,6 +525,8 @@ class WorldTreeMethod(BaseMethod):
             ],
             "node_stats": {str(j): s for j, s in res.stats.items()},
         }
+        if tcfg.auto is not None:
+            self.info["tree"]["auto"] = {str(j): d for j, d in res.decisions.items()}
 
     def _tmp_tree(self) -> str:
         import tempfile

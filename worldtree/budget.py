@@ -40,8 +40,9 @@ GaussiansFn = Callable[[int], tuple[torch.Tensor, torch.Tensor, torch.Tensor, to
 class BudgetConfig:
     """Gaussian budget and pruning settings (see the module docstring)."""
 
-    enabled: bool = False
-    """Apply the budget and contribution pruning (off: the fixed caps of the preset)."""
+    enabled: bool | None = None
+    """Apply the budget and contribution pruning; None: only with WorldTree's ``--depth auto`` (off: the fixed
+    caps of the preset)."""
     gaussians_per_pixel: float = 2.0
     """Growth cap per pixel of one view at full error."""
     error_ref: float = 0.05

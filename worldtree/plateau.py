@@ -11,6 +11,7 @@ A non-finite loss never counts as an improvement.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import asdict, dataclass, field
 
@@ -21,8 +22,9 @@ __all__ = ["PlateauDetector", "PlateauRule"]
 class PlateauRule:
     """When a fit has plateaued (module docstring)."""
 
-    enabled: bool = False
-    """Off: every fit runs its preset's steps."""
+    enabled: bool | None = None
+    """Stop fits at a plateau; None: only with WorldTree's ``--depth auto`` (off: every fit runs its preset's
+    steps)."""
     rel_tol: float = 0.01
     """A window improves when its mean loss is below ``(1 - rel_tol)`` times the best earlier window mean."""
     patience: int = 2
@@ -38,6 +40,12 @@ class PlateauRule:
                 "PlateauRule needs 0 <= rel_tol < 1, patience >= 1, min_window >= 1 and min_steps >= 0; got "
                 f"{self.rel_tol}, {self.patience}, {self.min_window}, {self.min_steps}"
             )
+
+    def detector(self, frames: int, min_steps: int = 0) -> PlateauDetector:
+        """A fresh detector for a fit over ``frames`` frames that must not stop before ``min_steps`` (besides
+        ``self.min_steps``; e.g. the end of its density control)."""
+        rule = dataclasses.replace(self, min_steps=max(self.min_steps, int(min_steps)))
+        return PlateauDetector(rule, self.window(frames))
 
     def window(self, frames: int) -> int:
         """Window length for a model of ``frames`` frames (one epoch, at least ``min_window``)."""
@@ -61,7 +69,7 @@ class PlateauDetector:
 
     def update(self, step: int, loss: float) -> bool:
         """Add the loss of ``step`` (1-based); returns True when the fit should stop after this step."""
-        if not self.rule.enabled or self.stopped_at is not None:
+        if self.stopped_at is not None:
             return self.stopped_at is not None
         self.sum += float(loss) if math.isfinite(float(loss)) else math.inf
         self.count += 1

@@ -21,7 +21,11 @@ def register(app: typer.Typer) -> None:
         out: Path = typer.Option(
             Path("speed_vs_error.png"), "--out", "-o", help="Image to write (.png, .pdf or .svg)."
         ),
-        x: str = typer.Option("wall_time_s", "--x", help="Cost metric on the x axis."),
+        x: str = typer.Option(
+            "wall_time_s",
+            "--x",
+            help="Cost metrics on the x axis, comma-separated: one panel per (x, y) pair, e.g. wall_time_s,n_gaussians.",
+        ),
         y: str | None = typer.Option(
             None,
             "--y",
@@ -52,10 +56,7 @@ def register(app: typer.Typer) -> None:
 
         keys = parse_list(group_by, "--group-by", GROUP_KEYS)
         wanted = parse_list(y, "--y", AXIS_METRICS)
-        if x not in AXIS_METRICS:
-            from worldtree.errors import UserError
-
-            raise UserError(f"--x {x}: unknown metric; choose from {', '.join(AXIS_METRICS)}")
+        xs = parse_list(x, "--x", AXIS_METRICS)
         found = collect_runs(runs_dirs)
         long = with_derived(select(found.long, protocol))
         notes = list(found.notes)
@@ -63,11 +64,12 @@ def register(app: typer.Typer) -> None:
         for default in wanted or DEFAULT_Y:
             name, why = resolve_y(long, default if wanted else None, default)
             notes += why
-            if any(p.y == name for p in panels):
-                continue  # two defaults fell back to the same metric
-            panel = make_panel(long, x, name, keys)
-            notes += [n for n in panel.notes if n not in notes]
-            panels.append(panel)
+            for xm in xs:
+                if any(p.y == name and p.x == xm for p in panels):
+                    continue  # two defaults fell back to the same metric
+                panel = make_panel(long, xm, name, keys)
+                notes += [n for n in panel.notes if n not in notes]
+                panels.append(panel)
         draw(panels, out)
         for note in notes:
             print(f"note: {note}", file=sys.stderr)

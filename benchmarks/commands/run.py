@@ -42,7 +42,11 @@ def register(app: typer.Typer) -> None:
         ablate: list[str] | None = typer.Option(
             None, "--ablate", help="worldtree: ablate a component (ba, sw, tpt, sac); repeat for several."
         ),
-        depth: int | None = typer.Option(None, "--depth", help="worldtree: deepest tree layer (default 2)."),
+        depth: str | None = typer.Option(
+            None,
+            "--depth",
+            help="worldtree: deepest tree layer (default 2), or 'auto' (docs/worldtree_method.md).",
+        ),
         chain_length: int | None = typer.Option(
             None, "--chain-length", help="worldtree: ancestors rendered at test time (default: all)."
         ),
@@ -133,6 +137,8 @@ def _options(ablate, depth, chain_length, split, sequential) -> dict:
     opts: dict = {}
     if ablate:
         opts["ablate"] = sorted({a.strip().lower() for a in ablate})
+    if depth is not None and depth.strip().isdigit():
+        depth = int(depth)  # an integer depth stays an integer in config.json and the folder name
     for k, v in (("depth", depth), ("chain_length", chain_length), ("split", split)):
         if v is not None:
             opts[k] = v

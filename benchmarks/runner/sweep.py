@@ -53,6 +53,13 @@ GRIDS: dict[str, tuple[str, Callable[[], list[GridPoint]]]] = {
         "tree depth 0..4 (the paper's depth study)",
         lambda: [GridPoint(f"depth {d}", {"depth": d}) for d in range(5)],
     ),
+    "adaptive": (
+        "fixed tree depths 0..3 and --depth auto (criterion-grown tree, Gaussian budget, early stop)",
+        lambda: (
+            [GridPoint(f"depth {d}", {"depth": d}) for d in (0, 1, 2, 3)]
+            + [GridPoint("depth auto", {"depth": "auto"})]
+        ),
+    ),
     "chain": (
         "chain length 0..4 at depth 4 (the paper's chain-length study)",
         lambda: [GridPoint(f"chain {k}", {"depth": 4, "chain_length": k}) for k in range(5)],

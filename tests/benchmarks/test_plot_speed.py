@@ -139,3 +139,10 @@ def test_cli_plot(runs, tmp_path):
         app, ["plot", str(root), "-o", str(tmp_path / "x.svg"), "--y", "psnr", "--x", "n_gaussians"]
     )
     assert res.exit_code == 0 and (tmp_path / "x.svg").read_text().lstrip().startswith("<?xml")
+    res = CliRunner().invoke(
+        app,
+        ["plot", str(root), "-o", str(tmp_path / "t.svg"), "--y", "psnr", "--x", "wall_time_s,n_gaussians"],
+    )
+    assert res.exit_code == 0, res.output
+    heads = [ln for ln in res.stdout.splitlines() if " vs " in ln]
+    assert [h.split(" (")[0] for h in heads] == ["wall_time_s vs psnr", "n_gaussians vs psnr"]

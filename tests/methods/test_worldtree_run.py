@@ -39,6 +39,7 @@ def runs(tmp_path_factory, write_tiny_scene):
     _wtbench("--method", "worldtree", *common, "--ablate", "sac")
     _wtbench("--method", "worldtree", *common, "--ablate", "tpt")
     _wtbench("--method", "base", *common)
+    _wtbench("--method", "worldtree", *common, "--depth", "auto")
     folder = out / "tiny26"
     return {
         "scene": scene,
@@ -46,6 +47,7 @@ def runs(tmp_path_factory, write_tiny_scene):
         "sac": folder / "worldtree" / "smoke-nosac",
         "tpt": folder / "worldtree" / "smoke-notpt",
         "base": folder / "base" / "smoke",
+        "auto": folder / "worldtree" / "smoke-depthauto",
     }
 
 
@@ -192,3 +194,63 @@ def test_interrupted_node_resumes_to_the_same_result(runs, tmp_path):
         assert torch.equal(x.dynamic.params["means"], y.dynamic.params["means"])
         assert torch.equal(x.scaffold.pos, y.scaffold.pos)
     assert torch.equal(full["profile"], resumed["profile"])
+
+
+def test_depth_auto_grows_the_tree_its_decisions_say(runs):
+    st = _stats(runs["auto"])
+    cfg = json.loads((runs["auto"] / "config.json").read_text())
+    assert cfg["config"]["depth"] == "auto" and cfg["config"]["auto_depth"] is True
+    auto = {int(j): d for j, d in st["tree"]["auto"].items()}
+    nodes = set(map(int, st["tree"]["nodes"]))
+    assert 1 in auto and nodes == set(auto)  # every node has a recorded decision
+    for j, d in auto.items():
+        assert isinstance(d["reason"], str) and d["reason"]
+        assert d["applied"] == (2 * j in nodes), j  # children exactly where the decision applied
+        assert d["split"] == (d["excess"] >= 0.01 and d["dynamic_fraction"] >= 0.002 and d["frames"] >= 12)
+    # Budget and early stop come with --depth auto: recorded for the root (the Base stages).
+    ad = st["adaptive"]
+    assert ad["budget_on"] and ad["early_stop_on"] and ad["steps_taken"] <= ad["steps_max"]
+    assert ad["prune"]["static_after"] <= ad["prune"]["static_before"]
+    assert ad["prune"]["dynamic_after"] <= ad["prune"]["dynamic_before"]
+
+
+def test_node_with_budget_auto_and_early_stop_records_its_choices(runs, tmp_path):
+    """Node 6 retrained with contribution pruning, the auto criterion and a plateau rule that must fire:
+    the kept Gaussians all contribute at least the threshold over the node's frames (checked by a fresh
+    contribution pass), the decision is the criterion's on the node's residual, fewer steps than the max."""
+    import dataclasses
+
+    from methods.worldtree import train_node
+    from worldtree.budget import BudgetConfig, render_contributions
+    from worldtree.plateau import PlateauRule
+    from worldtree.tree.adaptive import AutoSplitConfig
+
+    src = runs["default"] / "checkpoints" / "tree"
+    tree = tmp_path / "tree"
+    folder = tree / "layer2" / "node6"
+    folder.mkdir(parents=True)
+    shutil.copy(src / "context.pt", tree / "context.pt")
+    cfg = pickle.loads((src / "node_config.pkl").read_bytes())
+    rule = PlateauRule(enabled=True, rel_tol=0.5, patience=1, min_window=2)  # fires after two windows
+    cfg = dataclasses.replace(cfg, layer_steps=(40, 40), auto=AutoSplitConfig(), budget=BudgetConfig(enabled=True),
+                              early_stop=rule)  # fmt: skip
+    (tree / "node_config.pkl").write_bytes(pickle.dumps(cfg))
+    torch.manual_seed(6)
+    out = train_node(
+        load_payload(src / "layer2" / "node6" / "input.pt"), NodeContext(6, 6, "cpu", 1, str(folder))
+    )
+    stats = out["stats"]
+    ad = stats["adaptive"]
+    assert stats["steps"] < 40 and ad["early_stop"]["stopped_at"] == stats["steps"]
+    assert ad["prune"]["static_after"] == stats["num_static"] <= ad["prune"]["static_before"]
+    assert ad["inherit_prune"]["dynamic_after"] <= ad["inherit_prune"]["dynamic_before"]
+    assert set(stats["auto_split"]) >= {"split", "reason", "excess", "dynamic_fraction"}
+    # Every Gaussian the node kept contributes at least the threshold over its own frames.
+    state = NodeState.from_payload(out["state"])
+    ctx = torch.load(tree / "context.pt", weights_only=True)
+    iv = state.interval
+    H, W = ctx["images"].shape[1:3]
+    views = [(iv.start + k, ctx["Ks"][iv.start + k], state.w2cs[k]) for k in range(iv.length)]
+    contrib = render_contributions(lambda t: state.gaussians_at(t), views, W, H)
+    n_own = len(state.static) + len(state.dynamic)
+    assert bool((contrib[:n_own] >= 1.0 - 1e-3).all())

@@ -31,10 +31,11 @@ def test_flat_loss_stops_after_patience_windows():
     assert _run(rule, losses, window=10) == 70
 
 
-def test_min_steps_and_disabled():
+def test_min_steps():
     flat = [1.0] * 200
     assert _run(PlateauRule(enabled=True, patience=1, min_steps=95), flat, window=10) == 100
-    assert _run(PlateauRule(enabled=False), flat, window=10) is None
+    det = PlateauRule(patience=1, min_window=10).detector(frames=4, min_steps=35)
+    assert det.window == 10 and det.rule.min_steps == 35
 
 
 def test_non_finite_loss_is_no_improvement():
