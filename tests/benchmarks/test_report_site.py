@@ -157,6 +157,16 @@ def test_running_and_stopped_runs_are_named(sweep, tmp_path, no_plots):
     rows = _parse(tmp_path / "r" / "index.html", "runs-table").rows
     row = next(r for r in rows if r[3] == "SceneA/base/quick")
     assert row[4] == "unfinished" and "step 12" in row[5]
+    # A sweep job that failed (its job record, as `wtbench sweep` writes it): failed, with the error and job id.
+    job = {"executor": "local", "job_id": "4242", "state": "failed", "error": "CUDA out of memory"}
+    (run / "job.json").write_text(json.dumps({"jobs": [job]}))
+    try:
+        site.build_report([runs], tmp_path / "r", log=lambda s: None)
+    finally:
+        (run / "job.json").unlink()
+    rows = _parse(tmp_path / "r" / "index.html", "runs-table").rows
+    row = next(r for r in rows if r[3] == "SceneA/base/quick")
+    assert row[4] == "failed" and "CUDA out of memory" in row[5] and "job 4242" in row[5]
 
 
 def test_viewer_frames_are_evenly_spaced():

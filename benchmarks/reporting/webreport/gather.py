@@ -1,12 +1,16 @@
 """What the report shows of each run folder: its state, its evaluation record, its per-frame scores and where
 its scene's ground truth is.
 
-Every folder :func:`benchmarks.reporting.results.find_run_folders` finds is listed, finished or not, with one state:
+Every run folder is listed, finished or not, with the state the sweep's bookkeeping gives it
+(:func:`benchmarks.runner.sweep_executors.run_states`, as `wtbench sweep --status` shows it; runs made by
+`wtbench run` alone have no job record and are judged by ``DONE`` and their lock):
 
 - ``done``: ``DONE`` present and read into the tables;
 - ``damaged``: ``DONE`` present but the tables could not read it (the collection's note says why);
-- ``running``: no ``DONE`` and a live process holds the run folder's lock (:mod:`worldtree.folder_lock`);
-- ``unfinished``: no ``DONE`` and no live holder: interrupted, failed, or waiting for its turn in a sweep.
+- ``running``: a live process holds the run folder's lock (:mod:`worldtree.folder_lock`), or its job runs;
+- ``queued``: its sweep job waits (Slurm);
+- ``failed``: its last sweep job failed or vanished (the error and the job's log are named);
+- ``unfinished``: stopped outside a job: interrupted, failed under `wtbench run`, or not started yet.
 
 Failures that a sweep recorded in its report (``RUNS_DIR/sweep-<grid>.json``) are listed beside them.
 """
@@ -24,7 +28,7 @@ import pandas as pd
 
 from benchmarks.reporting.results import HARNESS_METRICS, describe_configuration, find_run_folders
 
-STATES = ("done", "running", "unfinished", "damaged")
+STATES = ("done", "running", "queued", "failed", "unfinished", "damaged")
 
 
 def read_json(path: Path) -> dict[str, Any] | None:
@@ -130,26 +134,29 @@ def _unfinished_detail(folder: Path) -> str:
 def gather_runs(runs_dirs: Sequence[str | Path], finished: set[str]) -> list[RunEntry]:
     """Every run folder under ``runs_dirs`` with its state (module doc). ``finished``: the ``run`` values of
     the collection's long table (the runs the tables read)."""
-    from worldtree.folder_lock import read_holder
+    from benchmarks.runner.sweep_executors import run_states
 
     entries: list[RunEntry] = []
     seen: set[Path] = set()
     for d in map(Path, runs_dirs):
-        for run in find_run_folders(d):
+        states = {s.run: s for s in run_states(d)}
+        # A queued job's folder may hold only its job record: listed too.
+        folders = sorted(set(find_run_folders(d)) | {d / rel for rel in states})
+        for run in folders:
             if run.resolve() in seen:
                 continue
             seen.add(run.resolve())
             config = read_json(run / "config.json")
-            if str(run) in finished:
-                state, detail = "done", ""
-            elif (run / "DONE").is_file():
+            st = states.get(str(run.relative_to(d)))
+            state = st.state if st is not None else "unfinished"
+            job = f"job {st.job_id}" if st is not None and st.job_id else ""
+            detail = "; ".join(x for x in (job, st.detail if st is not None else "") if x)
+            if state == "done" and str(run) not in finished:
                 state, detail = "damaged", "DONE present but config.json or metrics.csv unreadable"
-            elif _lock_held(run):
-                holder = read_holder(run)
-                state = "running"
-                detail = f"held by {holder.describe()}" if holder else "its lock is held"
-            else:
-                state, detail = "unfinished", _unfinished_detail(run)
+            elif state == "done":
+                detail = job
+            elif state == "unfinished":
+                detail = "; ".join(x for x in (job, _unfinished_detail(run)) if x)
             seed = (config or {}).get("seed")
             video = run / "test_view.mp4"
             entries.append(
@@ -170,15 +177,6 @@ def gather_runs(runs_dirs: Sequence[str | Path], finished: set[str]) -> list[Run
                 )
             )
     return entries
-
-
-def _lock_held(folder: Path) -> bool:
-    from worldtree.folder_lock import is_locked
-
-    try:
-        return is_locked(folder)
-    except OSError:  # a read-only RUNS_DIR cannot be probed; the run is then reported as unfinished
-        return False
 
 
 @dataclass(frozen=True)

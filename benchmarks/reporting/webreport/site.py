@@ -24,6 +24,7 @@ import worldtree
 from benchmarks.reporting.results import GROUP_KEYS, HARNESS_METRICS, collect_runs, higher_is_better, select
 from benchmarks.reporting.tables import LABELS, WideTable, build_wide, column_marks, format_value, to_csv
 from benchmarks.reporting.webreport.gather import (
+    STATES,
     RunEntry,
     frame_times,
     gather_runs,
@@ -484,17 +485,13 @@ def build_report(
             atomic_write_text(tmp / scene_page[s], page)
             thumb = next((f["gt"] or next((r["render"] for r in f["rows"] if r["render"]), None)
                           for f in frames), None)  # fmt: skip
-            counts = {
-                st: sum(e.state == st for e in runs) for st in ("done", "running", "unfinished", "damaged")
-            }
+            counts = {st: sum(e.state == st for e in runs) for st in STATES}
             scene_cards.append({"name": s, "page": scene_page[s], "thumb": thumb, "counts": counts})
         from benchmarks.reporting.webreport.images import write_colorbar
 
         write_colorbar(tmp / "plots" / "error_colorbar.png")
 
-        state_counts = {
-            st: sum(e.state == st for e in entries) for st in ("done", "running", "unfinished", "damaged")
-        }
+        state_counts = {st: sum(e.state == st for e in entries) for st in STATES}
         index = env.get_template("index.html").render(
             **common,
             root="",
