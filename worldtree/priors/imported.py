@@ -34,22 +34,48 @@ FLO_MAGIC = 202021.25
 
 
 # ------------------------------------------------------------------------------------------------ depth
-def _load_array(path: Path, keys: tuple[str, ...]) -> np.ndarray:
+def load_numpy(path: Path) -> np.ndarray | dict[str, np.ndarray]:
+    """A ``.npy`` file as its array, a ``.npz`` file as ``{name: array}``, read whole and checked: a file
+    that is not what its suffix says, is cut short or damaged, or holds non-real numbers (strings,
+    complex, objects) is a one-line :class:`UserError` naming it."""
+    import zipfile
+    import zlib
+
+    what = {".npy": "numpy.save", ".npz": "numpy.savez"}.get(path.suffix.lower())
+    if what is None:
+        raise UserError(f"{path}: unsupported suffix {path.suffix!r}; use .npy or .npz")
     try:
-        if path.suffix == ".npy":
-            return np.load(path, allow_pickle=False)
-        if path.suffix == ".npz":
-            with np.load(path, allow_pickle=False) as z:
-                names = list(z.keys())
-                for k in keys:
-                    if k in names:
-                        return z[k]
-                if len(names) == 1:
-                    return z[names[0]]
-                raise UserError(f"{path}: holds arrays {names}; name the wanted one one of {list(keys)}")
-    except (ValueError, OSError, EOFError) as e:
-        raise UserError(f"{path}: cannot read ({e}); re-export it with numpy.save / numpy.savez") from e
-    raise UserError(f"{path}: unsupported suffix {path.suffix!r}; use .npy or .npz")
+        obj = np.load(path, allow_pickle=False)
+        if isinstance(obj, np.lib.npyio.NpzFile):
+            with obj:
+                obj = {k: obj[k] for k in obj.keys()}  # read every member now: damage shows here
+    except (ValueError, OSError, EOFError, KeyError, zipfile.BadZipFile, zlib.error) as e:
+        raise UserError(f"{path}: cannot read ({e}); re-export it with {what}") from e
+    if isinstance(obj, dict) != (path.suffix.lower() == ".npz"):
+        held = "several named arrays (.npz)" if isinstance(obj, dict) else "one array (.npy)"
+        raise UserError(
+            f"{path}: holds {held}, not what its suffix says; rename it or re-export it with {what}"
+        )
+    for name, arr in obj.items() if isinstance(obj, dict) else [("", obj)]:
+        if not (
+            np.issubdtype(arr.dtype, np.floating) or np.issubdtype(arr.dtype, np.integer) or arr.dtype == bool
+        ):
+            where = f"array {name!r}" if name else "the array"
+            raise UserError(f"{path}: {where} holds {arr.dtype} values; save real numbers (float or int)")
+    return obj
+
+
+def _load_array(path: Path, keys: tuple[str, ...]) -> np.ndarray:
+    obj = load_numpy(path)
+    if not isinstance(obj, dict):
+        return obj
+    names = list(obj)
+    for k in keys:
+        if k in names:
+            return obj[k]
+    if len(names) == 1:
+        return obj[names[0]]
+    raise UserError(f"{path}: holds arrays {names}; name the wanted one one of {list(keys)}")
 
 
 def _read_depth_file(path: Path, png_scale: float) -> np.ndarray:
@@ -211,22 +237,23 @@ def _load_tracks_obj(path: Path):
             ) from e
         if isinstance(obj, (tuple, list)) and len(obj) == 2:
             obj = {"tracks": obj[0], "visibility": obj[1]}
-        if isinstance(obj, dict):
-            return {
-                k: np.asarray(v.detach().cpu().numpy() if hasattr(v, "detach") else v) for k, v in obj.items()
-            }
-        return np.asarray(obj.detach().cpu().numpy() if hasattr(obj, "detach") else obj)
-    if suffix == ".npz":
         try:
-            with np.load(path, allow_pickle=False) as z:
-                return {k: z[k] for k in z.keys()}
-        except (ValueError, OSError, EOFError) as e:
-            raise UserError(f"{path}: cannot read ({e}); re-export it with numpy.savez") from e
-    if suffix == ".npy":
-        try:
-            return np.load(path, allow_pickle=False)
-        except (ValueError, OSError, EOFError) as e:
-            raise UserError(f"{path}: cannot read ({e}); re-export it with numpy.save") from e
+            if isinstance(obj, dict):
+                out = {
+                    str(k): np.asarray(v.detach().cpu().numpy() if hasattr(v, "detach") else v)
+                    for k, v in obj.items()
+                }
+            else:
+                out = {"": np.asarray(obj.detach().cpu().numpy() if hasattr(obj, "detach") else obj)}
+        except (TypeError, ValueError, RuntimeError) as e:  # e.g. ragged lists, bfloat16 tensors
+            raise UserError(f"{path}: holds values that are not arrays ({e}); save plain tensors") from e
+        for name, arr in out.items():
+            if not (np.issubdtype(arr.dtype, np.number) and not np.iscomplexobj(arr)) and arr.dtype != bool:
+                where = f"entry {name!r}" if name else "the tensor"
+                raise UserError(f"{path}: {where} holds {arr.dtype} values; save real-valued tensors")
+        return out if isinstance(obj, dict) else out[""]
+    if suffix in (".npz", ".npy"):
+        return load_numpy(path)
     raise UserError(f"--tracks {path}: unsupported suffix {path.suffix!r}; use .npy, .npz or .pt")
 
 
