@@ -163,10 +163,10 @@ def _stored_size(scene) -> tuple[int, int] | None:
     root = getattr(scene, "root", None)
     if root is None or not (Path(root) / "cameras.json").is_file():
         return None
-    from worldtree.scene import read_cameras_json
+    from worldtree.scene_schema import read_cameras
 
-    meta = read_cameras_json(root)
-    return int(meta["width"]), int(meta["height"])
+    doc = read_cameras(root)
+    return doc.width, doc.height
 
 
 def _with_notes(source: str, notes: list[str]) -> str:
