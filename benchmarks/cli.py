@@ -10,7 +10,7 @@ import importlib
 
 import typer
 
-from worldtree.errors import run_cli
+from worldtree.cli_runner import run_cli
 
 COMMAND_MODULES = ("eval", "weights", "prep", "run", "sweep", "table", "plot", "video", "report", "demo")
 

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import typer
 
-from worldtree.errors import run_cli
+from worldtree.cli_runner import run_cli
 
 app = typer.Typer(
     name="nvls",

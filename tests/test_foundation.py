@@ -96,7 +96,7 @@ def test_unreadable_image_is_user_error(tmp_path):
 def test_run_cli_exit_codes(capsys):
     import typer
 
-    from worldtree.errors import run_cli
+    from worldtree.cli_runner import run_cli
 
     app = typer.Typer()
 

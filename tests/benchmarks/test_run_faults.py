@@ -15,7 +15,7 @@ from pathlib import Path
 
 import torch
 
-from worldtree.errors import INTERRUPTED
+from worldtree.cli_runner import INTERRUPTED
 from worldtree.folder_lock import lock_paths
 
 # Tiny static run: 12 steps, a checkpoint every 4 (so kills land before, between and after checkpoints).

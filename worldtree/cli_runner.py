@@ -1,0 +1,46 @@
+"""Running a command-line app: a :class:`~worldtree.errors.UserError` becomes one ``error:`` line (exit 2),
+Ctrl-C the documented interrupted line (exit 130). Shared by the ``wtbench`` and ``nvls`` entry points; the
+library itself never runs an app."""
+
+from __future__ import annotations
+
+from worldtree.errors import UserError
+
+INTERRUPTED = "interrupted: re-run the same command to resume from the last checkpoint"
+
+
+def run_cli(app) -> None:
+    """Run a typer/click ``app``; print a :class:`UserError` as one line (exit 2) and Ctrl-C as exit 130."""
+    import sys
+
+    try:
+        # With standalone_mode=False click returns a typer.Exit's code instead of exiting with it.
+        code = app(standalone_mode=False)
+    except UserError as e:
+        print(f"error: {e}", file=sys.stderr)
+        raise SystemExit(2) from None
+    except KeyboardInterrupt:
+        print(INTERRUPTED, file=sys.stderr)
+        raise SystemExit(130) from None
+    except Exception as e:
+        # Usage errors arrive here with standalone_mode=False. Recent typer releases vendor their own copy of
+        # click, so the exception classes are matched by behaviour, not by click's class objects.
+        exit_code = getattr(e, "exit_code", None)
+        # Ctrl-C: typer turns it into Exit(130), click into Abort; both keep the KeyboardInterrupt as cause.
+        if isinstance(e.__cause__ or e.__context__, KeyboardInterrupt):
+            print(INTERRUPTED, file=sys.stderr)
+            raise SystemExit(130) from None
+        if callable(getattr(e, "show", None)) and isinstance(exit_code, int):
+            e.show()
+            raise SystemExit(exit_code) from None
+        if type(e).__name__ == "Exit" and isinstance(exit_code, int):
+            raise SystemExit(exit_code) from None
+        if type(e).__name__ == "Abort":
+            print("aborted", file=sys.stderr)
+            raise SystemExit(1) from None
+        raise
+    if code == 130:
+        # typer turns Ctrl-C into Exit(130), which click (standalone_mode=False) returns as this code.
+        print(INTERRUPTED, file=sys.stderr)
+    if isinstance(code, int) and code != 0:
+        raise SystemExit(code)
