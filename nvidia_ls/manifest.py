@@ -61,15 +61,16 @@ def verify_scene(scene: str | Path, check_hashes: bool = True) -> list[str]:
     the ping-pong order; rotations orthonormal; intrinsics positive; near < far; poses_bounds.npy agrees with
     cameras.json.
     """
+    from worldtree.scene_schema import read_cameras, read_manifest
+
     scene = Path(scene)
     problems: list[str] = []
     mpath = scene / MANIFEST
     if not mpath.is_file():
         return [f"{mpath}: missing (not a scene built by `nvls build`?)"]
-    try:
-        man = json.loads(mpath.read_text())
-    except json.JSONDecodeError as e:
-        return [f"{mpath}: not valid JSON ({e.msg})"]
+    # The manifest's shape and its paths (each inside the scene) are checked before any listed file is
+    # opened: a manifest naming ../ or /etc/... stops here with one line.
+    man = read_manifest(scene)
     files = man.get("files", {})
     for rel, digest in files.items():
         p = scene / rel
@@ -84,9 +85,12 @@ def verify_scene(scene: str | Path, check_hashes: bool = True) -> list[str]:
     cpath = scene / "cameras.json"
     try:
         cams = json.loads(cpath.read_text())
-    except (OSError, json.JSONDecodeError) as e:
+    except (OSError, json.JSONDecodeError, UnicodeDecodeError) as e:
         problems.append(f"cameras.json: unreadable ({e})")
         return problems
+    # The document's shape, and every file/mask it names lying inside the scene, are checked first: any
+    # problem there is one line naming the key or entry (worldtree.scene_schema).
+    read_cameras(scene)
     counts = man.get("counts", {})
     frames, tests = cams.get("frames", []), cams.get("test_frames", [])
     n_img = len(list((scene / "images").glob("*.png")))

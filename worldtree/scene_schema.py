@@ -255,3 +255,48 @@ def read_cameras(root: str | Path) -> CamerasDoc:
         msg = f"{e.msg} at line {e.lineno}" if isinstance(e, json.JSONDecodeError) else str(e)
         raise UserError(f"{path}: not valid JSON ({msg}); rebuild the scene") from e
     return CamerasDoc.from_json(meta, path, root)
+
+
+_HEX = frozenset("0123456789abcdef")
+
+
+def _checked_manifest(man: Any, path: Path, root: Path) -> dict[str, Any]:
+    if not isinstance(man, dict):
+        raise _bad(path, "not a JSON object")
+    files = man.get("files", {})
+    if not isinstance(files, dict):
+        raise _bad(path, "'files' must be an object {relative path: sha256}")
+    for rel, digest in files.items():
+        if not (isinstance(digest, str) and len(digest) == 64 and set(digest) <= _HEX):
+            raise _bad(path, f"files[{rel!r}] must be a 64-digit hex sha256")
+        resolve_inside(root, rel, f"{path}: files[{rel!r}]")
+    counts = man.get("counts", {})
+    if not isinstance(counts, dict):
+        raise _bad(path, "'counts' must be an object")
+    for key in ("frames", "test_frames", "masks", "cameras"):
+        v = counts.get(key)
+        if v is not None and (isinstance(v, bool) or not isinstance(v, int) or v < 0):
+            raise _bad(path, f"counts.{key} must be a whole number >= 0 (got {v!r})")
+    train = man.get("train_cameras")
+    if train is not None and not (
+        isinstance(train, list) and all(isinstance(c, int) and not isinstance(c, bool) for c in train)
+    ):
+        raise _bad(path, "'train_cameras' must be a list of camera ids")
+    return man
+
+
+def read_manifest(root: str | Path) -> dict[str, Any]:
+    """``root/manifest.json`` parsed and checked: an object whose ``files`` map relative paths (each
+    resolving inside ``root``, links followed) to sha256 hex digests, with whole-number ``counts`` and a
+    ``train_cameras`` id list when present. Any problem is a one-line :class:`UserError` naming the entry;
+    nothing outside ``root`` is opened."""
+    root = Path(root)
+    path = root / MANIFEST_JSON
+    if not path.is_file():
+        raise UserError(f"{path}: missing (not a scene built by `nvls build`?)")
+    try:
+        man = json.loads(path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        msg = f"{e.msg} at line {e.lineno}" if isinstance(e, json.JSONDecodeError) else str(e)
+        raise UserError(f"{path}: not valid JSON ({msg}); rebuild the scene") from e
+    return _checked_manifest(man, path, root)
