@@ -146,3 +146,50 @@ def test_a_scene_being_built_by_another_process_is_refused(raw, tmp_path):
         holder.send_signal(signal.SIGKILL)
         holder.wait()
     assert not (out / "Raw").exists()
+
+
+def test_kill_9_at_random_points_of_a_build_then_the_next_build_is_identical_and_clean(raw, tmp_path):
+    import json
+    import random
+    import time
+
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join(sys.path), OMP_NUM_THREADS="1")
+
+    def cmd(out: Path, *extra: str) -> list[str]:
+        poses = str(raw / "gt" / "poses_bounds.npy")
+        return [
+            sys.executable,
+            "-m",
+            "nvidia_ls.cli",
+            "build",
+            str(raw),
+            "-o",
+            str(out),
+            "--poses",
+            poses,
+            *extra,
+        ]
+
+    ref = subprocess.run(cmd(tmp_path / "ref"), env=env, capture_output=True, text=True)
+    assert ref.returncode == 0, ref.stderr
+    out = tmp_path / "out"
+    rng = random.Random(13)
+    for _ in range(2):  # kill at random moments after the scene's lock exists (the build has begun)
+        proc = subprocess.Popen(
+            cmd(out, "--force"), env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL
+        )
+        deadline = time.monotonic() + 120
+        while not (out / ".Raw.lock").exists() and proc.poll() is None and time.monotonic() < deadline:
+            time.sleep(0.02)
+        time.sleep(rng.uniform(0.0, 1.5))
+        proc.send_signal(signal.SIGKILL)
+        proc.wait()
+    done = subprocess.run(cmd(out, "--force"), env=env, capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr
+
+    def files(root: Path) -> dict:
+        return json.loads((root / "Raw" / "manifest.json").read_text())["files"]
+
+    assert files(out) == files(tmp_path / "ref")  # every file of the scene, by sha256
+    left = sorted(p.name for p in out.iterdir() if p.name not in ("Raw", ".Raw.lock"))
+    assert left == [], left  # no .partial, .old or owner record of the killed builds
