@@ -31,6 +31,8 @@ HARNESS_METRICS = ("psnr", "ssim", "lpips", "avge", "mpsnr", "mssim", "mlpips", 
 #: Cost of a run: wall seconds, peak memory (MiB), model size.
 COST_METRICS = ("wall_time_s", "peak_memory_mb", "n_gaussians", "n_scaffold_nodes", "n_tree_nodes")
 METRICS = HARNESS_METRICS + COST_METRICS
+#: Long-table metric name prefix of a stage's seconds, e.g. ``stage_s:train``, ``stage_s:method.tree``.
+STAGE_PREFIX = "stage_s:"
 #: Metrics where a larger value is better; every other metric is better when smaller.
 HIGHER_IS_BETTER = frozenset({"psnr", "ssim", "mpsnr", "mssim"})
 #: Columns of the long table, in order.
@@ -186,17 +188,24 @@ def _first(places: Sequence[Mapping[str, Any] | None], keys: Sequence[str]) -> f
 def cost_metrics(timing: Mapping[str, Any] | None, model_info: Mapping[str, Any] | None) -> dict[str, float]:
     """The :data:`COST_METRICS` of one run from its ``timing.json`` and ``model/model.json`` (NaN if absent).
 
-    ``wall_time_s``: the sum of ``stages_s`` except ``eval`` and ``kernel_build`` (scoring and the C++
-    rasterizer's one-time compile are not the method's cost), with the
-    ``train`` stage replaced by ``train.wall_s_all_sessions`` so that a resumed run counts every session;
-    ``total_s`` when ``stages_s`` is missing. ``peak_memory_mb``: ``cuda_peak_allocated_mib`` when the run
-    was on CUDA, else ``peak_rss_mib`` (MiB). Sizes: the first of ``num_*``/``n_*`` keys found in
-    timing.json, its ``method_stats``, then model.json.
+    ``wall_time_s``: the run's wall time over all its sessions (``total_s``: an interrupted and resumed run
+    counts every session, and every stage of the method, the tree included) less ``eval`` and ``kernel_build``
+    (scoring and the C++ rasterizer's one-time compile are not the method's cost). Run folders written
+    before sessions were recorded (no ``sessions_s``) keep the older estimate: the sum of ``stages_s`` except
+    those two, with ``train`` replaced by ``train.wall_s_all_sessions``; ``total_s`` when ``stages_s`` is
+    missing. ``peak_memory_mb``: ``cuda_peak_allocated_mib`` when the run was on CUDA, else ``peak_rss_mib``
+    (MiB). Sizes: the first of ``num_*``/``n_*`` keys found in timing.json, its ``method_stats``, then
+    model.json.
     """
     timing = timing or {}
     stages = timing.get("stages_s")
     wall = math.nan
-    if isinstance(stages, Mapping) and stages:
+    if isinstance(timing.get("sessions_s"), list):
+        wall = _number(timing.get("total_s"))
+        for k in ("eval", "kernel_build"):
+            v = _number(stages.get(k)) if isinstance(stages, Mapping) else math.nan
+            wall -= v if math.isfinite(v) else 0.0
+    elif isinstance(stages, Mapping) and stages:
         vals = {str(k): _number(v) for k, v in stages.items() if k not in ("eval", "kernel_build")}
         train = timing.get("train")
         all_sessions = _number(train.get("wall_s_all_sessions")) if isinstance(train, Mapping) else math.nan
@@ -214,6 +223,22 @@ def cost_metrics(timing: Mapping[str, Any] | None, model_info: Mapping[str, Any]
     out = {"wall_time_s": wall, "peak_memory_mb": mem}
     for metric, keys in _SIZE_KEYS.items():
         out[metric] = _first(places, keys)
+    return out
+
+
+def stage_times(timing: Mapping[str, Any] | None) -> dict[str, float]:
+    """``{STAGE_PREFIX + name: seconds}`` for every stage of ``timing.json``: the run's (``stages_s``, all
+    sessions; ``train`` is the method's whole ``fit``), then the method's own (``method_stats.stages_s``:
+    priors, ba, sw, scaffold, photometric, tree, test_pose ... as ``method.<name>``); the long table carries them."""
+    timing = timing or {}
+    out: dict[str, float] = {}
+    stages = timing.get("stages_s")
+    if isinstance(stages, Mapping):
+        out.update({f"{STAGE_PREFIX}{k}": _number(v) for k, v in stages.items()})
+    stats = timing.get("method_stats")
+    inner = stats.get("stages_s") if isinstance(stats, Mapping) else None
+    if isinstance(inner, Mapping):
+        out.update({f"{STAGE_PREFIX}method.{k}": _number(v) for k, v in inner.items()})
     return out
 
 
@@ -300,6 +325,7 @@ def collect_runs(runs_dirs: Sequence[str | Path]) -> Collection:
                 "run": str(run),
             }
             rows += [{**base, "metric": m, "value": values[m]} for m in METRICS]
+            rows += [{**base, "metric": m, "value": v} for m, v in stage_times(timing).items()]
     if unfinished:
         shown = ", ".join(unfinished[:5]) + (
             f" and {len(unfinished) - 5} more" if len(unfinished) > 5 else ""

@@ -10,7 +10,8 @@ Layout (``RUNS_DIR/<scene>/<method>/<tag>/``, ``tag`` = preset plus overrides, e
     model/          final model: gaussians.pt (GaussianSet.load), gaussians.ply, model.json
     renders/        the test camera at every test time, named like the ground truth (v001_tXXX.png)
     metrics.csv     per-frame scores and a 'mean' row (benchmarks.evaluation.evaluate), metrics.json beside it
-    timing.json     wall time per stage, iterations/s, peak memory, Gaussian count, device, backend
+    timing.json     wall time per stage and per session (an interrupted run's sessions add up: total_s),
+                    iterations/s, peak memory, Gaussian count, device, backend
     tensorboard/    TensorBoard scalars (only with --tensorboard)
     DONE            written last; a finished run is skipped unless forced
 
@@ -25,8 +26,6 @@ import resource
 import shutil
 import sys
 import time
-from collections.abc import Iterator
-from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -41,6 +40,7 @@ from worldtree.errors import UserError
 from worldtree.imageio import write_image
 from worldtree.losses import SSIM_WINDOW
 from worldtree.output_paths import check_output_folder
+from worldtree.timing import StageClock
 
 TUNABLE = ("steps", "seed", "downscale")
 # Method options of `wtbench run` (set only on methods whose config has the field), in tag order.
@@ -94,6 +94,11 @@ class RunFolder:
         return self.root / "timing.json"
 
     @property
+    def timing_ledger(self) -> Path:
+        """Stage and session times so far (:class:`worldtree.timing.StageClock`), kept across resumes."""
+        return self.checkpoints / "timing_sessions.json"
+
+    @property
     def tensorboard(self) -> Path:
         return self.root / "tensorboard"
 
@@ -133,21 +138,6 @@ def peak_rss_mib() -> float:
     """Peak resident memory of this process so far, MiB (Linux reports kilobytes, macOS bytes)."""
     rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     return rss / (1024.0 * 1024.0) if sys.platform == "darwin" else rss / 1024.0
-
-
-class StageTimer:
-    """Wall time of named stages, in the order they ran."""
-
-    def __init__(self) -> None:
-        self.stages: dict[str, float] = {}
-
-    @contextmanager
-    def stage(self, name: str) -> Iterator[None]:
-        t0 = time.perf_counter()
-        try:
-            yield
-        finally:
-            self.stages[name] = self.stages.get(name, 0.0) + time.perf_counter() - t0
 
 
 @dataclass(frozen=True)
@@ -286,7 +276,7 @@ def execute(req: RunRequest) -> RunResult:
     folder = RunFolder(Path(req.runs_dir) / root.name / spec.name / tag)
     device = pick_device(req.device)
     check_output_folder(req.runs_dir, "--out")
-    timer = StageTimer()
+    timer = StageClock()  # the run's clock, from the start of this session
 
     def build_method():
         if device.type == "cpu":
@@ -340,6 +330,7 @@ def _execute_locked(req, spec, cfg, folder, root, view, device, timer, method, b
     folder.root.mkdir(parents=True, exist_ok=True)
     atomic_write_json(folder.config_json, record)
     atomic_write_text(folder.command_txt, req.command + "\n")
+    timer.attach(folder.timing_ledger)  # earlier sessions of this run, if it was interrupted
 
     if device.type == "cuda":
         torch.cuda.reset_peak_memory_stats(device)
@@ -362,8 +353,7 @@ def _execute_locked(req, spec, cfg, folder, root, view, device, timer, method, b
 
     stats = method.stats()
     timing = {
-        "stages_s": timer.stages,
-        "total_s": sum(timer.stages.values()),
+        **_flushed(timer).record(),
         "train": {
             "steps": summary.end_step,
             "resumed_from_step": summary.start_step,
@@ -399,6 +389,11 @@ def run_folder_of(req: RunRequest) -> RunFolder:
     _, sets = resolve_config(spec, req)
     tag = req.tag or run_tag(req.preset, req.overrides, req.options, sets)
     return RunFolder(Path(req.runs_dir) / Path(req.scene).name / spec.name / tag)
+
+
+def _flushed(timer: StageClock) -> StageClock:
+    timer.flush()  # this session's wall time up to now, written to the ledger
+    return timer
 
 
 def resolve_config(spec, req: RunRequest) -> tuple[Any, list[str]]:

@@ -65,7 +65,10 @@ def test_long_table_values_and_skips(tmp_path):
     got = collect_runs([tmp_path])
     long = got.long
     assert list(long.columns) == list(LONG_COLUMNS)
-    assert len(long) == 2 * len(METRICS)  # two readable finished runs, every metric listed once each
+    staged = long["metric"].str.startswith("stage_s:")
+    assert (~staged).sum() == 2 * len(METRICS)  # two readable finished runs, every metric listed once each
+    # ... and every stage of their timing.json (load, init, train, save_model, render, eval).
+    assert staged.sum() == 2 * 6 and set(long.loc[staged, "metric"]) >= {"stage_s:train", "stage_s:eval"}
     assert any(
         "2 unfinished run" in n and "Jumping/static/quick" in n and "Truck/static/quick-seed1" in n
         for n in got.notes
@@ -90,7 +93,7 @@ def test_long_table_values_and_skips(tmp_path):
     assert set(long["protocol"]) == {"worldtree"}
     # The same root twice counts its runs once; a hidden (temporary) folder is not a run.
     rf.write_run(tmp_path, "Jumping", "static", ".quick.tmp", FULL)
-    assert len(collect_runs([tmp_path, tmp_path / "."]).long) == 2 * len(METRICS)
+    assert len(collect_runs([tmp_path, tmp_path / "."]).long) == 2 * (len(METRICS) + 6)
 
 
 def test_configuration_label_rules():
