@@ -86,7 +86,7 @@ def _all_images_load(driver) -> int:
     images = [i for i in driver.find_elements("css selector", "img") if i.is_displayed()]
     for img in images:
         driver.execute_script("arguments[0].scrollIntoView()", img)
-        WebDriverWait(driver, 20).until(lambda d, i=img: d.execute_script("return arguments[0].complete", i))
+        WebDriverWait(driver, 120).until(lambda d, i=img: d.execute_script("return arguments[0].complete", i))
         width = driver.execute_script("return arguments[0].naturalWidth", img)
         assert width > 0, f"image did not load: {img.get_attribute('src')}"
     return len(images)
@@ -161,7 +161,7 @@ def test_scene_page_viewer(report, browser):
 
     video = browser.find_element("css selector", "#videos video")
     browser.execute_script("arguments[0].scrollIntoView(); arguments[0].load()", video)
-    WebDriverWait(browser, 20).until(lambda d: d.execute_script("return arguments[0].readyState", video) >= 1)
+    WebDriverWait(browser, 120).until(lambda d: d.execute_script("return arguments[0].readyState", video) >= 1)
     size = browser.execute_script("return [arguments[0].videoWidth, arguments[0].videoHeight]", video)
     assert size == [3 * fx.WIDTH, fx.HEIGHT]
     assert _errors(browser) == []
