@@ -26,6 +26,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import torch
 
 from methods.registry import CommonConfig, MethodSpec, register_method
@@ -38,6 +39,10 @@ from worldtree.motion.lift import fill_gaps, lift_tracks
 from worldtree.motion.scaffold import Scaffold, ScaffoldConfig, build_scaffold
 from worldtree.plateau import PlateauDetector
 from worldtree.priors import PriorsConfig, compute_priors
+from worldtree.priors.api import add_chained_tracks
+from worldtree.priors.dynamic_masks import refine_with_residual
+from worldtree.priors.epipolar import label_dynamic_tracks
+from worldtree.render import rasterize
 from worldtree.scene import Scene
 from worldtree.stages.bundle_adjust import BAResult, BundleAdjustConfig, bundle_adjust
 from worldtree.stages.photometric import PhotometricConfig, PhotometricFit, quick_photometric_config
@@ -94,6 +99,10 @@ class BaseConfig(CommonConfig):
     """At most this many initial dynamic Gaussians (the root of the authors' tree starts from 30000)."""
     dynamic_init_opacity: float = 0.1
     """Opacity of the initial dynamic Gaussians."""
+    refine_masks: bool = True
+    """After the static warm-up, refine the dynamic masks with the warm-up model's residual on every training
+    frame (``worldtree.priors.dynamic_masks.refine_with_residual``) and re-chain the dynamic tracks inside
+    them; needs ``priors.motion.enabled`` and no imported masks."""
     checkpoint_every: int = 500
     """Checkpoint period of the warm-up and photometric stages."""
     log_every: int = 100
@@ -183,6 +192,7 @@ class BaseMethod:
         self.stage_s: dict[str, float] = {}
         self.info: dict[str, Any] = {}
         self.backend = "none"
+        self.refined_mask = None
 
     # ------------------------------------------------------------------ stages
     def _timed(self, name: str, fn, *args, **kwargs):
@@ -234,6 +244,44 @@ class BaseMethod:
         )
         return sw.gaussians, trainer.fit(resume=ctx.resume)
 
+    @torch.no_grad()
+    def _refine_motion(self, pri, P: dict, static, w2cs) -> dict:
+        """Masks refined with the static model's residual, tracks relabelled and re-chained (``refine_masks``)."""
+        c, s = self.cfg, self.scene
+        pc = c.priors
+        if not (c.refine_masks and pc.motion.enabled and pc.masks_source is None and pri.motion_evidence):
+            return P
+        T, H, W = s.images.shape[:3]
+        renders = torch.stack(
+            [rasterize(static.means, static.quats, static.log_scales, static.opacities, static.colors,
+                       s.Ks[t], w2cs[t], W, H, backend=c.sw.backend).rgb.clamp(0, 1) for t in range(T)]
+        ).cpu().numpy()  # fmt: skip
+        images = s.images.cpu().numpy()
+        before = pri.epi_mask
+        fused = refine_with_residual(
+            pri.motion_evidence, images, renders, pri.flow, before, pc.motion, pc.epi
+        )
+        mask = fused.mask
+        n_lk = pri.tracks.shape[1] - pri.num_chained_tracks
+        xy, vis = pri.tracks[:, :n_lk], pri.track_vis[:, :n_lk]
+        dyn = label_dynamic_tracks(xy, vis, mask, pc.epi.track_min_frames)
+        xy, vis, dyn, n_ch = add_chained_tracks(xy, vis, dyn, pri.flow, mask, pc)
+        self.info["motion_refine"] = {
+            "mask_fraction_before": float(before.mean()),
+            "mask_fraction_after": float(mask.mean()),
+            "dynamic_tracks_before": int(pri.track_dynamic.sum()),
+            "dynamic_tracks_after": int(dyn.sum()),
+            "chained_tracks": int(n_ch),
+        }
+        self.refined_mask = mask
+        out = dict(P)
+        dev = self.device
+        out["epi_mask"] = torch.from_numpy(mask).to(dev)
+        out["tracks"] = torch.from_numpy(np.ascontiguousarray(xy)).to(dev)
+        out["track_vis"] = torch.from_numpy(vis).to(dev)
+        out["track_dynamic"] = torch.from_numpy(dyn).to(dev)
+        return out
+
     def _dynamic(self, P: dict, depth, w2cs) -> tuple[Scaffold, DynamicGaussians, torch.Tensor, torch.Tensor]:
         c, s = self.cfg, self.scene
         dyn_ids = torch.nonzero(P["track_dynamic"]).flatten()
@@ -271,7 +319,7 @@ class BaseMethod:
         ckpt = ctx.checkpoint_dir
         if ckpt is not None:
             ckpt.mkdir(parents=True, exist_ok=True)
-        _, P = self._timed("priors", self._priors)
+        pri, P = self._timed("priors", self._priors)
         ba = self._timed("ba", self._ba, P, ckpt)
         self.info["ba"] = ba.stats()
         w2cs = ba.w2cs.float()
@@ -279,6 +327,7 @@ class BaseMethod:
         extent = scene_extent(w2cs, s.near, s.far)
         static, sw_summary = self._timed("sw", self._warmup, depth, P["epi_mask"], w2cs, extent, ctx)
         self.info["sw_steps"] = sw_summary.end_step
+        P = self._timed("motion", self._refine_motion, pri, P, static, w2cs)
         scf, dyn, tracks, vis = self._timed("scaffold", self._dynamic, P, depth, w2cs)
         pcfg = dataclasses.replace(c.photometric, steps=c.steps)
         fit = PhotometricFit(
@@ -409,6 +458,7 @@ class BaseMethod:
             "stages_s": dict(self.stage_s),
             "ablate_ba": self.cfg.ablate_ba,
             "ablate_sw": self.cfg.ablate_sw,
+            "migration": dict(fit.migration) if fit is not None else {},
             **{k: v for k, v in self.info.items() if k not in ("scaffold_fit",)},
         }
 

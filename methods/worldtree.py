@@ -336,6 +336,7 @@ def train_node(payload: dict, ctx: NodeContext) -> dict:
         static_strategy=_NO_DENSIFY,
         dynamic_strategy=_NO_DENSIFY,
         node_densify_every=0,  # density control (Gaussians and scaffold nodes) only at the root
+        migrate_every=0,  # static <-> dynamic migration too (children's sets are tied to their ancestors')
     )
     tracks = data["tracks"][sl] if data["tracks"].shape[1] else None
     vis = data["track_vis"][sl] if tracks is not None else None

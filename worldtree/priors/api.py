@@ -14,7 +14,7 @@ from worldtree.atomic import atomic_write_json
 from worldtree.errors import UserError
 from worldtree.hashing import sha256_file
 from worldtree.priors import depth as depth_mod
-from worldtree.priors import epipolar, flow, imported, tracks
+from worldtree.priors import dynamic_masks, dynamic_tracks, epipolar, flow, imported, tracks
 from worldtree.priors.cache import CacheEntry, PriorCache, hash_key, inputs_fingerprint
 from worldtree.priors.config import PriorsConfig, config_dict
 from worldtree.priors.flow import FlowPair
@@ -37,6 +37,12 @@ class Priors:
         epi_error: ``[T, H, W]`` epipolar (Sampson) error in pixels, max over flow pairs.
         epi_mask: ``[T, H, W]`` bool dynamic mask (EPI threshold, or the imported masks).
         sources: where each prior came from (``classical`` or ``imported:<path>``).
+        mask_conf: ``[T, H, W]`` confidence in [0, 1] of the dynamic masks (the fused motion evidence; the
+            mask itself for imported masks and plain EPI masks).
+        motion_evidence: ``{cue: [T, H, W]}`` evidence of each motion cue (``worldtree.priors.motion_cues``),
+            kept so the masks can be refined once a static model exists; empty when not fused.
+        num_chained_tracks: how many of the last tracks were chained through flow inside the masks
+            (``worldtree.priors.dynamic_tracks``; all dynamic).
         config: the settings used.
         cache_dir: the cache root, or None when nothing was cached.
     """
@@ -50,6 +56,9 @@ class Priors:
     epi_error: np.ndarray
     epi_mask: np.ndarray
     sources: dict[str, str]
+    mask_conf: np.ndarray | None = None
+    motion_evidence: dict[str, np.ndarray] = field(default_factory=dict)
+    num_chained_tracks: int = 0
     config: PriorsConfig = field(default_factory=PriorsConfig)
     cache_dir: Path | None = None
 
@@ -279,6 +288,18 @@ def _refill_dynamic(depth, conf, mask, imgs, cfg: PriorsConfig) -> tuple[np.ndar
     return depth.astype(np.float32), conf.astype(np.float32)
 
 
+def add_chained_tracks(xy, vis, dynamic, flows, mask, cfg: PriorsConfig):
+    """Append the tracks chained through flow inside ``mask`` [T, H, W] to ``xy`` [T, N, 2] / ``vis`` [T, N]
+    / ``dynamic`` [N]; the tracks already on the masks are kept. Returns ``(xy, vis, dynamic, added)``."""
+    ch = dynamic_tracks.chain_dynamic_tracks(flows, mask, cfg.motion)
+    if ch.num_tracks == 0:
+        return xy, vis, dynamic, 0
+    xy = np.concatenate([xy, ch.xy.astype(xy.dtype)], 1)
+    vis = np.concatenate([vis, ch.visible], 1)
+    dynamic = np.concatenate([dynamic, np.ones(ch.num_tracks, bool)])
+    return xy, vis, dynamic, ch.num_tracks
+
+
 # ------------------------------------------------------------------------------------------------ entry point
 def compute_priors(
     scene,
@@ -334,12 +355,26 @@ def compute_priors(
     else:
         xy, vis, tracks_src = _tracks(imgs, cfg, cache, fp, progress, init)
     err = _epi_errors(flows, Ks, w2cs, T, cfg, cache, flow_key, progress)
+    evidence: dict[str, np.ndarray] = {}
     if mask is not None:
         mask_src = f"imported:{cfg.masks_source}"
+        mask_conf = mask.astype(np.float32)
+    elif cfg.motion.enabled:
+        # Motion discovery: epipolar and depth-consistency cues fused (the residual cue joins after the
+        # static warm-up, in the methods). Depth is metric only when classical or fitted.
+        metric = depth if depth_key is not None else None
+        evidence = dynamic_masks.prior_evidence(err, flows, metric, Ks, w2cs, cfg.motion, cfg.epi)
+        fused = dynamic_masks.fuse(evidence, flows, cfg.motion, cfg.epi)
+        mask, mask_conf = fused.mask, fused.confidence
+        mask_src = f"motion cues ({', '.join(evidence)})"
     else:
         mask = epipolar.epi_masks(err, cfg.epi)
+        mask_conf = mask.astype(np.float32)
         mask_src = f"epipolar (threshold {cfg.epi.threshold_px} px)"
     dynamic = epipolar.label_dynamic_tracks(xy, vis, mask, cfg.epi.track_min_frames)
+    n_chained = 0
+    if cfg.motion.enabled and imported_tracks is None:
+        xy, vis, dynamic, n_chained = add_chained_tracks(xy, vis, dynamic, flows, mask, cfg)
     if depth_src == "classical":
         depth, depth_conf = _refill_dynamic(depth, depth_conf, mask, imgs, cfg)
     elif fill is not None:
@@ -348,8 +383,8 @@ def compute_priors(
         depth_conf = np.where(mask, cfg.depth_import.fill_conf, depth_conf).astype(np.float32)
 
     sources = {"flow": flow_src, "depth": depth_src, "tracks": tracks_src, "masks": mask_src}
-    pri = Priors(depth, depth_conf, flows, xy, vis, dynamic, err, mask, sources, cfg,
-                 Path(cache_dir) if cache_dir is not None else None)  # fmt: skip
+    pri = Priors(depth, depth_conf, flows, xy, vis, dynamic, err, mask, sources, mask_conf, evidence, n_chained,
+                 cfg, Path(cache_dir) if cache_dir is not None else None)  # fmt: skip
     if cache_dir is not None:
         atomic_write_json(
             Path(cache_dir) / "priors.json",
@@ -364,6 +399,7 @@ def compute_priors(
                 "config": config_dict(cfg),
                 "num_tracks": int(xy.shape[1]),
                 "num_dynamic_tracks": int(dynamic.sum()),
+                "num_chained_tracks": n_chained,
                 "dynamic_pixel_fraction": float(mask.mean()),
             },
         )

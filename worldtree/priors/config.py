@@ -115,6 +115,51 @@ class EpiConfig:
 
 
 @dataclass(frozen=True)
+class MotionConfig:
+    """Motion discovery: cues fused into dynamic masks with a confidence, and dynamic tracks chained through
+    dense flow inside them (``worldtree.priors.motion_cues``, ``dynamic_masks``, ``dynamic_tracks``)."""
+
+    enabled: bool = True
+    """Fuse the cues into the masks (False: the plain EPI masks, the behaviour before motion discovery)."""
+    use_epipolar: bool = True
+    """Use the epipolar-error cue."""
+    use_rigid: bool = True
+    """Use the depth-consistency cue (flow against the rigid flow of depth and poses)."""
+    rigid_tol_px: float = 1.5
+    """Depth-consistency tolerance in pixels, plus ``rigid_rel_depth`` times the translational parallax."""
+    rigid_rel_depth: float = 0.3
+    """Relative depth error tolerated by the depth-consistency cue."""
+    residual_z_low: float = 4.0
+    """Static-model residual cue: evidence starts at this many robust standard deviations above the median."""
+    residual_z_high: float = 8.0
+    """... and is full at this many."""
+    residual_floor: float = 0.04
+    """Residuals below this (image units, mean over channels) are never evidence of motion."""
+    temporal_self_weight: float = 0.5
+    """Temporal agreement: weight of a frame's own evidence against its flow-carried neighbours'."""
+    threshold: float = 0.5
+    """A pixel is dynamic when its fused, temporally agreed evidence exceeds this."""
+    close_px: int = 1
+    """Radius of the closing that joins the pieces of one object (0 = none)."""
+    dilate_px: int = 0
+    """The final masks grow by this radius (object borders carry mixed pixels)."""
+    track_seed_step: int = 4
+    """Dynamic tracks: seed spacing in pixels inside the masks."""
+    track_seed_every: int = 2
+    """Dynamic tracks: re-detect uncovered mask pixels every this many frames."""
+    track_gaps: tuple[int, ...] = (1, 3)
+    """Frame gaps used to chain a track; a larger gap bridges a failed step (a camera change)."""
+    track_mask_dilate_px: int = 3
+    """A chained point must stay inside the mask dilated by this radius."""
+    track_link_px: float = 2.0
+    """Two track pieces are linked when one's flow-carried end lands within this of the other's start."""
+    track_min_length: int = 3
+    """Dynamic tracks visible in fewer frames are dropped."""
+    max_dynamic_tracks: int = 4000
+    """Upper bound on the chained dynamic tracks."""
+
+
+@dataclass(frozen=True)
 class DepthImportConfig:
     """How imported depth maps are read and aligned."""
 
@@ -152,6 +197,8 @@ class PriorsConfig:
     """Settings of the classical depth (also the reference of an imported depth's scale/shift fit)."""
     epi: EpiConfig = field(default_factory=EpiConfig)
     """Epipolar errors, EPI masks and dynamic-track labels."""
+    motion: MotionConfig = field(default_factory=MotionConfig)
+    """Motion discovery (cues fused into masks, dynamic tracks chained through flow)."""
     depth_import: DepthImportConfig = field(default_factory=DepthImportConfig)
     """How imported depth is read and aligned (ignored for classical depth)."""
     depth_source: str = "classical"

@@ -40,6 +40,7 @@ from worldtree.motion.regularizers import MotionLossConfig, motion_losses
 from worldtree.motion.scaffold import Scaffold, densify
 from worldtree.optim import ConstantLR, GroupedAdam, gaussian_schedules
 from worldtree.render import rasterize
+from worldtree.stages import set_migration as mig
 from worldtree.stages.cameras import apply_delta
 from worldtree.strategy import DensifyStrategy, remove
 from worldtree.trainer import StepOutput
@@ -111,6 +112,21 @@ class PhotometricConfig:
     """Period of node densification (0 = never; tree children never densify, as in the paper)."""
     reattach_every: int = 100
     """Skinning neighbourhoods are recomputed this often (and after every density change)."""
+    migrate_every: int = 500
+    """Period of the static <-> dynamic migration (``worldtree.stages.set_migration``; 0 = never)."""
+    migrate_start: int = 500
+    """First step of the migration."""
+    migrate_stop: int = 3000
+    """No migration after this step."""
+    migrate_frames: int = 16
+    """Training frames (evenly spaced) rendered to measure each Gaussian's residual at a migration."""
+    migrate_residual: float = 0.08
+    """A static Gaussian whose mean residual (image units) over the frames that see it exceeds this becomes
+    dynamic; a dynamic one that does not move and stays under half of it becomes static."""
+    migrate_min_views: int = 3
+    """A Gaussian must be seen in at least this many of the measured frames to move."""
+    static_move_frac: float = 0.002
+    """A dynamic Gaussian moving less than this fraction of the scene extent over the video is 'still'."""
     backend: str = "auto"
     """Rasterizer backend."""
 
@@ -128,6 +144,9 @@ def quick_photometric_config() -> PhotometricConfig:
         node_densify_start=100,
         node_densify_stop=450,
         node_densify_every=100,
+        migrate_every=100,
+        migrate_start=150,
+        migrate_stop=450,
         static_strategy=strat,
         dynamic_strategy=DensifyStrategy(**vars(strat)),
     )
@@ -226,6 +245,7 @@ class PhotometricFit:
         self.dyn_state = cfg.dynamic_strategy.initialize_state(self.extent)
         self.cache = self.dynamic.attach(self.scaffold)
         self.backend = "none"
+        self.migration = {"static_to_dynamic": 0, "dynamic_to_static": 0, "events": []}
 
     # ------------------------------------------------------------------ set-up
     def _gauss_schedules(self, gs: GaussianSet) -> dict:
@@ -390,6 +410,7 @@ class PhotometricFit:
             )
         changed = len(self.dynamic) != before or (step % self.cfg.dynamic_strategy.refine_every == 0)
         changed = self._densify_nodes(step) > 0 or changed
+        changed = self._migrate(step) > 0 or changed
         if changed or (self.cfg.reattach_every > 0 and step % self.cfg.reattach_every == 0):
             self.cache = self.dynamic.attach(self.scaffold)
         return {
@@ -477,6 +498,66 @@ class PhotometricFit:
         self._swap_scaffold(new)
         return added
 
+    @torch.no_grad()
+    def _migrate(self, step: int) -> int:
+        """Static <-> dynamic migration when scheduled (module ``set_migration``); returns Gaussians moved."""
+        c = self.cfg
+        if (
+            c.migrate_every <= 0
+            or not c.migrate_start <= step <= c.migrate_stop
+            or (step - c.migrate_start) % c.migrate_every != 0
+            or self.scaffold.M == 0
+            or not mig.compatible(self.static, self.dynamic)
+        ):
+            return 0
+        H, W = self.images.shape[1:3]
+        n_s, n_d = len(self.static), len(self.dynamic)
+        dev = self.images.device
+        acc_s, acc_d = mig.ResidualAccumulator(n_s, dev), mig.ResidualAccumulator(n_d, dev)
+        cache = self.dynamic.attach(self.scaffold)
+        frames = torch.linspace(0, self.T - 1, min(self.T, max(1, c.migrate_frames))).round().long().tolist()
+        for t in sorted(set(frames)):
+            m, q, ls, o, col = self.gaussians_at(t, cache)
+            w2c = self.camera(t)
+            out = rasterize(m, q, ls, o, col, self.Ks[t], w2c, W, H, backend=c.backend)
+            r = mig.residual_map(out.rgb, self.images[t])
+            front = mig.in_front(m, self.Ks[t], w2c, out.depth, out.alpha)
+            acc_s.add(r, out.means2d[:n_s], out.radii[:n_s], t, front[:n_s])
+            acc_d.add(r, out.means2d[n_s:], out.radii[n_s:], t, front[n_s:])
+        seen_s = acc_s.count >= c.migrate_min_views
+        to_dyn = seen_s & (acc_s.mean() > c.migrate_residual)
+        still = mig.max_displacement(self.dynamic, self.scaffold, cache, sorted(set(frames)))
+        seen_d = acc_d.count >= c.migrate_min_views
+        to_static = (
+            seen_d & (acc_d.mean() < 0.5 * c.migrate_residual) & (still < c.static_move_frac * self.extent)
+        )
+        a = mig.dynamic_to_static(
+            self.static,
+            self.static_opt,
+            self.static_state,
+            self.dynamic,
+            self.dyn_opt,
+            self.dyn_state,
+            to_static,
+        )
+        # Static indices are unchanged by appending to the static set: move the high-residual ones after.
+        mask = torch.cat([to_dyn, torch.zeros(len(self.static) - n_s, dtype=torch.bool, device=dev)])
+        t_ref = torch.cat([acc_s.frame, torch.zeros(len(self.static) - n_s, dtype=torch.long, device=dev)])
+        b = mig.static_to_dynamic(
+            self.static,
+            self.static_opt,
+            self.static_state,
+            self.dynamic,
+            self.dyn_opt,
+            self.dyn_state,
+            mask,
+            t_ref,
+        )
+        self.migration["static_to_dynamic"] += b
+        self.migration["dynamic_to_static"] += a
+        self.migration["events"].append([int(step), b, a])
+        return a + b
+
     def _swap_scaffold(self, new: Scaffold) -> None:
         """Put a scaffold with more nodes (appended along dim 1) in place; Adam moments of the kept nodes
         follow them and the new nodes start from zero moments."""
@@ -511,6 +592,7 @@ class PhotometricFit:
             "dyn_state": cpu(self.dyn_state),
             "queue": list(self.queue),
             "pairs_rng": self.pairs.get_state(),
+            "migration": dict(self.migration),
         }
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
@@ -531,4 +613,5 @@ class PhotometricFit:
         }
         self.queue = [int(i) for i in state["queue"]]
         self.pairs.set_state(state["pairs_rng"])
+        self.migration = state.get("migration", self.migration)
         self.cache = self.dynamic.attach(self.scaffold)
