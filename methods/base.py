@@ -21,6 +21,7 @@ is then a static one, and every stage still runs.
 from __future__ import annotations
 
 import dataclasses
+import io
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -31,7 +32,7 @@ import torch
 
 from methods.registry import CommonConfig, MethodSpec, register_method
 from methods.static3dgs import scene_extent
-from worldtree.atomic import atomic_write_json
+from worldtree.atomic import atomic_write_bytes, atomic_write_json
 from worldtree.budget import node_budget
 from worldtree.dynamic import DynamicGaussians
 from worldtree.errors import UserError
@@ -245,8 +246,11 @@ class BaseMethod:
         return sw.gaussians, trainer.fit(resume=ctx.resume)
 
     @torch.no_grad()
-    def _refine_motion(self, pri, P: dict, static, w2cs) -> dict:
-        """Masks refined with the static model's residual, tracks relabelled and re-chained (``refine_masks``)."""
+    def _refine_motion(self, pri, P: dict, static, w2cs, ckpt: Path | None = None) -> dict:
+        """Masks refined with the static model's residual, tracks relabelled and re-chained (``refine_masks``).
+
+        With a checkpoint folder, ``motion.npz`` there keeps the result (masks ``[T, H, W]``, confidence,
+        tracks ``[T, N, 2]``, visibility, dynamic labels): previews and the motion proof read it."""
         c, s = self.cfg, self.scene
         pc = c.priors
         if not (c.refine_masks and pc.motion.enabled and pc.masks_source is None and pri.motion_evidence):
@@ -274,6 +278,13 @@ class BaseMethod:
             "chained_tracks": int(n_ch),
         }
         self.refined_mask = mask
+        if ckpt is not None:
+            buf = io.BytesIO()
+            np.savez_compressed(
+                buf, mask=mask, confidence=fused.confidence.astype(np.float16), tracks=xy, visible=vis,
+                dynamic=dyn, mask_before=before,
+            )  # fmt: skip
+            atomic_write_bytes(ckpt / "motion.npz", buf.getvalue())
         out = dict(P)
         dev = self.device
         out["epi_mask"] = torch.from_numpy(mask).to(dev)
@@ -327,7 +338,7 @@ class BaseMethod:
         extent = scene_extent(w2cs, s.near, s.far)
         static, sw_summary = self._timed("sw", self._warmup, depth, P["epi_mask"], w2cs, extent, ctx)
         self.info["sw_steps"] = sw_summary.end_step
-        P = self._timed("motion", self._refine_motion, pri, P, static, w2cs)
+        P = self._timed("motion", self._refine_motion, pri, P, static, w2cs, ckpt)
         scf, dyn, tracks, vis = self._timed("scaffold", self._dynamic, P, depth, w2cs)
         pcfg = dataclasses.replace(c.photometric, steps=c.steps)
         fit = PhotometricFit(

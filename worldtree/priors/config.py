@@ -145,14 +145,19 @@ class MotionConfig:
     """The final masks grow by this radius (object borders carry mixed pixels)."""
     track_seed_step: int = 4
     """Dynamic tracks: seed spacing in pixels inside the masks."""
-    track_seed_every: int = 2
+    track_seed_every: int = 4
     """Dynamic tracks: re-detect uncovered mask pixels every this many frames."""
     track_gaps: tuple[int, ...] = (1, 3)
     """Frame gaps used to chain a track; a larger gap bridges a failed step (a camera change)."""
     track_mask_dilate_px: int = 3
     """A chained point must stay inside the mask dilated by this radius."""
+    track_fill_px: int = 2
+    """Holes of the flow's validity inside the masks are filled from the valid flow within this radius."""
     track_link_px: float = 2.0
     """Two track pieces are linked when one's flow-carried end lands within this of the other's start."""
+    track_link_gap: int = 3
+    """Pieces ending at frame e and starting within this many frames after are joined when the start lies
+    where the ended piece's last velocity carries it (within ``track_link_px`` + half the distance moved)."""
     track_min_length: int = 3
     """Dynamic tracks visible in fewer frames are dropped."""
     max_dynamic_tracks: int = 4000

@@ -8,7 +8,8 @@ and photometrically (``FlowPair.valid``) and which were started from the rigid f
 1. **chain**: a point at ``x`` in frame t goes to ``x + f_{t,t+g}(x)`` (bilinear) for the first gap ``g`` of
    ``MotionConfig.track_gaps`` whose flow is valid there and lands inside the (dilated) mask of frame t+g;
    a failed step at gap 1 (e.g. a camera change) is bridged by a larger gap, the frames in between left
-   invisible. A point with no valid step ends.
+   invisible. A point with no valid step ends. Small holes of the flow's validity inside the masks are filled
+   first (mean of the valid flow within ``track_fill_px``), so one rejected pixel does not end a track.
 2. **re-detect**: every ``track_seed_every`` frames, mask pixels on a ``track_seed_step`` grid farther than
    that step from every visible track point get new tracks, chained forwards and then backwards.
 3. **link**: chained backwards, a new piece that lands within ``track_link_px`` of the end of an older piece
@@ -30,15 +31,51 @@ from worldtree.priors.flow import FlowPair, bilinear
 from worldtree.priors.tracks import Tracks, hold_invisible
 
 
+class _HoleFilled:
+    """Flow pairs with small holes of their validity filled inside the masks (built on first use).
+
+    The checks reject isolated pixels of a moving object's flow (a fifth at gap 1 on the generated rig), and
+    a chain of independent 80% steps dies after a few frames. A pixel whose flow failed takes the mean of the
+    valid flow of the mask pixels within ``radius`` when at least ``min_frac`` of that window is valid.
+    """
+
+    def __init__(self, flows, inside: np.ndarray, radius: int, min_frac: float = 0.2):
+        self.flows, self.inside, self.r, self.min_frac = flows, inside, radius, min_frac
+        self.done: dict[tuple[int, int], FlowPair] = {}
+
+    def __contains__(self, key) -> bool:
+        return key in self.flows
+
+    def __getitem__(self, key: tuple[int, int]) -> FlowPair:
+        if key not in self.done:
+            fp = self.flows[key]
+            if self.r <= 0:
+                self.done[key] = fp
+            else:
+                k = (2 * self.r + 1, 2 * self.r + 1)
+                w = (fp.valid & self.inside[key[0]]).astype(np.float32)
+
+                def box(x):
+                    return cv2.boxFilter(x, -1, k, normalize=True, borderType=cv2.BORDER_CONSTANT)
+
+                den = box(w)
+                f = (
+                    np.stack([box(fp.flow[..., c] * w) for c in range(2)], -1)
+                    / np.maximum(den, 1e-6)[..., None]
+                )
+                fill = ~fp.valid & (den >= self.min_frac)
+                self.done[key] = FlowPair(
+                    np.where(fill[..., None], f, fp.flow).astype(np.float32), fp.valid | fill
+                )
+        return self.done[key]
+
+
 def _step(
-    pts: np.ndarray,
-    t: int,
-    direction: int,
-    flows: Mapping[tuple[int, int], FlowPair],
-    inside: np.ndarray,
-    gaps: tuple[int, ...],
+    pts: np.ndarray, t: int, direction: int, flows, inside: np.ndarray, gaps: tuple[int, ...]
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Carry ``pts`` [N, 2] of frame t one step: ``(positions [N, 2], target frame [N] or -1 when it ends)``."""
+    """Carry ``pts`` [N, 2] of frame t one step: ``(positions [N, 2], target frame [N] or -1 when it ends)``.
+
+    ``flows``: a mapping ``(t, u) -> FlowPair``."""
     T, H, W = inside.shape
     out = pts.copy()
     dst = np.full(len(pts), -1, np.int64)
@@ -89,6 +126,7 @@ def chain_dynamic_tracks(
     k = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
     inside = np.stack([cv2.dilate(m.astype(np.uint8), k) > 0 for m in masks]) if r > 0 else masks.astype(bool)
     gaps = tuple(sorted(set(int(g) for g in cfg.track_gaps if g >= 1))) or (1,)
+    flows = _HoleFilled(flows, inside, cfg.track_fill_px)
     cap = max(0, cfg.max_dynamic_tracks)
     xy = np.zeros((T, cap, 2), np.float32)
     vis = np.zeros((T, cap), bool)
@@ -152,6 +190,57 @@ def chain_dynamic_tracks(
         back = back[~np.isin(back, act[stop])]
 
     xy, vis, seed = xy[:, :n], vis[:, :n], seed[:n]
+    xy, vis = link_by_velocity(xy, vis, cfg.track_link_gap, cfg.track_link_px)
     ok = vis.sum(0) >= max(1, cfg.track_min_length)
     xy, vis, seed = xy[:, ok], vis[:, ok], seed[ok]
     return Tracks(hold_invisible(xy, vis), vis, seed)
+
+
+def link_by_velocity(
+    xy: np.ndarray, vis: np.ndarray, max_gap: int, tol_px: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Join pieces across short gaps: piece A ending at frame e, piece B starting at s in (e, e + max_gap],
+    when B's start is within ``tol_px + 0.5 |v| (s - e)`` of A's end carried on at A's last velocity ``v``
+    (pixels per frame, from its last two visible positions; 0 for a single one). Greedy, closest first; each
+    end and each start is used once. ``xy`` [T, N, 2], ``vis`` [T, N] -> the same with joined pieces merged
+    into the earlier one (the later columns emptied)."""
+    T, N = vis.shape
+    if N == 0 or max_gap < 1:
+        return xy, vis
+    xy, vis = xy.copy(), vis.copy()
+    any_vis = vis.any(0)
+    first = np.where(any_vis, vis.argmax(0), T)
+    last = np.where(any_vis, T - 1 - vis[::-1].argmax(0), -1)
+    cands = []
+    for a in np.flatnonzero(any_vis & (last < T - 1)):
+        e = last[a]
+        ts = np.flatnonzero(vis[:, a])
+        v = (xy[ts[-1], a] - xy[ts[-2], a]) / (ts[-1] - ts[-2]) if len(ts) >= 2 else np.zeros(2, np.float32)
+        for b in np.flatnonzero(any_vis & (first > e) & (first <= e + max_gap)):
+            s = first[b]
+            pred = xy[e, a] + v * (s - e)
+            d = float(np.linalg.norm(xy[s, b] - pred))
+            if d <= tol_px + 0.5 * float(np.linalg.norm(v)) * (s - e):
+                cands.append((d, a, b))
+    used_end, used_start = set(), set()
+    root = np.arange(N)
+    for _, a, b in sorted(cands):
+        if a in used_end or b in used_start:
+            continue
+        ra = a
+        while root[ra] != ra:
+            ra = root[ra]
+        if ra == b:
+            continue
+        used_end.add(a)
+        used_start.add(b)
+        root[b] = ra
+    for b in range(N):
+        r = b
+        while root[r] != r:
+            r = root[r]
+        if r != b:
+            xy[vis[:, b], r] = xy[vis[:, b], b]
+            vis[:, r] |= vis[:, b]
+            vis[:, b] = False
+    return xy, vis

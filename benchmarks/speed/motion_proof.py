@@ -1,0 +1,202 @@
+"""Motion discovery before/after on generated scenes: mask IoU, dynamic-track life and Base's gain over static.
+
+    python -m benchmarks.speed.motion_proof [--out DIR] [--size 320x180] [--steps 40] [--preset quick]
+                                      [--scenes demo,hard] [--seed 0] [--device auto] [--no-runs]
+
+Scenes (generated, built and given exact priors as ``benchmarks.base_proof`` does): ``demo`` is the
+slow-then-fast capture of ``wtbench demo`` / ``base_proof``; ``hard`` moves its textured objects at constant
+(fast) speed through the whole capture, with another seed. In both, consecutive training frames come from
+different rig cameras (the NVIDIA ping-pong order), so every flow and track step crosses a camera change.
+
+For each scene it prints, against the exact masks and tracks of ``nvls gt-priors``:
+
+- **before**: the plain EPI masks and Lucas-Kanade dynamic tracks (``priors.motion.enabled=false``), Base
+  without mask refinement and without Gaussian migration;
+- **after (priors)**: the epipolar + depth-consistency cues fused, dynamic tracks chained through flow;
+- **after (Base)**: the masks refined with the static warm-up's residual inside the Base run (read from its
+  ``checkpoints/motion.npz``), with migration on;
+
+mask IoU / precision / recall over all frames, the median visible frames of the dynamic tracks against the
+median number of frames an object is visible, and the mPSNR of static and of both Base runs (gain over
+static). Finished runs are reused, so an interrupted script resumes. Figures are printed, never asserted.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import numpy as np
+
+BEFORE_SETS = ["priors.motion.enabled=false", "refine_masks=false", "photometric.migrate_every=0"]
+
+
+def prepare(out: Path, name: str, size: tuple[int, int], steps: int, log=print) -> tuple[Path, Path]:
+    """Generate, build and write exact priors for scene ``name`` (``demo`` or ``hard``) under ``out``."""
+    from nvidia_ls.build import BuildConfig, build_scene
+    from nvidia_ls.gt_priors import GtPriorsConfig, write_gt_priors
+    from nvidia_ls.synth import SynthConfig, write_raw_scene
+
+    motion, seed = ("slow_fast", 0) if name == "demo" else ("constant", 1)
+    raw = out / "raw" / name
+    if not (raw / "gt" / "cameras.json").is_file():
+        log(f"generating {raw} ({size[0]}x{size[1]}, {steps} steps, {motion}, seed {seed})")
+        cfg = SynthConfig(steps=steps, width=size[0], height=size[1], motion=motion, seed=seed)
+        write_raw_scene(raw, cfg, force=True)
+    scene = out / "scenes" / name
+    if not (scene / "manifest.json").is_file():
+        log(f"nvls build {raw}")
+        build_scene(raw, out / "scenes", BuildConfig(force=True), log=lambda s: None)
+    gt = scene / "gt_priors"
+    if not (gt / "gt_priors.json").is_file():
+        log(f"nvls gt-priors {raw} {scene}")
+        write_gt_priors(raw, scene, gt, GtPriorsConfig(force=True))
+    return scene, gt
+
+
+def _resize_masks(masks: np.ndarray, H: int, W: int) -> np.ndarray:
+    import cv2
+
+    if masks.shape[1:] == (H, W):
+        return masks
+    return np.stack(
+        [cv2.resize(m.astype(np.uint8), (W, H), interpolation=cv2.INTER_NEAREST) > 0 for m in masks]
+    )
+
+
+def mask_scores(pred: np.ndarray, gt: np.ndarray) -> dict[str, float]:
+    """IoU, precision and recall of ``pred`` against ``gt`` ([T, H, W] bool), pooled over all frames."""
+    inter = float((pred & gt).sum())
+    return {
+        "iou": inter / max(float((pred | gt).sum()), 1.0),
+        "precision": inter / max(float(pred.sum()), 1.0),
+        "recall": inter / max(float(gt.sum()), 1.0),
+    }
+
+
+def track_life(visible: np.ndarray, dynamic: np.ndarray) -> tuple[int, float]:
+    """``(number, median visible frames)`` of the dynamic tracks (``visible`` [T, N], ``dynamic`` [N])."""
+    life = visible[:, dynamic].sum(0)
+    return int(dynamic.sum()), float(np.median(life)) if life.size else 0.0
+
+
+def object_frames(gt: Path) -> float:
+    """Median over the moving objects of the number of training frames in which each is visible."""
+    z = np.load(gt / "tracks.npz")
+    vis, obj = z["visibility"], z["object_id"]
+    counts = [int(vis[:, obj == o].any(1).sum()) for o in np.unique(obj) if o > 0] or [
+        int(vis[:, obj == o].any(1).sum()) for o in np.unique(obj)
+    ]
+    return float(np.median(counts))
+
+
+def priors_rows(scene_dir: Path, gt: Path, downscale: int) -> dict[str, dict]:
+    """Mask and track figures of the priors before (plain EPI, LK) and after (fused cues, chained tracks)."""
+    import dataclasses
+
+    from worldtree.imageio import read_mask
+    from worldtree.priors import PriorsConfig, compute_priors
+    from worldtree.priors.config import MotionConfig
+    from worldtree.scene import load_scene
+
+    scene = load_scene(scene_dir, downscale=downscale)
+    cache = scene_dir / "priors" / f"x{downscale}"
+    T, H, W = scene.images.shape[:3]
+    truth = _resize_masks(np.stack([read_mask(p) for p in sorted((gt / "masks").iterdir())]), H, W)
+    out = {}
+    for name, cfg in (
+        ("before", dataclasses.replace(PriorsConfig(), motion=MotionConfig(enabled=False))),
+        ("after (priors)", PriorsConfig()),
+    ):
+        pri = compute_priors(scene, cfg, cache)
+        n, life = track_life(pri.track_vis, pri.track_dynamic)
+        out[name] = {**mask_scores(pri.epi_mask, truth), "tracks": n, "life": life}
+    return out, truth
+
+
+def run(scene: Path, runs: Path, method: str, sets: list[str], preset: str, device: str, seed: int, tag: str):
+    from benchmarks.runner.runs import RunRequest, execute
+
+    res = execute(
+        RunRequest(
+            scene=scene, method=method, runs_dir=runs, preset=preset, device=device, overrides={"seed": seed},
+            sets=list(sets), progress=False, tag=tag,
+            command=f"python -m benchmarks.speed.motion_proof ({method}, {tag})",
+        )
+    )  # fmt: skip
+    timing = json.loads(res.folder.timing_json.read_text())
+    return res, timing.get("method_stats", {})
+
+
+def main(argv: list[str] | None = None) -> None:
+    from nvidia_ls.build import parse_size
+
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--out", type=Path, default=Path("motion_proof"))
+    ap.add_argument("--size", default="320x180")
+    ap.add_argument("--steps", type=int, default=40, help="time steps of the generated captures")
+    ap.add_argument("--preset", default="quick")
+    ap.add_argument("--scenes", default="demo,hard")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--device", default="auto")
+    ap.add_argument("--no-runs", action="store_true", help="mask and track figures of the priors only")
+    a = ap.parse_args(argv)
+    size = parse_size(a.size)
+    if size is None:
+        raise SystemExit(f"error: --size {a.size!r}: give WxH, e.g. 320x180")
+    from methods.registry import get_method
+
+    downscale = get_method("base").presets[a.preset]().downscale
+    table = []
+    for name in [s.strip() for s in a.scenes.split(",") if s.strip()]:
+        if name not in ("demo", "hard"):
+            raise SystemExit(f"error: --scenes {name!r}: choose among demo, hard")
+        scene, gt = prepare(a.out, name, size, a.steps)
+        rows, truth = priors_rows(scene, gt, downscale)
+        visible = object_frames(gt)
+        psnr = {}
+        if not a.no_runs:
+            runs = a.out / "runs"
+            print(f"[{name}] static", flush=True)
+            res, _ = run(scene, runs, "static", [], a.preset, a.device, a.seed, f"{a.preset}-s{a.seed}")
+            psnr["static"] = res.mean.get("mpsnr")
+            print(f"[{name}] base before", flush=True)
+            res, _ = run(
+                scene, runs, "base", BEFORE_SETS, a.preset, a.device, a.seed, f"{a.preset}-before-s{a.seed}"
+            )
+            psnr["before"] = res.mean.get("mpsnr")
+            print(f"[{name}] base after", flush=True)
+            res, st = run(scene, runs, "base", [], a.preset, a.device, a.seed, f"{a.preset}-after-s{a.seed}")
+            psnr["after (Base)"] = res.mean.get("mpsnr")
+            mot = res.folder.checkpoints / "motion.npz"
+            if mot.is_file():
+                z = np.load(mot)
+                n, life = track_life(z["visible"], z["dynamic"])
+                rows["after (Base)"] = {**mask_scores(z["mask"], truth), "tracks": n, "life": life,
+                                        "migration": st.get("migration", {})}  # fmt: skip
+        for k, r in rows.items():
+            p = psnr.get(k) if k != "after (priors)" else None
+            gain = p - psnr["static"] if p is not None and psnr.get("static") is not None else None
+            table.append((name, k, r, visible, psnr.get("static"), p, gain))
+    print()
+    print("| scene | masks / tracks | mask IoU | P | R | dyn. tracks | median life | object frames | "
+          "static mPSNR | Base mPSNR | gain |")  # fmt: skip
+    print("|---|---|--:|--:|--:|--:|--:|--:|--:|--:|--:|")
+
+    def f(v, d=2):
+        return "-" if v is None else f"{v:.{d}f}"
+
+    for name, k, r, vis, st, p, g in table:
+        print(
+            f"| {name} | {k} | {f(r['iou'])} | {f(r['precision'])} | {f(r['recall'])} | {r['tracks']} | "
+            f"{f(r['life'], 1)} | {f(vis, 0)} | {f(st)} | {f(p)} | {'-' if g is None else f'{g:+.2f}'} |"
+        )
+        if "migration" in r:
+            m = r["migration"]
+            print(f"|   | migration: {m.get('static_to_dynamic', 0)} static->dynamic, "
+                  f"{m.get('dynamic_to_static', 0)} dynamic->static | | | | | | | | | |")  # fmt: skip
+
+
+if __name__ == "__main__":
+    main()
