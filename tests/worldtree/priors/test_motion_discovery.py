@@ -189,15 +189,21 @@ def test_chained_tracks_bridge_a_camera_change_with_the_larger_gap():
 
 def test_chained_track_pieces_are_linked_across_a_break():
     T = 8
-    # Steps 3 -> 4 broken at every gap: no chain crosses it; the re-detected pieces of frame 4 onwards are
-    # linked to the older pieces only through... nothing: they stay separate (no false link).
+    # Steps 3 -> 4 broken at every gap: no chain crosses it. Without velocity linking the pieces before and
+    # after stay apart; with it, pieces whose motion continues across the break are joined.
     flows, masks = _translating_flows(T, 2.0, broken={(3, 4)})
     for i, j in list(flows):
         if min(i, j) <= 3 < max(i, j):
             flows[(i, j)] = FlowPair(flows[(i, j)].flow, np.zeros((H, W), bool))
-    cfg = dataclasses.replace(MotionConfig(), track_seed_every=4, track_mask_dilate_px=0)
+    cfg = dataclasses.replace(MotionConfig(), track_seed_every=4, track_mask_dilate_px=0, track_link_gap=0)
     tr = chain_dynamic_tracks(flows, masks, cfg)
     assert not (tr.visible[3] & tr.visible[4]).any()
+    tr_v = chain_dynamic_tracks(flows, masks, dataclasses.replace(cfg, track_link_gap=3))
+    joined = tr_v.visible[0] & tr_v.visible[T - 1]
+    assert joined.sum() > 0
+    for n in np.flatnonzero(joined):
+        ts = np.flatnonzero(tr_v.visible[:, n])
+        np.testing.assert_allclose(tr_v.xy[ts, n, 0] - tr_v.xy[ts[0], n, 0], 2.0 * (ts - ts[0]), atol=1e-4)
     # With the steps 3 -> 4 working again (backwards only, as when the forward flow failed the photometric
     # check), pieces seeded at frame 4 chain back and meet the ends of the frame-0 pieces: linked into one.
     flows2, _ = _translating_flows(T, 2.0)
@@ -216,3 +222,25 @@ def test_empty_masks_give_no_dynamic_track():
     flows, masks = _translating_flows(5, 2.0)
     tr = chain_dynamic_tracks(flows, np.zeros_like(masks), MotionConfig())
     assert tr.num_tracks == 0 and tr.xy.shape == (5, 0, 2)
+
+
+def test_velocity_linking_joins_pieces_across_a_short_gap_only_where_motion_continues():
+    from worldtree.priors.dynamic_tracks import link_by_velocity
+
+    T = 10
+    xy = np.zeros((T, 3, 2), np.float32)
+    vis = np.zeros((T, 3), bool)
+    # Piece 0: x = 10 + 2 t for t = 0..3. Piece 1 starts at t = 6 where that motion continues (x = 22).
+    # Piece 2 starts at t = 6 too, 15 px off the continued motion.
+    for t in range(4):
+        xy[t, 0], vis[t, 0] = (10 + 2 * t, 20), True
+    for t in range(6, T):
+        xy[t, 1], vis[t, 1] = (10 + 2 * t, 20), True
+        xy[t, 2], vis[t, 2] = (10 + 2 * t, 35), True
+    out_xy, out_vis = link_by_velocity(xy, vis, max_gap=3, tol_px=2.0)
+    assert out_vis[:, 0].sum() == 8 and not out_vis[:, 1].any()  # 0 and 1 joined into column 0
+    assert out_vis[:, 2].sum() == 4  # 2 left alone
+    np.testing.assert_allclose(out_xy[out_vis[:, 0], 0, 0], 10 + 2 * np.flatnonzero(out_vis[:, 0]))
+    # A gap longer than max_gap is not bridged.
+    _, v2 = link_by_velocity(xy, vis, max_gap=1, tol_px=2.0)
+    assert v2[:, 1].sum() == 4
