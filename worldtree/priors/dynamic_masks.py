@@ -93,11 +93,13 @@ def prior_evidence(
     epi: EpiConfig,
 ) -> dict[str, np.ndarray]:
     """Evidence of the cues available with the priors: ``epipolar`` (from ``epi_error`` [T, H, W] px) and, when
-    ``depth`` [T, H, W] is metric, ``rigid`` (depth consistency of the flow)."""
+    ``depth`` [T, H, W] is metric and the poses are used, ``rigid`` (depth consistency of the flow)."""
     ev: dict[str, np.ndarray] = {}
     if motion.use_epipolar:
         ev["epipolar"] = cues.epipolar_evidence(epi_error, epi.threshold_px)
-    if motion.use_rigid and depth is not None:
+    # Without trusted poses (``epi.use_poses`` false, e.g. a frames-only clip with identity poses) the rigid
+    # flow means nothing.
+    if motion.use_rigid and depth is not None and epi.use_poses:
         ev["rigid"] = cues.rigid_evidence_maps(
             flows, depth, Ks, w2cs, motion.rigid_tol_px, motion.rigid_rel_depth
         )
