@@ -112,8 +112,9 @@ class PhotometricConfig:
     """Period of node densification (0 = never; tree children never densify, as in the paper)."""
     reattach_every: int = 100
     """Skinning neighbourhoods are recomputed this often (and after every density change)."""
-    migrate_every: int = 500
-    """Period of the static <-> dynamic migration (``worldtree.stages.set_migration``; 0 = never)."""
+    migrate_every: int = 0
+    """Period of the static <-> dynamic migration (``worldtree.stages.set_migration``; 0 = never, the default
+    for now; 500 with the paper schedule, 100 with the quick one)."""
     migrate_start: int = 500
     """First step of the migration."""
     migrate_stop: int = 3000
@@ -144,7 +145,6 @@ def quick_photometric_config() -> PhotometricConfig:
         node_densify_start=100,
         node_densify_stop=450,
         node_densify_every=100,
-        migrate_every=100,
         migrate_start=150,
         migrate_stop=450,
         static_strategy=strat,
