@@ -142,7 +142,8 @@ class Collection:
     """One line per skipped run or oddity, for the user."""
 
 
-def _read_json(path: Path) -> dict[str, Any] | None:
+def read_json(path: Path) -> dict[str, Any] | None:
+    """The JSON object in ``path``, or None when it is missing, unreadable or not an object."""
     try:
         obj = json.loads(path.read_text())
     except (OSError, json.JSONDecodeError, UnicodeDecodeError):
@@ -160,12 +161,19 @@ def _number(v: Any) -> float:
         return math.nan
 
 
-def _mean_row(csv: Path) -> dict[str, float] | None:
+def read_metrics_table(csv: Path) -> pd.DataFrame | None:
+    """A run's ``metrics.csv`` as written by the harness: one row per frame plus the ``mean`` row, the
+    ``frame`` column as text, empty cells NaN. None when unreadable or without a ``frame`` column."""
     try:
         table = pd.read_csv(csv, dtype={"frame": str}, keep_default_na=False, na_values=[""])
     except (OSError, ValueError, pd.errors.ParserError):
         return None
-    if "frame" not in table.columns:
+    return table if "frame" in table.columns else None
+
+
+def _mean_row(csv: Path) -> dict[str, float] | None:
+    table = read_metrics_table(csv)
+    if table is None:
         return None
     rows = table[table["frame"] == "mean"]
     if len(rows) != 1:
@@ -279,10 +287,10 @@ def collect_runs(runs_dirs: Sequence[str | Path]) -> Collection:
             if not (run / "DONE").is_file():
                 unfinished.append(rel)
                 continue
-            config = _read_json(run / "config.json")
+            config = read_json(run / "config.json")
             mean = _mean_row(run / "metrics.csv")
             timing_path = run / "timing.json"
-            timing = _read_json(timing_path)
+            timing = read_json(timing_path)
             unreadable = [
                 what
                 for what, bad in (
@@ -299,7 +307,7 @@ def collect_runs(runs_dirs: Sequence[str | Path]) -> Collection:
                     f"skipped {run}: unreadable {', '.join(unreadable)}; re-run it with `wtbench run ... --force`"
                 )
                 continue
-            record = _read_json(run / "metrics.json") or {}
+            record = read_json(run / "metrics.json") or {}
             proto = record.get("protocol")
             protocol = (
                 str(proto.get("name")) if isinstance(proto, Mapping) and proto.get("name") else "unknown"
@@ -308,7 +316,7 @@ def collect_runs(runs_dirs: Sequence[str | Path]) -> Collection:
                 notes.append(f"{run}: metrics.json names no protocol; listed as protocol 'unknown'")
             values = {
                 **mean,
-                **cost_metrics(timing, _read_json(run / "model" / "model.json")),
+                **cost_metrics(timing, read_json(run / "model" / "model.json")),
             }
             inf = [m for m, v in values.items() if math.isinf(v)]
             if inf:

@@ -17,7 +17,6 @@ Failures that a sweep recorded in its report (``RUNS_DIR/sweep-<grid>.json``) ar
 
 from __future__ import annotations
 
-import json
 import re
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -26,28 +25,22 @@ from typing import Any
 
 import pandas as pd
 
-from benchmarks.reporting.results import HARNESS_METRICS, describe_configuration, find_run_folders
+from benchmarks.reporting.results import (
+    HARNESS_METRICS,
+    describe_configuration,
+    find_run_folders,
+    read_json,
+    read_metrics_table,
+)
 
 STATES = ("done", "running", "queued", "failed", "unfinished", "damaged")
-
-
-def read_json(path: Path) -> dict[str, Any] | None:
-    """The JSON object in ``path``, or None when it is missing, unreadable or not an object."""
-    try:
-        obj = json.loads(path.read_text())
-    except (OSError, json.JSONDecodeError, UnicodeDecodeError):
-        return None
-    return obj if isinstance(obj, dict) else None
 
 
 def read_frame_scores(csv: Path) -> pd.DataFrame | None:
     """Per-frame rows of a run's ``metrics.csv`` (the ``mean`` row dropped): index the frame names, columns
     the :data:`benchmarks.reporting.results.HARNESS_METRICS` present, NaN where empty. None when unreadable."""
-    try:
-        table = pd.read_csv(csv, dtype={"frame": str}, keep_default_na=False, na_values=[""])
-    except (OSError, ValueError, pd.errors.ParserError):
-        return None
-    if "frame" not in table.columns:
+    table = read_metrics_table(csv)
+    if table is None:
         return None
     table = table[table["frame"] != "mean"].set_index("frame")
     cols = [m for m in HARNESS_METRICS if m in table.columns]
