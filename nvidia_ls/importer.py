@@ -362,7 +362,7 @@ def import_scene(
                     np.save(ddir / f"{t:05d}.npy", _resize_map(a, W, H))
                 record_priors["depth"] = {"path": f"{IMPORTED}/{sub}", "kind": src.depth_kind,
                                           "source": str(src.depth_dir.resolve())}  # fmt: skip
-                run_args += ["--depth-maps", str((final / IMPORTED / sub).resolve())]
+                run_args += ["--depth-maps", f"{IMPORTED}/{sub}"]
                 run_args += ["--set", f"priors.depth_import.kind={src.depth_kind}"]
                 if src.depth_kind == "disparity":  # relative (MiDaS-like): scale and shift are unknown
                     # Fitted to stereo, and used only where stereo measures nothing (moving objects): on
@@ -380,7 +380,7 @@ def import_scene(
                 record_priors["flow"] = {"path": f"{IMPORTED}/flow", "pairs": len(src.flow),
                                          "source": str(next(iter(src.flow.values())).parent.resolve()),
                                          "source_sizes": sorted(sizes)}  # fmt: skip
-                run_args += ["--flow", str((final / IMPORTED / "flow").resolve())]
+                run_args += ["--flow", f"{IMPORTED}/flow"]
             if src.motion_masks:
                 mdir = _mkdir(tmp / IMPORTED / "masks")
                 for t, p in enumerate(src.motion_masks):
@@ -389,7 +389,7 @@ def import_scene(
                     m = cv2.resize(m.astype(np.uint8) * 255, (W, H), interpolation=cv2.INTER_NEAREST) > 127
                     save_image(mdir / f"{t:05d}.png", m)
                 record_priors["masks"] = {"path": f"{IMPORTED}/masks", "source": str(root / "motion_masks")}
-                run_args += ["--masks", str((final / IMPORTED / "masks").resolve())]
+                run_args += ["--masks", f"{IMPORTED}/masks"]
             if record_priors:
                 atomic_write_json(
                     tmp / "imported.json", {"priors": record_priors, "wtbench_run_args": run_args}
@@ -464,11 +464,35 @@ def _mkdir(p: Path) -> Path:
     return p
 
 
+# Options of `wtbench run` whose value is a folder of the scene; imported.json stores them relative to the
+# scene so that a moved or copied scene still works, and they are confined to it when read.
+PATH_OPTIONS = ("--depth-maps", "--flow", "--masks")
+
+
 def run_args(scene: str | Path) -> list[str]:
-    """The ``wtbench run`` options that use a scene's imported priors (from ``imported.json``; [] if none)."""
+    """The ``wtbench run`` options that use a scene's imported priors (from ``imported.json``; [] if none).
+
+    Folder values are stored relative to the scene and returned as absolute paths inside it; a value that is
+    absolute or leads outside the scene is a one-line :class:`UserError` naming ``imported.json``.
+    """
     import json
+
+    from worldtree.scene_schema import resolve_inside
 
     path = Path(scene) / "imported.json"
     if not path.is_file():
         return []
-    return list(json.loads(path.read_text()).get("wtbench_run_args", []))
+    try:
+        doc = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
+        raise UserError(
+            f"{path}: not readable JSON ({e}); import the scene again with `nvls import`"
+        ) from None
+    args = doc.get("wtbench_run_args", []) if isinstance(doc, dict) else None
+    if not isinstance(args, list) or not all(isinstance(a, str) for a in args):
+        raise UserError(f"{path}: 'wtbench_run_args' must be a list of strings; import the scene again")
+    out = list(args)
+    for i, a in enumerate(out[:-1]):
+        if a in PATH_OPTIONS:
+            out[i + 1] = str(resolve_inside(scene, out[i + 1], path))
+    return out

@@ -66,6 +66,27 @@ def test_imported_priors_equal_the_exact_ones(exported, imported):
     np.testing.assert_array_equal(read_masks(imported / "imported" / "masks", T, H, W), gt["mask"])
 
 
+def test_run_args_follow_a_moved_scene_and_stay_inside_it(imported, tmp_path):
+    import shutil
+
+    moved = tmp_path / "moved"
+    shutil.copytree(imported, moved)
+    args = run_args(moved)
+    for opt in ("--depth-maps", "--flow", "--masks"):
+        value = args[args.index(opt) + 1]
+        assert value.startswith(str(moved.resolve())), (opt, value)
+    rec = json.loads((moved / "imported.json").read_text())
+    i = rec["wtbench_run_args"].index("--flow")
+    for bad in ("/etc", "../../elsewhere"):
+        rec["wtbench_run_args"][i + 1] = bad
+        (moved / "imported.json").write_text(json.dumps(rec))
+        with pytest.raises(UserError, match="imported.json"):
+            run_args(moved)
+    (moved / "imported.json").write_text("{not json")
+    with pytest.raises(UserError, match="imported.json"):
+        run_args(moved)
+
+
 def test_import_at_half_size_scales_intrinsics_and_flow(exported, tmp_path):
     root, gt = exported
     out = import_scene(root, tmp_path, ImportConfig(size=(40, 24)), log=lambda m: None)
