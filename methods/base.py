@@ -1,17 +1,23 @@
 """The Base dynamic method (MoSca-style global optimisation; the first row group of the paper's ablation).
 
-Stages, each timed in ``stats()["stages_s"]`` (docs/base_method.md):
+The method is the ordered list :data:`BASE_STAGES` of named stage functions over one :class:`BaseState`; each
+is timed (``method_stats.stages_s`` in ``timing.json``; docs/base_method.md, docs/adding_a_method.md):
 
 1. priors -- :func:`worldtree.priors.compute_priors` (cached under ``SCENE/priors/x<downscale>``, as
    ``wtbench prep``);
-2. BA -- :func:`worldtree.stages.bundle_adjust.bundle_adjust` on the static tracks (``ablate_ba`` skips it);
-3. SW -- static warm-up of the background Gaussians on static pixels (``ablate_sw``: no warm-up steps, the
+2. ba -- :func:`worldtree.stages.bundle_adjust.bundle_adjust` on the static tracks (``ablate ba`` replaces
+   it by the given cameras);
+3. sw -- static warm-up of the background Gaussians on static pixels (``ablate sw``: no warm-up steps, the
    background starts from the lifted static depth);
-4. scaffold -- dynamic tracks lifted with the adjusted depth and cameras, gaps filled, scaffold built
+4. motion -- the dynamic masks refined with the warm-up model's residual, dynamic tracks relabelled and
+   re-chained inside them (``refine_masks`` with ``priors.motion.enabled``; otherwise it keeps the priors');
+5. scaffold -- dynamic tracks lifted with the adjusted depth and cameras, gaps filled, scaffold built
    (:func:`worldtree.motion.scaffold.build_scaffold`) and fitted (:mod:`worldtree.stages.scaffold_fit`);
    dynamic Gaussians lifted from the dynamic-mask pixels, each at its own frame;
-5. photometric -- joint fit of static + dynamic Gaussians, scaffold and (from a set step) cameras;
-6. test pose -- Sim(3) of the given training poses onto the optimised ones applied to the test camera, then
+6. photometric -- joint fit of static + dynamic Gaussians, scaffold and (from a set step) cameras, under the
+   Gaussian budget and the loss-plateau stop when they are on (``budget`` / ``early_stop``);
+7. prune -- (budget on only) Gaussians of negligible contribution removed;
+8. test_pose -- Sim(3) of the given training poses onto the optimised ones applied to the test camera, then
    photometric refinement per test frame on the test images.
 
 A scene without dynamic content (no dynamic track) gets an empty scaffold and no dynamic Gaussian: the model
@@ -22,24 +28,26 @@ from __future__ import annotations
 
 import dataclasses
 import io
-import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 import torch
 
 from methods.registry import CommonConfig, MethodSpec, register_method
+from methods.stages import Ablation, Stage, run_stages, with_ablations
 from methods.static3dgs import scene_extent
 from worldtree.atomic import atomic_write_bytes, atomic_write_json
 from worldtree.budget import node_budget
 from worldtree.dynamic import DynamicGaussians
 from worldtree.errors import UserError
+from worldtree.gaussians import GaussianSet
 from worldtree.motion.lift import fill_gaps, lift_tracks
 from worldtree.motion.scaffold import Scaffold, ScaffoldConfig, build_scaffold
 from worldtree.plateau import PlateauDetector
-from worldtree.priors import PriorsConfig, compute_priors
+from worldtree.priors import Priors, PriorsConfig, compute_priors
 from worldtree.priors.api import add_chained_tracks
 from worldtree.priors.dynamic_masks import refine_with_residual
 from worldtree.priors.epipolar import label_dynamic_tracks
@@ -61,6 +69,7 @@ from worldtree.stages.testview_pose import (
     refine_test_poses,
 )
 from worldtree.strategy import DensifyStrategy
+from worldtree.timing import StageClock
 from worldtree.torchfile import load_torch, save_torch
 from worldtree.trainer import TrainContext, Trainer, TrainerConfig, TrainSummary
 
@@ -72,12 +81,8 @@ class BaseConfig(CommonConfig):
     steps: int = 4000
     """Photometric-fit steps (NVIDIA-LS root: 4000)."""
     ablate: tuple[str, ...] = ()
-    """Ablated stages (``--ablate``): ``ba`` and/or ``sw``; kept in sync with ``ablate_ba``/``ablate_sw``
-    (either spelling works). Subclasses widen the choice through :meth:`ablation_names`."""
-    ablate_ba: bool = False
-    """Skip the tracklet bundle adjustment (ablation row "w/o BA")."""
-    ablate_sw: bool = False
-    """Skip the static warm-up (ablation row "w/o SW")."""
+    """Ablated stages (``--ablate``): ``ba`` and/or ``sw`` (the one spelling: ``ba.enabled=false`` /
+    ``sw.enabled=false`` are folded in here). Subclasses widen the choice through :meth:`ablation_names`."""
     priors: PriorsConfig = field(default_factory=PriorsConfig)
     """2D priors (sources and settings)."""
     priors_cache: bool = True
@@ -109,6 +114,9 @@ class BaseConfig(CommonConfig):
     log_every: int = 100
     """Progress period (when not on a terminal)."""
 
+    #: Fields the method fills in from another setting (``--set`` refuses them: they would change nothing).
+    DERIVED_FIELDS: ClassVar[dict[str, str]] = {"photometric.steps": "steps (--steps or --set steps=N)"}
+
     @classmethod
     def ablation_names(cls) -> tuple[str, ...]:
         """Names accepted by ``--ablate``, in display order."""
@@ -119,20 +127,29 @@ class BaseConfig(CommonConfig):
         bad = [a for a in self.ablate if a not in allowed]
         if bad:
             raise UserError(f"--ablate {bad[0]}: choose among {', '.join(allowed)}")
-        names = set(self.ablate) | {n for n, on in (("ba", self.ablate_ba), ("sw", self.ablate_sw)) if on}
+        names = set(self.ablate)
+        # A stage switched off in its own settings is that stage's ablation: one spelling in the config.
+        if not self.ba.enabled:
+            names.add("ba")
+            self.ba = dataclasses.replace(self.ba, enabled=True)
+        if not self.sw.enabled:
+            names.add("sw")
+            self.sw = dataclasses.replace(self.sw, enabled=True)
         self.ablate = tuple(a for a in allowed if a in names)
-        self.ablate_ba, self.ablate_sw = "ba" in names, "sw" in names
 
 
-def paper_config() -> BaseConfig:
-    """The paper's schedule: BA 2000, SW 6000, photometric 4000 (cameras from 1500), test pose 300/30."""
-    return BaseConfig()
+def paper_config(cls: type[BaseConfig] = BaseConfig, **fields: Any) -> BaseConfig:
+    """The paper's schedule: BA 2000, SW 6000, photometric 4000 (cameras from 1500), test pose 300/30.
+
+    ``cls`` (a subclass, e.g. WorldTree's) and ``fields`` (its own settings) let a method extend a preset
+    without copying it; the same holds for :func:`quick_config` and :func:`smoke_config`."""
+    return cls(**fields)
 
 
-def quick_config() -> BaseConfig:
+def quick_config(cls: type[BaseConfig] = BaseConfig, **fields: Any) -> BaseConfig:
     """CPU-friendly schedule for a small scene: BA 300, SW 300, scaffold fit 100, photometric 600, test pose
     60/10, half resolution, fewer initial Gaussians."""
-    return BaseConfig(
+    return cls(
         steps=600,
         downscale=2,
         ba=BundleAdjustConfig(steps=300, max_tracks=4000),
@@ -143,13 +160,14 @@ def quick_config() -> BaseConfig:
         dynamic_max_init=4000,
         checkpoint_every=200,
         log_every=50,
+        **fields,
     )
 
 
-def smoke_config() -> BaseConfig:
+def smoke_config(cls: type[BaseConfig] = BaseConfig, **fields: Any) -> BaseConfig:
     """A few steps of every stage (tests and smoke runs; not a meaningful reconstruction)."""
     no_densify = DensifyStrategy(refine_start=10_000, refine_stop=10_000, reset_every=0)
-    return BaseConfig(
+    return cls(
         steps=20,
         ba=BundleAdjustConfig(steps=20),
         sw=dataclasses.replace(
@@ -166,18 +184,322 @@ def smoke_config() -> BaseConfig:
         dynamic_max_init=1000,
         checkpoint_every=10,
         log_every=10,
+        **fields,
     )
 
 
-def _ablated(factory, ba: bool, sw: bool):
-    def make() -> BaseConfig:
-        return dataclasses.replace(factory(), ablate_ba=ba, ablate_sw=sw)
+@dataclass
+class BaseState:
+    """The one state the Base method's stages fill in, in stage order (:data:`BASE_STAGES`).
 
-    return make
+    Tensors live on the method's device; ``T`` training frames of ``H x W`` (the training downscale).
+    """
+
+    cfg: BaseConfig
+    scene: Scene
+    device: torch.device
+    ctx: TrainContext = field(default_factory=TrainContext)
+    info: dict[str, Any] = field(default_factory=dict)
+    """Numbers for ``timing.json``'s method stats."""
+    priors: Priors | None = None
+    """The 2D priors (stage ``priors``)."""
+    P: dict[str, torch.Tensor] = field(default_factory=dict)
+    """The priors as tensors: depth [T,H,W], tracks [T,N,2], track_vis [T,N], masks... (stage ``priors``)."""
+    ba: BAResult | None = None
+    """Bundle adjustment result (stage ``ba``)."""
+    w2cs: torch.Tensor | None = None
+    """[T, 4, 4] training cameras after BA (world-to-camera)."""
+    depth: torch.Tensor | None = None
+    """[T, H, W] depth priors times BA's per-frame scale (world units)."""
+    extent: float = 1.0
+    """Scene extent (world units) from the adjusted cameras."""
+    static: GaussianSet | None = None
+    """Background Gaussians after the static warm-up (stage ``sw``)."""
+    sw_summary: TrainSummary | None = None
+    scaffold: Scaffold | None = None
+    """Motion scaffold (stage ``scaffold``)."""
+    dynamic: DynamicGaussians | None = None
+    """Initial dynamic Gaussians (stage ``scaffold``)."""
+    tracks: torch.Tensor | None = None
+    """[T, N_dyn, 2] dynamic tracks (pixels), with ``track_vis`` [T, N_dyn]."""
+    track_vis: torch.Tensor | None = None
+    fit: PhotometricFit | None = None
+    """The jointly fitted model (stage ``photometric``)."""
+    stop: PlateauDetector | None = None
+    """The photometric fit's loss-plateau detector (``early_stop`` on; stage ``photometric``)."""
+    summary: TrainSummary | None = None
+    """The photometric trainer's summary (the run's main training loop)."""
+    renderer: Callable[..., Any] | None = None
+    """``renderer(K [3,3], w2c [4,4], width, height, t) -> rasterizer output``: the model that renders
+    frame ``t`` (the photometric fit; WorldTree's ``tree`` stage replaces it by the tree's)."""
+    sim3: Any = None
+    """Sim(3) from the given training poses to the optimised ones (stage ``test_pose``)."""
+    test_poses: dict[int, torch.Tensor] = field(default_factory=dict)
+    """Refined test-camera pose [4, 4] by test time (stage ``test_pose``)."""
+
+    @property
+    def checkpoint_dir(self) -> Path | None:
+        return self.ctx.checkpoint_dir
+
+
+def stage_priors(s: BaseState) -> None:
+    """2D priors (cached under ``SCENE/priors/x<downscale>``, as ``wtbench prep``)."""
+    c = s.cfg
+    cache = s.scene.root / "priors" / f"x{c.downscale}" if c.priors_cache else None
+    s.priors = compute_priors(s.scene, c.priors, cache)
+    s.info["priors"] = dict(s.priors.sources)
+    s.P = s.priors.torch(s.device)
+
+
+def _adjust(s: BaseState, enabled: bool) -> None:
+    ckpt = s.checkpoint_dir
+    path = ckpt / "ba.pt" if ckpt is not None else None
+    if path is not None and path.is_file():
+        d = load_torch(
+            path, s.device, missing="no BA result",
+            unreadable="unreadable BA result ({error}); delete it to run BA again",
+        )  # fmt: skip
+        res = BAResult(d["w2cs"], d["depth_scale"], d["track_ids"], d["points"], d["before"], d["after"])
+    else:
+        P, sc = s.P, s.scene
+        res = bundle_adjust(
+            P["tracks"].float(), P["track_vis"], ~P["track_dynamic"], P["depth"].float(), sc.Ks, sc.w2cs,
+            dataclasses.replace(s.cfg.ba, enabled=enabled), depth_conf=P["depth_conf"].float(),
+        )  # fmt: skip
+        if path is not None:
+            save_torch(
+                path,
+                {"w2cs": res.w2cs.cpu(), "depth_scale": res.depth_scale.cpu(), "track_ids": res.track_ids.cpu(),
+                 "points": res.points.cpu(), "before": res.reproj_px_before, "after": res.reproj_px_after},
+            )  # fmt: skip
+    s.ba = res
+    s.info["ba"] = res.stats()
+    s.w2cs = res.w2cs.float()
+    s.depth = s.P["depth"].float() * res.depth_scale.float()[:, None, None]
+    s.extent = scene_extent(s.w2cs, s.scene.near, s.scene.far)
+
+
+def stage_ba(s: BaseState) -> None:
+    """Tracklet bundle adjustment of the cameras and per-frame depth scales on the static tracks."""
+    _adjust(s, enabled=True)
+
+
+def stage_ba_ablated(s: BaseState) -> None:
+    """``ablate ba``: the given cameras and unit depth scales (BA's bookkeeping, no optimisation)."""
+    _adjust(s, enabled=False)
+
+
+def _warm_up(s: BaseState, steps: int) -> None:
+    c = s.cfg
+    sw_cfg = dataclasses.replace(c.sw, steps=steps)
+    sw = StaticWarmup(
+        sw_cfg, s.scene.images, s.P["epi_mask"], s.depth, s.scene.Ks, s.w2cs, s.extent, seed=c.seed
+    )
+    trainer = Trainer(
+        TrainerConfig(steps=sw_cfg.steps, checkpoint_every=c.checkpoint_every, log_every=c.log_every),
+        sw,
+        checkpoint_dir=s.checkpoint_dir / "sw" if s.checkpoint_dir is not None else None,
+        progress=s.ctx.progress,
+        description="static warm-up",
+    )
+    s.sw_summary = trainer.fit(resume=s.ctx.resume)
+    s.static = sw.gaussians
+    s.info["sw_steps"] = s.sw_summary.end_step
+
+
+def stage_sw(s: BaseState) -> None:
+    """Static warm-up of the background Gaussians on static pixels."""
+    _warm_up(s, s.cfg.sw.steps)
+
+
+def stage_sw_ablated(s: BaseState) -> None:
+    """``ablate sw``: no warm-up step; the background starts from the lifted static depth."""
+    _warm_up(s, 0)
+
+
+@torch.no_grad()
+def stage_motion(s: BaseState) -> None:
+    """Dynamic masks refined with the warm-up model's residual, tracks relabelled and re-chained inside them
+    (``refine_masks`` with ``priors.motion.enabled`` and no imported masks; otherwise nothing changes).
+
+    With a checkpoint folder, ``motion.npz`` there keeps the result (masks ``[T, H, W]``, confidence,
+    tracks ``[T, N, 2]``, visibility, dynamic labels): previews and the motion proof read it."""
+    c, sc, pri = s.cfg, s.scene, s.priors
+    pc = c.priors
+    if not (c.refine_masks and pc.motion.enabled and pc.masks_source is None and pri.motion_evidence):
+        return
+    T, H, W = sc.images.shape[:3]
+    st = s.static
+    renders = torch.stack(
+        [rasterize(st.means, st.quats, st.log_scales, st.opacities, st.colors,
+                   sc.Ks[t], s.w2cs[t], W, H, backend=c.sw.backend).rgb.clamp(0, 1) for t in range(T)]
+    ).cpu().numpy()  # fmt: skip
+    before = pri.epi_mask
+    fused = refine_with_residual(
+        pri.motion_evidence, sc.images.cpu().numpy(), renders, pri.flow, before, pc.motion, pc.epi
+    )
+    mask = fused.mask
+    n_lk = pri.tracks.shape[1] - pri.num_chained_tracks
+    xy, vis = pri.tracks[:, :n_lk], pri.track_vis[:, :n_lk]
+    dyn = label_dynamic_tracks(xy, vis, mask, pc.epi.track_min_frames)
+    xy, vis, dyn, n_ch = add_chained_tracks(xy, vis, dyn, pri.flow, mask, pc)
+    s.info["motion_refine"] = {
+        "mask_fraction_before": float(before.mean()),
+        "mask_fraction_after": float(mask.mean()),
+        "dynamic_tracks_before": int(pri.track_dynamic.sum()),
+        "dynamic_tracks_after": int(dyn.sum()),
+        "chained_tracks": int(n_ch),
+    }
+    if s.checkpoint_dir is not None:
+        buf = io.BytesIO()
+        np.savez_compressed(
+            buf, mask=mask, confidence=fused.confidence.astype(np.float16), tracks=xy, visible=vis,
+            dynamic=dyn, mask_before=before,
+        )  # fmt: skip
+        atomic_write_bytes(s.checkpoint_dir / "motion.npz", buf.getvalue())
+    dev = s.device
+    s.P = {
+        **s.P,
+        "epi_mask": torch.from_numpy(mask).to(dev),
+        "tracks": torch.from_numpy(np.ascontiguousarray(xy)).to(dev),
+        "track_vis": torch.from_numpy(vis).to(dev),
+        "track_dynamic": torch.from_numpy(dyn).to(dev),
+    }
+
+
+def stage_scaffold(s: BaseState) -> None:
+    """Dynamic tracks lifted with the adjusted depth and cameras, gaps filled, scaffold built and fitted;
+    dynamic Gaussians lifted from the dynamic-mask pixels, each at its own frame."""
+    c, sc, P, depth = s.cfg, s.scene, s.P, s.depth
+    dyn_ids = torch.nonzero(P["track_dynamic"]).flatten()
+    valid_depth = depth[depth > 0]
+    scale = float(valid_depth.median()) if valid_depth.numel() else 1.0
+    tracks = P["tracks"].float()[:, dyn_ids]
+    vis = P["track_vis"][:, dyn_ids]
+    if dyn_ids.numel() == 0:
+        scf = Scaffold.empty(sc.num_frames, c.scaffold.unit_ratio * scale, c.scaffold, device=s.device)
+    else:
+        pts, valid = lift_tracks(tracks, vis, depth, sc.Ks, s.w2cs)
+        traj, observed = fill_gaps(pts.float(), valid)
+        scf = build_scaffold(traj, observed, scale, c.scaffold)
+        s.info["scaffold_fit"] = fit_scaffold(scf, scf.pos.detach().clone(), scf.observed, c.scaffold_fit)
+    if scf.M == 0:
+        dyn = DynamicGaussians.empty(s.device)
+    else:
+        gen = torch.Generator().manual_seed(c.seed + 7)
+        pts, cols, frames = lift_pixels(
+            sc.images, depth, P["epi_mask"], sc.Ks, s.w2cs, c.dynamic_init_stride_px, c.dynamic_max_init, gen
+        )
+        if pts.shape[0] == 0:
+            dyn = DynamicGaussians.empty(s.device, skin_k=scf.K)
+        else:
+            dyn = DynamicGaussians.from_points_at(pts, cols, frames, c.dynamic_init_opacity, skin_k=scf.K)
+    s.info["scaffold_nodes"] = scf.M
+    s.info["dynamic_tracks"] = int(dyn_ids.numel())
+    s.scaffold, s.dynamic, s.tracks, s.track_vis = scf, dyn, tracks, vis
+
+
+def stage_photometric(s: BaseState) -> None:
+    """Joint photometric fit of static + dynamic Gaussians, scaffold and (from a set step) cameras; under the
+    Gaussian budget and with the loss-plateau stop when those are on (``info["adaptive"]``)."""
+    c, sc = s.cfg, s.scene
+    pcfg = dataclasses.replace(c.photometric, steps=c.steps)
+    fit = PhotometricFit(
+        pcfg, sc.images, s.depth, sc.Ks, s.w2cs, s.static, s.dynamic, s.scaffold, s.tracks, s.track_vis,
+        s.extent, seed=c.seed,
+    )  # fmt: skip
+    s.stop = _adaptive_setup(s, fit)
+    ckpt = s.checkpoint_dir
+    trainer = Trainer(
+        TrainerConfig(steps=c.steps, checkpoint_every=c.checkpoint_every, log_every=c.log_every),
+        fit,
+        checkpoint_dir=ckpt / "photometric" if ckpt is not None else None,
+        generators={"frame_order": fit.order},
+        tensorboard_dir=s.ctx.tensorboard_dir,
+        progress=s.ctx.progress,
+        description="photometric",
+        stop=s.stop,
+    )
+    s.summary = trainer.fit(resume=s.ctx.resume)
+    rec = s.info["adaptive"]
+    rec["steps_max"], rec["steps_taken"] = c.steps, s.summary.end_step
+    if s.stop is not None:
+        rec["early_stop"] = s.stop.report()
+    s.fit = fit
+    s.renderer = fit.render
+
+
+def _adaptive_setup(s: BaseState, fit: PhotometricFit) -> PlateauDetector | None:
+    """Budget (growth caps from the image size and the starting error) and the early-stop detector of the
+    photometric fit, when on; recorded in ``info["adaptive"]``."""
+    c = s.cfg
+    rec: dict[str, Any] = {"budget_on": c.budget_on(), "early_stop_on": c.early_stop_on()}
+    if c.budget_on():
+        H, W = fit.images.shape[1:3]
+        err = fit.mean_error()
+        rec["budget"] = {"error_start": err, **fit.set_budget(node_budget(W, H, err, c.budget))}
+    s.info["adaptive"] = rec
+    if not c.early_stop_on():
+        return None
+    # Never before density control and camera optimisation have had their turn.
+    pc = fit.cfg
+    settle = max(pc.static_strategy.refine_stop, pc.dynamic_strategy.refine_stop, pc.camera_start_step)
+    return c.early_stop.detector(fit.T, min(settle, c.steps))
+
+
+def stage_prune(s: BaseState) -> None:
+    """Gaussians whose contribution is negligible removed from the fitted model (runs with ``budget`` on)."""
+    s.info["adaptive"]["prune"] = s.fit.prune_negligible(s.cfg.budget.prune_contribution)
+
+
+def stage_test_pose(s: BaseState) -> None:
+    """Sim(3) of the given training poses onto the optimised ones applied to the test camera, then
+    photometric refinement per test frame on the test images (rendered by ``s.renderer``)."""
+    sc = s.scene
+    s.sim3 = align_sim3(sc.w2cs, s.fit.cameras(), s.cfg.test_pose.align_rotation)
+    if sc.test_images.shape[0] == 0:
+        return
+    start = s.sim3.apply_w2c(sc.test_w2c)
+    W, H = sc.test_images.shape[2], sc.test_images.shape[1]
+    times = [min(int(t), sc.num_frames - 1) for t in sc.test_times.tolist()]
+
+    def render_fn(t: int, w2c: torch.Tensor):
+        return s.renderer(sc.test_K, w2c, W, H, t)
+
+    res = refine_test_poses(render_fn, start, sc.test_images, times, s.cfg.test_pose)
+    s.test_poses = {int(t): res.w2cs[k] for k, t in enumerate(sc.test_times.tolist())}
+    s.info["test_pose_l1_before"] = res.loss_before
+    s.info["test_pose_l1_after"] = res.loss_after
+
+
+#: The Base method: its stages in order (``ablate`` replaces ``ba`` / ``sw`` by their ablated forms; ``prune``
+#: runs only with the Gaussian budget on).
+BASE_STAGES: tuple[Stage, ...] = (
+    Stage("priors", stage_priors),
+    Stage("ba", stage_ba),
+    Stage("sw", stage_sw),
+    Stage("motion", stage_motion),
+    Stage("scaffold", stage_scaffold),
+    Stage("photometric", stage_photometric),
+    Stage("prune", stage_prune),
+    Stage("test_pose", stage_test_pose),
+)
+#: What each ablation of the Base method does to :data:`BASE_STAGES`.
+BASE_ABLATIONS: dict[str, Ablation] = {
+    "ba": Ablation("ba", Stage("ba", stage_ba_ablated)),
+    "sw": Ablation("sw", Stage("sw", stage_sw_ablated)),
+}
 
 
 class BaseMethod:
-    """The Base method for one scene; implements :class:`methods.registry.Method`."""
+    """The Base method for one scene; implements :class:`methods.registry.Method`.
+
+    What it runs is data: :attr:`STAGES` over a :attr:`STATE` (a subclass, like WorldTree, names its own),
+    with :attr:`ABLATIONS` applied for the config's ``ablate``."""
+
+    STAGES: ClassVar[tuple[Stage, ...]] = BASE_STAGES
+    ABLATIONS: ClassVar[dict[str, Ablation]] = BASE_ABLATIONS
+    STATE: ClassVar[type[BaseState]] = BaseState
 
     def __init__(self, cfg: BaseConfig, scene: Scene, device: torch.device):
         if scene.num_frames < 2:
@@ -186,257 +508,55 @@ class BaseMethod:
             )
         self.cfg = cfg
         self.device = device
-        self.scene = scene.to(device)
-        self.fit_state: PhotometricFit | None = None
-        self.sim3 = None
-        self.test_poses: dict[int, torch.Tensor] = {}
-        self.stage_s: dict[str, float] = {}
-        self.info: dict[str, Any] = {}
-        self.backend = "none"
-        self.refined_mask = None
+        self.state = self.STATE(cfg, scene.to(device), device)
+        self.clock = StageClock()
+        """Times each stage of this session (``stats()["stages_s"]``)."""
 
-    # ------------------------------------------------------------------ stages
-    def _timed(self, name: str, fn, *args, **kwargs):
-        t0 = time.perf_counter()
-        try:
-            return fn(*args, **kwargs)
-        finally:
-            self.stage_s[name] = self.stage_s.get(name, 0.0) + time.perf_counter() - t0
-
-    def _priors(self):
-        s = self.scene
-        cache = s.root / "priors" / f"x{self.cfg.downscale}" if self.cfg.priors_cache else None
-        pri = compute_priors(s, self.cfg.priors, cache)
-        self.info["priors"] = dict(pri.sources)
-        return pri, pri.torch(self.device)
-
-    def _ba(self, P: dict, ckpt: Path | None) -> BAResult:
-        s = self.scene
-        path = ckpt / "ba.pt" if ckpt is not None else None
-        if path is not None and path.is_file():
-            d = load_torch(
-                path, self.device, missing="no BA result",
-                unreadable="unreadable BA result ({error}); delete it to run BA again",
-            )  # fmt: skip
-            return BAResult(d["w2cs"], d["depth_scale"], d["track_ids"], d["points"], d["before"], d["after"])
-        ba_cfg = dataclasses.replace(self.cfg.ba, enabled=self.cfg.ba.enabled and not self.cfg.ablate_ba)
-        res = bundle_adjust(
-            P["tracks"].float(), P["track_vis"], ~P["track_dynamic"], P["depth"].float(), s.Ks, s.w2cs, ba_cfg,
-            depth_conf=P["depth_conf"].float(),
-        )  # fmt: skip
-        if path is not None:
-            save_torch(
-                path,
-                {"w2cs": res.w2cs.cpu(), "depth_scale": res.depth_scale.cpu(), "track_ids": res.track_ids.cpu(),
-                 "points": res.points.cpu(), "before": res.reproj_px_before, "after": res.reproj_px_after},
-            )  # fmt: skip
-        return res
-
-    def _warmup(self, depth, dynamic, w2cs, extent, ctx: TrainContext) -> tuple[Any, TrainSummary]:
-        c = self.cfg
-        sw_cfg = dataclasses.replace(c.sw, steps=0 if (c.ablate_sw or not c.sw.enabled) else c.sw.steps)
-        sw = StaticWarmup(sw_cfg, self.scene.images, dynamic, depth, self.scene.Ks, w2cs, extent, seed=c.seed)
-        trainer = Trainer(
-            TrainerConfig(steps=sw_cfg.steps, checkpoint_every=c.checkpoint_every, log_every=c.log_every),
-            sw,
-            checkpoint_dir=ctx.checkpoint_dir / "sw" if ctx.checkpoint_dir is not None else None,
-            progress=ctx.progress,
-            description="static warm-up",
-        )
-        return sw.gaussians, trainer.fit(resume=ctx.resume)
-
-    @torch.no_grad()
-    def _refine_motion(self, pri, P: dict, static, w2cs, ckpt: Path | None = None) -> dict:
-        """Masks refined with the static model's residual, tracks relabelled and re-chained (``refine_masks``).
-
-        With a checkpoint folder, ``motion.npz`` there keeps the result (masks ``[T, H, W]``, confidence,
-        tracks ``[T, N, 2]``, visibility, dynamic labels): previews and the motion proof read it."""
-        c, s = self.cfg, self.scene
-        pc = c.priors
-        if not (c.refine_masks and pc.motion.enabled and pc.masks_source is None and pri.motion_evidence):
-            return P
-        T, H, W = s.images.shape[:3]
-        renders = torch.stack(
-            [rasterize(static.means, static.quats, static.log_scales, static.opacities, static.colors,
-                       s.Ks[t], w2cs[t], W, H, backend=c.sw.backend).rgb.clamp(0, 1) for t in range(T)]
-        ).cpu().numpy()  # fmt: skip
-        images = s.images.cpu().numpy()
-        before = pri.epi_mask
-        fused = refine_with_residual(
-            pri.motion_evidence, images, renders, pri.flow, before, pc.motion, pc.epi
-        )
-        mask = fused.mask
-        n_lk = pri.tracks.shape[1] - pri.num_chained_tracks
-        xy, vis = pri.tracks[:, :n_lk], pri.track_vis[:, :n_lk]
-        dyn = label_dynamic_tracks(xy, vis, mask, pc.epi.track_min_frames)
-        xy, vis, dyn, n_ch = add_chained_tracks(xy, vis, dyn, pri.flow, mask, pc)
-        self.info["motion_refine"] = {
-            "mask_fraction_before": float(before.mean()),
-            "mask_fraction_after": float(mask.mean()),
-            "dynamic_tracks_before": int(pri.track_dynamic.sum()),
-            "dynamic_tracks_after": int(dyn.sum()),
-            "chained_tracks": int(n_ch),
-        }
-        self.refined_mask = mask
-        if ckpt is not None:
-            buf = io.BytesIO()
-            np.savez_compressed(
-                buf, mask=mask, confidence=fused.confidence.astype(np.float16), tracks=xy, visible=vis,
-                dynamic=dyn, mask_before=before,
-            )  # fmt: skip
-            atomic_write_bytes(ckpt / "motion.npz", buf.getvalue())
-        out = dict(P)
-        dev = self.device
-        out["epi_mask"] = torch.from_numpy(mask).to(dev)
-        out["tracks"] = torch.from_numpy(np.ascontiguousarray(xy)).to(dev)
-        out["track_vis"] = torch.from_numpy(vis).to(dev)
-        out["track_dynamic"] = torch.from_numpy(dyn).to(dev)
-        return out
-
-    def _dynamic(self, P: dict, depth, w2cs) -> tuple[Scaffold, DynamicGaussians, torch.Tensor, torch.Tensor]:
-        c, s = self.cfg, self.scene
-        dyn_ids = torch.nonzero(P["track_dynamic"]).flatten()
-        valid_depth = depth[depth > 0]
-        scale = float(valid_depth.median()) if valid_depth.numel() else 1.0
-        T = s.num_frames
-        tracks = P["tracks"].float()[:, dyn_ids]
-        vis = P["track_vis"][:, dyn_ids]
-        if dyn_ids.numel() == 0:
-            scf = Scaffold.empty(T, c.scaffold.unit_ratio * scale, c.scaffold, device=self.device)
-        else:
-            pts, valid = lift_tracks(tracks, vis, depth, s.Ks, w2cs)
-            traj, observed = fill_gaps(pts.float(), valid)
-            scf = build_scaffold(traj, observed, scale, c.scaffold)
-            self.info["scaffold_fit"] = fit_scaffold(
-                scf, scf.pos.detach().clone(), scf.observed, c.scaffold_fit
-            )
-        if scf.M == 0:
-            dyn = DynamicGaussians.empty(self.device)
-        else:
-            gen = torch.Generator().manual_seed(c.seed + 7)
-            pts, cols, frames = lift_pixels(
-                s.images, depth, P["epi_mask"], s.Ks, w2cs, c.dynamic_init_stride_px, c.dynamic_max_init, gen
-            )
-            if pts.shape[0] == 0:
-                dyn = DynamicGaussians.empty(self.device, skin_k=scf.K)
-            else:
-                dyn = DynamicGaussians.from_points_at(pts, cols, frames, c.dynamic_init_opacity, skin_k=scf.K)
-        self.info["scaffold_nodes"] = scf.M
-        self.info["dynamic_tracks"] = int(dyn_ids.numel())
-        return scf, dyn, tracks, vis
+    def stages(self) -> list[Stage]:
+        """The stages this config runs, in order (ablations applied; ``prune`` only with the budget on)."""
+        out = with_ablations(self.STAGES, self.ABLATIONS, self.cfg.ablate)
+        return [st for st in out if st.name != "prune" or self.cfg.budget_on()]
 
     def fit(self, ctx: TrainContext) -> TrainSummary:
-        c, s = self.cfg, self.scene
-        ckpt = ctx.checkpoint_dir
-        if ckpt is not None:
-            ckpt.mkdir(parents=True, exist_ok=True)
-        pri, P = self._timed("priors", self._priors)
-        ba = self._timed("ba", self._ba, P, ckpt)
-        self.info["ba"] = ba.stats()
-        w2cs = ba.w2cs.float()
-        depth = P["depth"].float() * ba.depth_scale.float()[:, None, None]
-        extent = scene_extent(w2cs, s.near, s.far)
-        static, sw_summary = self._timed("sw", self._warmup, depth, P["epi_mask"], w2cs, extent, ctx)
-        self.info["sw_steps"] = sw_summary.end_step
-        P = self._timed("motion", self._refine_motion, pri, P, static, w2cs, ckpt)
-        scf, dyn, tracks, vis = self._timed("scaffold", self._dynamic, P, depth, w2cs)
-        pcfg = dataclasses.replace(c.photometric, steps=c.steps)
-        fit = PhotometricFit(
-            pcfg, s.images, depth, s.Ks, w2cs, static, dyn, scf, tracks, vis, extent, seed=c.seed
-        )
-        stop = self._adapt_before(fit)
-        trainer = Trainer(
-            TrainerConfig(steps=c.steps, checkpoint_every=c.checkpoint_every, log_every=c.log_every),
-            fit,
-            checkpoint_dir=ckpt / "photometric" if ckpt is not None else None,
-            generators={"frame_order": fit.order},
-            tensorboard_dir=ctx.tensorboard_dir,
-            progress=ctx.progress,
-            description="photometric",
-            stop=stop,
-        )
-        summary = self._timed("photometric", trainer.fit, resume=ctx.resume)
-        self._timed("prune", self._adapt_after, fit, summary, stop)
-        self.fit_state = fit
-        self._timed("test_pose", self._test_pose)
-        self.backend = fit.backend
-        return summary
-
-    def _adapt_before(self, fit: PhotometricFit) -> PlateauDetector | None:
-        """Budget (growth caps from the image size and the starting error) and the early-stop detector of the
-        photometric fit, when on; recorded in ``info["adaptive"]``."""
-        c = self.cfg
-        rec: dict[str, Any] = {"budget_on": c.budget_on(), "early_stop_on": c.early_stop_on()}
-        if c.budget_on():
-            H, W = fit.images.shape[1:3]
-            err = fit.mean_error()
-            rec["budget"] = {"error_start": err, **fit.set_budget(node_budget(W, H, err, c.budget))}
-        self.info["adaptive"] = rec
-        if not c.early_stop_on():
-            return None
-        # Never before density control and camera optimisation have had their turn.
-        pc = fit.cfg
-        settle = max(pc.static_strategy.refine_stop, pc.dynamic_strategy.refine_stop, pc.camera_start_step)
-        return c.early_stop.detector(fit.T, min(settle, c.steps))
-
-    def _adapt_after(self, fit: PhotometricFit, summary: TrainSummary, stop: PlateauDetector | None) -> None:
-        """Prune negligible Gaussians (budget on) and record the steps taken."""
-        rec = self.info["adaptive"]
-        rec["steps_max"], rec["steps_taken"] = self.cfg.steps, summary.end_step
-        if stop is not None:
-            rec["early_stop"] = stop.report()
-        if self.cfg.budget_on():
-            rec["prune"] = fit.prune_negligible(self.cfg.budget.prune_contribution)
-
-    def _test_render(self, K: torch.Tensor, w2c: torch.Tensor, width: int, height: int, t: int):
-        """Differentiable render used by test-pose refinement (WorldTree renders through its tree)."""
-        return self.fit_state.render(K, w2c, width, height, t)
-
-    def _test_pose(self) -> None:
-        s = self.scene
-        self.sim3 = align_sim3(s.w2cs, self.fit_state.cameras(), self.cfg.test_pose.align_rotation)
-        if s.test_images.shape[0] == 0:
-            return
-        start = self.sim3.apply_w2c(s.test_w2c)
-        W, H = s.test_images.shape[2], s.test_images.shape[1]
-        times = [min(int(t), s.num_frames - 1) for t in s.test_times.tolist()]
-
-        def render_fn(t: int, w2c: torch.Tensor):
-            return self._test_render(s.test_K, w2c, W, H, t)
-
-        res = refine_test_poses(render_fn, start, s.test_images, times, self.cfg.test_pose)
-        self.test_poses = {int(t): res.w2cs[k] for k, t in enumerate(s.test_times.tolist())}
-        self.info["test_pose_l1_before"] = res.loss_before
-        self.info["test_pose_l1_after"] = res.loss_after
+        """Run every stage in order, each timed by :attr:`clock` (resumable: each stage picks up its own
+        checkpoints under ``ctx.checkpoint_dir``)."""
+        if ctx.checkpoint_dir is not None:
+            ctx.checkpoint_dir.mkdir(parents=True, exist_ok=True)
+        self.state.ctx = ctx
+        run_stages(self.stages(), self.state, self.clock)
+        return self.state.summary
 
     # ------------------------------------------------------------------ Method
     @torch.no_grad()
-    def render(self, K: torch.Tensor, w2c: torch.Tensor, width: int, height: int, time: int) -> torch.Tensor:
-        """``[height, width, 3]`` of camera ``K``/``w2c`` (given frame) at frame ``time``; the scene's test
-        camera uses its refined pose at that time, any other camera the Sim(3) alignment."""
-        if self.fit_state is None:
+    def render(
+        self, K: torch.Tensor, w2c: torch.Tensor, width: int, height: int, time: int, test_view: bool = False
+    ) -> torch.Tensor:
+        """``[height, width, 3]`` of camera ``K``/``w2c`` (given frame) at frame ``time``. ``test_view``: the
+        camera is the scene's test camera, rendered from its refined pose at that time; any other camera
+        (or a time without a refined pose) goes through the Sim(3) alignment."""
+        s = self.state
+        if s.renderer is None:
             raise RuntimeError("render before fit")
         K = K.to(self.device, torch.float32)
         w2c = w2c.to(self.device, torch.float32)
-        is_test = torch.allclose(w2c, self.scene.test_w2c.to(w2c), atol=1e-5)
-        if is_test and int(time) in self.test_poses:
-            pose = self.test_poses[int(time)]
+        if test_view and int(time) in s.test_poses:
+            pose = s.test_poses[int(time)]
         else:
-            pose = self.sim3.apply_w2c(w2c)
-        t = min(max(int(time), 0), self.scene.num_frames - 1)
-        out = self.fit_state.render(K, pose, width, height, t)
-        return out.rgb.clamp(0.0, 1.0)
+            pose = s.sim3.apply_w2c(w2c)
+        t = min(max(int(time), 0), s.scene.num_frames - 1)
+        return s.renderer(K, pose, width, height, t).rgb.clamp(0.0, 1.0)
 
     def save_model(self, folder: Path) -> None:
         folder = Path(folder)
-        fit = self.fit_state
+        s = self.state
+        fit = s.fit
         fit.static.save(folder / "static_gaussians.pt")
         fit.static.write_ply(folder / "static_gaussians.ply")
         fit.dynamic.save(folder / "dynamic_gaussians.pt")
         save_torch(
             folder / "scaffold_cameras.pt",
             {"scaffold": fit.scaffold.to_state(), "w2cs": fit.cameras().cpu(),
-             "test_poses": {k: v.cpu() for k, v in self.test_poses.items()}},
+             "test_poses": {k: v.cpu() for k, v in s.test_poses.items()}},
         )  # fmt: skip
         atomic_write_json(
             folder / "model.json",
@@ -445,8 +565,8 @@ class BaseMethod:
                 "num_static": len(fit.static),
                 "num_dynamic": len(fit.dynamic),
                 "scaffold_nodes": fit.scaffold.M,
-                "frames": self.scene.num_frames,
-                "sim3_given_to_optimised": self.sim3.to_dict() if self.sim3 is not None else None,
+                "frames": s.scene.num_frames,
+                "sim3_given_to_optimised": s.sim3.to_dict() if s.sim3 is not None else None,
                 "files": {
                     "static_gaussians.pt": "worldtree.gaussians.GaussianSet.load",
                     "static_gaussians.ply": "3DGS viewer PLY (background only)",
@@ -457,7 +577,8 @@ class BaseMethod:
         )
 
     def stats(self) -> dict[str, Any]:
-        fit = self.fit_state
+        s = self.state
+        fit = s.fit
         n_s = len(fit.static) if fit is not None else 0
         n_d = len(fit.dynamic) if fit is not None else 0
         return {
@@ -465,12 +586,12 @@ class BaseMethod:
             "num_static": n_s,
             "num_dynamic": n_d,
             "scaffold_nodes_final": fit.scaffold.M if fit is not None else 0,
-            "backend": self.backend,
-            "stages_s": dict(self.stage_s),
-            "ablate_ba": self.cfg.ablate_ba,
-            "ablate_sw": self.cfg.ablate_sw,
+            "backend": fit.backend if fit is not None else "none",
+            "stages": [st.name for st in self.stages()],
+            "stages_s": dict(self.clock.stages_s),
+            "ablate": list(self.cfg.ablate),
             "migration": dict(fit.migration) if fit is not None else {},
-            **{k: v for k, v in self.info.items() if k not in ("scaffold_fit",)},
+            **{k: v for k, v in s.info.items() if k not in ("scaffold_fit",)},
         }
 
 
@@ -482,15 +603,7 @@ register_method(
         presets={
             "paper": paper_config,
             "quick": quick_config,
-            "paper-ablate-ba": _ablated(paper_config, True, False),
-            "paper-ablate-sw": _ablated(paper_config, False, True),
-            "paper-ablate-ba-sw": _ablated(paper_config, True, True),
-            "quick-ablate-ba": _ablated(quick_config, True, False),
-            "quick-ablate-sw": _ablated(quick_config, False, True),
-            "quick-ablate-ba-sw": _ablated(quick_config, True, True),
             "smoke": smoke_config,
-            "smoke-ablate-ba": _ablated(smoke_config, True, False),
-            "smoke-ablate-sw": _ablated(smoke_config, False, True),
         },
         build=BaseMethod,
     )

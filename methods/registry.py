@@ -65,8 +65,12 @@ class Method(Protocol):
         """Train (resuming from ``ctx.checkpoint_dir`` when it holds checkpoints)."""
         ...
 
-    def render(self, K: torch.Tensor, w2c: torch.Tensor, width: int, height: int, time: int) -> torch.Tensor:
-        """Image ``[height, width, 3]`` in [0, 1] of camera ``K [3,3]``, ``w2c [4,4]`` at time index ``time``."""
+    def render(
+        self, K: torch.Tensor, w2c: torch.Tensor, width: int, height: int, time: int, test_view: bool = False
+    ) -> torch.Tensor:
+        """Image ``[height, width, 3]`` in [0, 1] of camera ``K [3,3]``, ``w2c [4,4]`` at time index ``time``.
+        ``test_view``: the camera is the scene's held-out test camera (the runner says so; a method may
+        use what it learnt about that camera, e.g. a refined pose)."""
         ...
 
     def save_model(self, folder: Path) -> None:

@@ -292,9 +292,11 @@ class StaticGaussians(DensifiedGaussianTrainable):
         return {"before": before, "after": len(self.gaussians)}
 
     @torch.no_grad()
-    def render(self, K: torch.Tensor, w2c: torch.Tensor, width: int, height: int, time: int) -> torch.Tensor:
-        """``[height, width, 3]`` in [0, 1]; ``time`` is ignored (the model is static), so one camera is
-        rendered once and reused."""
+    def render(
+        self, K: torch.Tensor, w2c: torch.Tensor, width: int, height: int, time: int, test_view: bool = False
+    ) -> torch.Tensor:
+        """``[height, width, 3]`` in [0, 1]; ``time`` and ``test_view`` are ignored (the model is static and
+        knows nothing of the test camera), so one camera is rendered once and reused."""
         key = (
             K.detach().cpu().double().numpy().tobytes()
             + w2c.detach().cpu().double().numpy().tobytes()

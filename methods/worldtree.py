@@ -17,28 +17,43 @@ finds them two folders above its own (``tree/layer<d>/node<j>``).
 
 Ablations (``ablate``): ``ba`` / ``sw`` as in the Base method; ``tpt`` trains the root only (depth 0, the Base
 method); ``sac`` grows the tree but every node trains and renders without ancestors.
+
+The method is :data:`WORLDTREE_STAGES` over a :class:`WorldTreeState`: the Base method's stages with ``tree``
+before ``test_pose`` (:mod:`methods.stages`). ``--depth auto`` decides the root's split inside ``tree`` (after
+the root's fit) and each child's in :func:`train_node`.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import pickle
+import tempfile
 import time
 from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
 from typing import Any
 
 import torch
 
-from methods.base import BaseConfig, BaseMethod, paper_config, quick_config, smoke_config
+from methods.base import (
+    BASE_ABLATIONS,
+    BASE_STAGES,
+    BaseConfig,
+    BaseMethod,
+    BaseState,
+    paper_config,
+    quick_config,
+    smoke_config,
+)
 from methods.registry import MethodSpec, register_method
+from methods.stages import Ablation, Stage
 from worldtree.atomic import atomic_write_bytes, atomic_write_json
 from worldtree.budget import BudgetConfig, negligible
 from worldtree.errors import UserError
 from worldtree.gaussians import inverse_sigmoid
 from worldtree.plateau import PlateauRule
 from worldtree.render import rasterize
-from worldtree.scene import Scene
 from worldtree.stages.photometric import PhotometricConfig, PhotometricFit
 from worldtree.strategy import DensifyStrategy, remove
 from worldtree.torchfile import save_torch
@@ -54,8 +69,8 @@ from worldtree.tree.sac import (
     ancestor_optimizer,
     chain_gaussians_at,
 )
-from worldtree.tree.split import SPLIT_STRATEGIES, ProfileAccumulator
-from worldtree.tree.tpt import DEFAULT_MIN_LEN, Interval, TemporalPartitionTree, depth_of
+from worldtree.tree.split import SPLIT_STRATEGIES, ProfileAccumulator, flow_profile
+from worldtree.tree.tpt import Interval, TemporalPartitionTree, depth_of
 
 __all__ = ["ABLATIONS", "NodeFit", "NodeTrainConfig", "WorldTreeConfig", "WorldTreeMethod", "train_node"]
 
@@ -65,9 +80,12 @@ ABLATIONS = ("ba", "sw", "tpt", "sac")
 
 @dataclass
 class WorldTreeConfig(BaseConfig):
-    """WorldTree settings: the Base method's (root) plus the tree's. ``steps`` is the root's photometric fit."""
+    """WorldTree settings: the Base method's (root) plus the tree's. ``steps`` is the root's photometric fit.
 
-    depth: int | str = 2
+    The tree's defaults are the library's (``TreeConfig``, ``InheritConfig``, ``AncestorPolicy``): declared
+    there once and read here, so the two cannot drift apart."""
+
+    depth: int | str = TreeConfig.depth
     """Deepest tree layer (0 = the root only; the paper: 2), or ``"auto"`` (sets ``auto_depth``)."""
     auto_depth: bool = False
     """``--depth auto``: split a trained node only when the measured criterion of ``auto_split`` says its
@@ -77,7 +95,7 @@ class WorldTreeConfig(BaseConfig):
     """Thresholds of the ``--depth auto`` criterion and its depth bound."""
     chain_length: int | None = None
     """Ancestors rendered at test time (None: the whole chain; 0: none). Training always uses the chain."""
-    split: str = "binary"
+    split: str = TreeConfig.split
     """Split strategy: ``binary``, ``gradient`` (position-gradient profile of the node) or ``flow``."""
     sequential: bool = False
     """Train each layer's nodes one after another in this process instead of in worker processes."""
@@ -86,13 +104,13 @@ class WorldTreeConfig(BaseConfig):
     layer_steps: tuple[int, ...] = (2000, 2000)
     """Photometric steps of a child node by its depth 1, 2, ... (deeper layers: the last value). The root's
     are ``steps`` (paper NVIDIA-LS: 4000 / 2000 / 2000)."""
-    min_len: int = DEFAULT_MIN_LEN
+    min_len: int = TreeConfig.min_len
     """Nodes with fewer frames are leaves (12)."""
-    inherit_caps: tuple[int, ...] = (5000, 2000)
+    inherit_caps: tuple[int, ...] = InheritConfig.caps
     """Most dynamic Gaussians a child inherits, by depth 1, 2, ... (the root's cap is ``dynamic_max_init``)."""
-    inherit_opacity: float = 0.05
+    inherit_opacity: float = InheritConfig.opacity_cap
     """Inherited dynamic opacities are reset to at most this."""
-    ancestors_optimised: int = 2
+    ancestors_optimised: int = AncestorPolicy.optimised_nearest
     """The nearest this many ancestors train with a node; deeper ones are frozen."""
 
     @classmethod
@@ -152,18 +170,6 @@ class WorldTreeConfig(BaseConfig):
                           auto=auto)  # fmt: skip
 
 
-def _wt(factory, layer_steps: tuple[int, ...], inherit_caps: tuple[int, ...] | None = None):
-    def make() -> WorldTreeConfig:
-        base = factory()
-        kw = {f.name: getattr(base, f.name) for f in dataclasses.fields(BaseConfig)}
-        extra: dict[str, Any] = {"layer_steps": layer_steps}
-        if inherit_caps is not None:
-            extra["inherit_caps"] = inherit_caps
-        return WorldTreeConfig(**kw, **extra)
-
-    return make
-
-
 # ------------------------------------------------------------------------------------------ node training
 _NO_DENSIFY = DensifyStrategy(refine_start=10**9, refine_stop=10**9, reset_every=0)
 
@@ -184,7 +190,7 @@ class NodeTrainConfig:
     """Scene extent (world units) for the learning rates."""
     checkpoint_every: int
     log_every: int
-    min_len: int = DEFAULT_MIN_LEN
+    min_len: int = TreeConfig.min_len
     """The tree's minimum interval (for the auto criterion)."""
     auto: AutoSplitConfig | None = None
     """``--depth auto``: decide the node's split after training (None: fixed depth)."""
@@ -413,210 +419,219 @@ def _frozen(state: NodeState) -> NodeState:
     return state
 
 
+@dataclass
+class WorldTreeState(BaseState):
+    """The Base method's state plus the tree's (stage ``tree``)."""
+
+    runner: LayerRunner | None = None
+    """Worker pool that trains each layer's nodes (open while the stages run)."""
+    tree: TemporalPartitionTree | None = None
+    states: dict[int, NodeState] = field(default_factory=dict)
+    """Trained node states by node index (1 = the root), rendered from here on."""
+    result: TreeResult | None = None
+    caches: dict[int, Any] = field(default_factory=dict)
+    """Per-node skinning caches of the renderer."""
+
+
+def _root_state(s: WorldTreeState) -> NodeState:
+    fit = s.fit
+    T = s.scene.num_frames
+    return NodeState(1, Interval(0, T - 1), fit.scaffold, fit.dynamic, fit.static, fit.cameras(), [])
+
+
+def _tree_renderer(s: WorldTreeState):
+    """``renderer(K, w2c, W, H, t)``: the deepest node covering frame ``t`` with its chain (``chain_length``)."""
+
+    def render(K: torch.Tensor, w2c: torch.Tensor, width: int, height: int, t: int):
+        t = min(max(int(t), 0), s.scene.num_frames - 1)
+        j = s.tree.covering(t) if s.tree is not None else 1
+        st = s.states[j]
+        if j not in s.caches:
+            s.caches[j] = st.dynamic.attach(st.scaffold)
+        m, q, ls, o, col = st.gaussians_at(t, s.cfg.chain_length, s.caches[j])
+        return rasterize(m, q, ls, o, col, K, w2c, width, height, backend=s.cfg.photometric.backend)
+
+    return render
+
+
+def _root_only(s: WorldTreeState, root_decision: dict[str, Any] | None = None) -> None:
+    """No child: the trained root renders every frame (``root_decision``: the ``--depth auto`` decision that
+    kept it a leaf, recorded in ``info["tree"]["auto"]``)."""
+    s.tree = TemporalPartitionTree(s.scene.num_frames, s.cfg.min_len)
+    s.states = {1: _root_state(s)}
+    s.info["tree"] = {"nodes": [1], "layers": [], "note": "root only"}
+    if root_decision is not None:
+        s.info["tree"]["auto"] = {"1": {**root_decision, "applied": False}}
+    s.renderer = _tree_renderer(s)
+
+
+def _grow(s: WorldTreeState, no_ancestors: bool) -> None:
+    c = s.cfg
+    tcfg = c.tree_config()
+    root_decision = None
+    if tcfg.auto is not None:  # --depth auto: does the trained root need children?
+        masks = s.P["epi_mask"].bool()
+        root_decision = decide_split(s.fit.residuals(), masks, tcfg.min_len, tcfg.auto).to_dict()
+    if (
+        tcfg.max_depth == 0
+        or s.scene.num_frames < tcfg.min_len
+        or (root_decision is not None and not root_decision["split"])
+    ):
+        _root_only(s, root_decision)
+        return
+    ckpt = s.checkpoint_dir
+    tree_dir = (ckpt if ckpt is not None else Path(tempfile.mkdtemp(prefix="worldtree-tree-"))) / "tree"
+    tree_dir.mkdir(parents=True, exist_ok=True)
+    _write_context(s, tree_dir, no_ancestors)
+    root = _root_state(s)
+    root_cpu = NodeState.from_payload(root.to_payload(), "cpu")
+    flow = flow_profile(s.priors.flow, s.priors.epi_mask) if c.split == "flow" else None
+    prof = _root_profile(s.fit) if c.split == "gradient" else None
+    res = grow_tree(root_cpu, tcfg, s.runner, tree_dir, seed=c.seed, root_profile=prof, flow=flow,
+                    root_decision=root_decision)  # fmt: skip
+    s.result, s.tree = res, res.tree
+    s.states = {1: root}
+    for j, st in res.states.items():
+        if j != 1:
+            s.states[j] = _frozen(NodeState.from_payload(st.to_payload(), s.device))
+    s.info["tree"] = _tree_info(s, res)
+    if tcfg.auto is not None:
+        s.info["tree"]["auto"] = {str(j): d for j, d in res.decisions.items()}
+    s.renderer = _tree_renderer(s)
+
+
+def _tree_info(s: WorldTreeState, res: TreeResult) -> dict[str, Any]:
+    tree = s.tree
+    return {
+        "nodes": sorted(s.states),
+        "intervals": {str(j): [tree.interval(j).start, tree.interval(j).end] for j in s.states},
+        "splits": {str(j): {"point": ch.point, "fallback": ch.fallback} for j, ch in res.splits.items()},
+        "layers": [
+            {
+                "depth": r.depth,
+                "mode": r.mode,
+                "workers": r.workers,
+                "wall_s": r.wall_s,
+                "node_seconds": r.node_seconds,
+                "nodes_s": {str(n.node): n.wall_s for n in r.nodes},
+                "nodes_cpu_s": {str(n.node): n.cpu_s for n in r.nodes},
+            }
+            for r in res.layers
+        ],
+        "node_stats": {str(j): st for j, st in res.stats.items()},
+    }
+
+
+def _write_context(s: WorldTreeState, tree_dir: Path, no_ancestors: bool) -> None:
+    """What every node trains on (``context.pt``, plain tensors) and its settings (``node_config.pkl``)."""
+    sc, c = s.scene, s.cfg
+    data = {
+        "images": sc.images.detach().cpu().contiguous(),
+        "depth": s.depth.detach().float().cpu().contiguous(),
+        "Ks": sc.Ks.detach().float().cpu(),
+        "tracks": s.tracks.detach().float().cpu().contiguous(),
+        "track_vis": s.track_vis.detach().cpu().contiguous(),
+        "masks": s.P["epi_mask"].detach().bool().cpu().contiguous(),
+    }
+    save_torch(tree_dir / "context.pt", data)
+    tcfg = c.tree_config()
+    ncfg = NodeTrainConfig(
+        photometric=c.photometric,
+        layer_steps=c.layer_steps,
+        policy=tcfg.inherit.policy,
+        no_ancestors=no_ancestors,
+        extent=s.fit.extent,
+        checkpoint_every=c.checkpoint_every,
+        log_every=c.log_every,
+        min_len=c.min_len,
+        auto=tcfg.auto,
+        budget=c.budget if c.budget_on() else None,
+        inherit_opacity=c.inherit_opacity,
+        early_stop=c.early_stop if c.early_stop_on() else None,
+    )
+    atomic_write_bytes(tree_dir / "node_config.pkl", pickle.dumps(ncfg))
+
+
+def _root_profile(fit: PhotometricFit) -> torch.Tensor:
+    """``[T]`` position-gradient profile of the trained root for the gradient split: the norm of the
+    dynamic means' gradient of each frame's photometric loss, summed over Gaussians (one pass over the
+    frames; the Base method's fit does not gather it while training)."""
+    acc = ProfileAccumulator(fit.T)
+    means = fit.dynamic.params["means"]
+    if len(fit.dynamic) == 0:
+        return acc.profile()
+    for i in range(fit.T):
+        loss, _, _ = fit.frame_losses(i, 1)  # step 1: no track term, as in most steps
+        (g,) = torch.autograd.grad(loss, [means], allow_unused=True)
+        if g is not None:
+            acc.add(i, g.norm(dim=-1).sum())
+    return acc.profile()
+
+
+def stage_tree(s: WorldTreeState) -> None:
+    """Split, inherit and train the layers ``1 .. depth`` below the trained root; render through the tree."""
+    _grow(s, no_ancestors=False)
+
+
+def stage_tree_no_ancestors(s: WorldTreeState) -> None:
+    """``ablate sac``: the tree grows, but every node trains and renders without its ancestors."""
+    _grow(s, no_ancestors=True)
+
+
+def stage_tree_root_only(s: WorldTreeState) -> None:
+    """``ablate tpt``: no tree; the root renders every frame (the Base method's model, rendered as node 1)."""
+    _root_only(s)
+
+
+#: WorldTree: the Base method's stages with ``tree`` before ``test_pose``.
+WORLDTREE_STAGES: tuple[Stage, ...] = (*BASE_STAGES[:-1], Stage("tree", stage_tree), BASE_STAGES[-1])
+#: The Base ablations plus ``sac`` and ``tpt`` (``tpt`` last: with both, no tree grows).
+WORLDTREE_ABLATIONS: dict[str, Ablation] = {
+    **BASE_ABLATIONS,
+    "sac": Ablation("tree", Stage("tree", stage_tree_no_ancestors)),
+    "tpt": Ablation("tree", Stage("tree", stage_tree_root_only)),
+}
+
+
 class WorldTreeMethod(BaseMethod):
     """The WorldTree method for one scene; implements :class:`methods.registry.Method`."""
 
-    def __init__(self, cfg: WorldTreeConfig, scene: Scene, device: torch.device):
-        super().__init__(cfg, scene, device)
-        self.cfg: WorldTreeConfig = cfg
-        self.tree: TemporalPartitionTree | None = None
-        self.states: dict[int, NodeState] = {}
-        self.result: TreeResult | None = None
-        self._caches: dict[int, Any] = {}
-        self._ckpt: Path | None = None
-        self._progress = True
-        self._data: dict[str, torch.Tensor] = {}
+    STAGES = WORLDTREE_STAGES
+    ABLATIONS = WORLDTREE_ABLATIONS
+    STATE = WorldTreeState
+    cfg: WorldTreeConfig
+    state: WorldTreeState
 
     def fit(self, ctx: TrainContext) -> TrainSummary:
-        self._ckpt = ctx.checkpoint_dir
-        self._progress = ctx.progress
+        """The stages with the tree's worker pool open (its workers start while the root trains)."""
         c = self.cfg
         pcfg = ParallelConfig(sequential=c.sequential, max_workers=c.max_workers, device=self.device.type)
-        with LayerRunner(pcfg, "methods.worldtree:train_node") as runner:
-            self._runner = runner
+        with LayerRunner(pcfg, train_node) as runner:
+            self.state.runner = runner
             if c.tree_depth >= 1:
                 runner.warm_up(2)  # worker start-up overlaps the root's training
-            summary = super().fit(ctx)  # root stages; the tree grows inside _test_pose, before the test pose
-        # The tree was timed inside the Base method's "test_pose" stage: report the two apart.
-        self.stage_s["test_pose"] = self.stage_s.get("test_pose", 0.0) - self.stage_s.get("tree", 0.0)
-        return summary
-
-    def _dynamic(self, P: dict, depth, w2cs):
-        scf, dyn, tracks, vis = super()._dynamic(P, depth, w2cs)
-        self._data = {"depth": depth, "tracks": tracks, "track_vis": vis, "masks": P["epi_mask"]}
-        return scf, dyn, tracks, vis
-
-    def _write_context(self, tree_dir: Path) -> None:
-        s, fit, c = self.scene, self.fit_state, self.cfg
-        data = {
-            "images": s.images.detach().cpu().contiguous(),
-            "depth": self._data["depth"].detach().float().cpu().contiguous(),
-            "Ks": s.Ks.detach().float().cpu(),
-            "tracks": self._data["tracks"].detach().float().cpu().contiguous(),
-            "track_vis": self._data["track_vis"].detach().cpu().contiguous(),
-            "masks": self._data["masks"].detach().bool().cpu().contiguous(),
-        }
-        save_torch(tree_dir / "context.pt", data)
-        ncfg = NodeTrainConfig(
-            photometric=c.photometric,
-            layer_steps=c.layer_steps,
-            policy=c.tree_config().inherit.policy,
-            no_ancestors="sac" in c.ablate,
-            extent=fit.extent,
-            checkpoint_every=c.checkpoint_every,
-            log_every=c.log_every,
-            min_len=c.min_len,
-            auto=c.tree_config().auto,
-            budget=c.budget if c.budget_on() else None,
-            inherit_opacity=c.inherit_opacity,
-            early_stop=c.early_stop if c.early_stop_on() else None,
-        )
-        atomic_write_bytes(tree_dir / "node_config.pkl", pickle.dumps(ncfg))
-
-    def _grow(self) -> None:
-        fit, c = self.fit_state, self.cfg
-        T = self.scene.num_frames
-        root = NodeState(1, Interval(0, T - 1), fit.scaffold, fit.dynamic, fit.static, fit.cameras(), [])
-        tcfg = c.tree_config()
-        root_decision = None
-        if tcfg.auto is not None:
-            masks = self._data["masks"].bool()
-            root_decision = decide_split(fit.residuals(), masks, tcfg.min_len, tcfg.auto).to_dict()
-        if (
-            tcfg.max_depth == 0
-            or T < tcfg.min_len
-            or (root_decision is not None and not root_decision["split"])
-        ):
-            self.tree = TemporalPartitionTree(T, tcfg.min_len)
-            self.states = {1: root}
-            self.info["tree"] = {"nodes": [1], "layers": [], "note": "root only"}
-            if root_decision is not None:
-                self.info["tree"]["auto"] = {"1": {**root_decision, "applied": False}}
-            return
-        tree_dir = (self._ckpt if self._ckpt is not None else Path(self._tmp_tree())) / "tree"
-        tree_dir.mkdir(parents=True, exist_ok=True)
-        self._write_context(tree_dir)
-        root_cpu = NodeState.from_payload(root.to_payload(), "cpu")
-        flow = self._flow_profile() if c.split == "flow" else None
-        prof = self._root_profile() if c.split == "gradient" else None
-        res = grow_tree(root_cpu, tcfg, self._runner, tree_dir, seed=c.seed, root_profile=prof, flow=flow,
-                        root_decision=root_decision)  # fmt: skip
-        self.result, self.tree = res, res.tree
-        self.states = {1: root}
-        for j, st in res.states.items():
-            if j != 1:
-                self.states[j] = _frozen(NodeState.from_payload(st.to_payload(), self.device))
-        self.info["tree"] = {
-            "nodes": sorted(self.states),
-            "intervals": {
-                str(j): [self.tree.interval(j).start, self.tree.interval(j).end] for j in self.states
-            },
-            "splits": {str(j): {"point": ch.point, "fallback": ch.fallback} for j, ch in res.splits.items()},
-            "layers": [
-                {
-                    "depth": r.depth,
-                    "mode": r.mode,
-                    "workers": r.workers,
-                    "wall_s": r.wall_s,
-                    "node_seconds": r.node_seconds,
-                    "nodes_s": {str(n.node): n.wall_s for n in r.nodes},
-                    "nodes_cpu_s": {str(n.node): n.cpu_s for n in r.nodes},
-                }
-                for r in res.layers
-            ],
-            "node_stats": {str(j): s for j, s in res.stats.items()},
-        }
-        if tcfg.auto is not None:
-            self.info["tree"]["auto"] = {str(j): d for j, d in res.decisions.items()}
-
-    def _tmp_tree(self) -> str:
-        import tempfile
-
-        return tempfile.mkdtemp(prefix="worldtree-tree-")
-
-    def _priors(self):
-        pri, P = super()._priors()
-        self._pri = pri  # the flow split needs the flow pairs, which the tensor dict leaves out
-        return pri, P
-
-    def _flow_profile(self):
-        from worldtree.tree.split import flow_profile
-
-        return flow_profile(self._pri.flow, self._pri.epi_mask)
-
-    def _root_profile(self):
-        """``[T]`` position-gradient profile of the trained root for the gradient split: the norm of the
-        dynamic means' gradient of each frame's photometric loss, summed over Gaussians (one pass over the
-        frames; the Base method's fit does not gather it while training)."""
-        fit = self.fit_state
-        acc = ProfileAccumulator(fit.T)
-        means = fit.dynamic.params["means"]
-        if len(fit.dynamic) == 0:
-            return acc.profile()
-        for i in range(fit.T):
-            loss, _, _ = fit.frame_losses(i, 1)  # step 1: no track term, as in most steps
-            (g,) = torch.autograd.grad(loss, [means], allow_unused=True)
-            if g is not None:
-                acc.add(i, g.norm(dim=-1).sum())
-        return acc.profile()
-
-    # ------------------------------------------------------------------ rendering with the tree
-    def _node_for(self, t: int) -> int:
-        t = min(max(int(t), 0), self.scene.num_frames - 1)
-        return self.tree.covering(t) if self.tree is not None else 1
-
-    def render_out(self, K: torch.Tensor, w2c: torch.Tensor, width: int, height: int, t: int):
-        """Rasterizer output of the deepest node covering frame ``t`` with its chain (``chain_length``)."""
-        t = min(max(int(t), 0), self.scene.num_frames - 1)
-        j = self._node_for(t)
-        st = self.states[j]
-        if j not in self._caches:
-            self._caches[j] = st.dynamic.attach(st.scaffold)
-        m, q, ls, o, col = st.gaussians_at(t, self.cfg.chain_length, self._caches[j])
-        return rasterize(m, q, ls, o, col, K, w2c, width, height, backend=self.cfg.photometric.backend)
-
-    def _test_pose(self) -> None:
-        t0 = time.perf_counter()
-        self._grow()
-        self.stage_s["tree"] = self.stage_s.get("tree", 0.0) + time.perf_counter() - t0
-        super()._test_pose()
-
-    def _test_render(self, K: torch.Tensor, w2c: torch.Tensor, width: int, height: int, t: int):
-        """Test-pose refinement renders through the tree (deepest covering node and its chain)."""
-        return self.render_out(K, w2c, width, height, t)
-
-    @torch.no_grad()
-    def render(self, K: torch.Tensor, w2c: torch.Tensor, width: int, height: int, time: int) -> torch.Tensor:
-        """``[height, width, 3]`` at frame ``time`` by the deepest node covering it (see the Base method for
-        the camera: the test camera uses its refined pose, any other the Sim(3) alignment)."""
-        if self.fit_state is None:
-            raise RuntimeError("render before fit")
-        K = K.to(self.device, torch.float32)
-        w2c = w2c.to(self.device, torch.float32)
-        is_test = torch.allclose(w2c, self.scene.test_w2c.to(w2c), atol=1e-5)
-        pose = (
-            self.test_poses[int(time)]
-            if is_test and int(time) in self.test_poses
-            else self.sim3.apply_w2c(w2c)
-        )
-        return self.render_out(K, pose, width, height, int(time)).rgb.clamp(0.0, 1.0)
+            try:
+                return super().fit(ctx)
+            finally:
+                self.state.runner = None
 
     # ------------------------------------------------------------------ outputs
     def save_model(self, folder: Path) -> None:
         folder = Path(folder)
+        s = self.state
         super().save_model(folder)  # the root (node 1) in the Base method's files
-        for j, st in self.states.items():
+        for j, st in s.states.items():
             st.save(folder / "tree" / f"node{j}.pt")
         atomic_write_json(
             folder / "model.json",
             {
                 "method": "worldtree",
-                "frames": self.scene.num_frames,
-                "tree": self.tree.to_dict() if self.tree is not None else None,
-                "nodes": sorted(self.states),
+                "frames": s.scene.num_frames,
+                "tree": s.tree.to_dict() if s.tree is not None else None,
+                "nodes": sorted(s.states),
                 "chain_length": self.cfg.chain_length,
                 "ablate": list(self.cfg.ablate),
-                "sim3_given_to_optimised": self.sim3.to_dict() if self.sim3 is not None else None,
+                "sim3_given_to_optimised": s.sim3.to_dict() if s.sim3 is not None else None,
                 "files": {
                     "tree/node<j>.pt": "worldtree.tree.node.NodeState.load (node j with its ancestor copies)",
                     "static_gaussians.pt, dynamic_gaussians.pt, scaffold_cameras.pt": "the root (Base method)",
@@ -625,22 +640,23 @@ class WorldTreeMethod(BaseMethod):
         )
 
     def stats(self) -> dict[str, Any]:
+        s = self.state
         out = super().stats()
-        leaves = self.tree.leaves() if self.tree is not None else [1]
-        leaves = [j for j in leaves if j in self.states] or [1]
+        leaves = s.tree.leaves() if s.tree is not None else [1]
+        leaves = [j for j in leaves if j in s.states] or [1]
         # Model size: what the rendering nodes hold (each its static copy, own dynamic Gaussians and ancestors).
         n_g = 0
         for j in leaves:
-            st = self.states.get(j)
+            st = s.states.get(j)
             if st is not None:
                 n_g += len(st.static) + len(st.dynamic) + sum(len(a.dynamic) for a in st.chain)
-        root = self.states.get(1)
+        root = s.states.get(1)
         out.update(
             {
-                "num_gaussians": n_g if self.states else out["num_gaussians"],
+                "num_gaussians": n_g if s.states else out["num_gaussians"],
                 "num_scaffold_nodes": root.scaffold.M if root is not None else 0,
-                "num_tree_nodes": len(self.states),
-                "tree_depth": max((depth_of(j) for j in self.states), default=0),
+                "num_tree_nodes": len(s.states),
+                "tree_depth": max((depth_of(j) for j in s.states), default=0),
                 "ablate": list(self.cfg.ablate),
                 "chain_length": self.cfg.chain_length,
                 "split": self.cfg.split,
@@ -656,9 +672,9 @@ register_method(
         description="WorldTree: Base root + Temporal Partition Tree with Spatial Ancestral Chains",
         config_cls=WorldTreeConfig,
         presets={
-            "paper": _wt(paper_config, (2000, 2000)),
-            "quick": _wt(quick_config, (300, 300), (1500, 800)),
-            "smoke": _wt(smoke_config, (10, 10), (500, 300)),
+            "paper": partial(paper_config, WorldTreeConfig, layer_steps=(2000, 2000)),
+            "quick": partial(quick_config, WorldTreeConfig, layer_steps=(300, 300), inherit_caps=(1500, 800)),
+            "smoke": partial(smoke_config, WorldTreeConfig, layer_steps=(10, 10), inherit_caps=(500, 300)),
         },
         build=WorldTreeMethod,
     )

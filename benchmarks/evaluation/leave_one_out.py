@@ -112,13 +112,13 @@ def render_between(
     the midpoint of its two positions, rotations nlerped (static Gaussians are the same at both)."""
     from worldtree.render import rasterize
 
-    fit = method.fit_state
+    fit = method.state.fit
     ma, qa, ls, o, c = fit.gaussians_at(a)
     mb, qb, _, _, _ = fit.gaussians_at(a + 1)
     qb = torch.where((qa * qb).sum(-1, keepdim=True) < 0, -qb, qb)  # same hemisphere before blending
     q = qa + qb
     q = q / q.norm(dim=-1, keepdim=True).clamp_min(1e-12)
-    pose = method.sim3.apply_w2c(w2c.to(method.device, torch.float32))
+    pose = method.state.sim3.apply_w2c(w2c.to(method.device, torch.float32))
     out = rasterize(0.5 * (ma + mb), q, ls, o, c, K.to(method.device, torch.float32), pose, width, height,
                     backend=fit.cfg.backend)  # fmt: skip
     return out.rgb.clamp(0.0, 1.0)
@@ -149,7 +149,8 @@ def run_one(args, spec, cfg, scene: Scene, k: int, device, prior_dirs: dict[str,
         train_s = time.perf_counter() - t0
     H, W = scene.height, scene.width
     K, w2c = scene.Ks[k], scene.w2cs[k]
-    if getattr(method, "fit_state", None) is not None and getattr(method, "sim3", None) is not None:
+    state = getattr(method, "state", None)  # a Base-family method (methods.base.BaseState)
+    if getattr(state, "fit", None) is not None and getattr(state, "sim3", None) is not None:
         img = render_between(method, K, w2c, W, H, k - 1)
     else:
         img = method.render(K, w2c, W, H, k)

@@ -354,15 +354,7 @@ def _execute_locked(req, spec, cfg, folder, root, view, device, timer, method, b
     stats = method.stats()
     timing = {
         **_flushed(timer).record(),
-        "train": {
-            "steps": summary.end_step,
-            "resumed_from_step": summary.start_step,
-            "steps_this_session": summary.steps_run,
-            "wall_s_this_session": summary.wall_s,
-            "wall_s_all_sessions": summary.total_wall_s,
-            "it_per_s": summary.it_per_s,
-            "final_loss": summary.final_loss,
-        },
+        "train": _train_record(summary),
         "peak_rss_mib": peak_rss_mib(),
         "cuda_peak_allocated_mib": (
             torch.cuda.max_memory_allocated(device) / 2**20 if device.type == "cuda" else None
@@ -389,6 +381,21 @@ def run_folder_of(req: RunRequest) -> RunFolder:
     _, sets = resolve_config(spec, req)
     tag = req.tag or run_tag(req.preset, req.overrides, req.options, sets)
     return RunFolder(Path(req.runs_dir) / Path(req.scene).name / spec.name / tag)
+
+
+def _train_record(summary) -> dict[str, Any] | None:
+    """The main training loop's figures (a method's ``fit`` returns its trainer's summary; None: no loop)."""
+    if summary is None:
+        return None
+    return {
+        "steps": summary.end_step,
+        "resumed_from_step": summary.start_step,
+        "steps_this_session": summary.steps_run,
+        "wall_s_this_session": summary.wall_s,
+        "wall_s_all_sessions": summary.total_wall_s,
+        "it_per_s": summary.it_per_s,
+        "final_loss": summary.final_loss,
+    }
 
 
 def _flushed(timer: StageClock) -> StageClock:
@@ -484,7 +491,7 @@ def _render_test(method, view: TestView, folder: RunFolder) -> None:
         out = folder.renders / (Path(name).stem + ".png")  # lossless, whatever the ground truth's format
         if out.is_file():
             continue
-        img = method.render(view.K, view.w2c, view.width, view.height, t)
+        img = method.render(view.K, view.w2c, view.width, view.height, t, test_view=True)
         if not torch.isfinite(img).all():
             raise RuntimeError(f"render of test time {t} contains NaN/Inf; the model diverged")
         arr = (img.detach().clamp(0, 1).cpu().numpy() * 255.0 + 0.5).astype(np.uint8)

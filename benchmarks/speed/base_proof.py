@@ -97,7 +97,7 @@ def run_row(row: ProofRow, scene: Path, gt: Path, runs: Path, preset: str, devic
     stats = timing.get("method_stats", {})
     return {
         **res.mean,
-        "train_s": timing.get("train", {}).get("wall_s_all_sessions"),
+        "train_s": (timing.get("train") or {}).get("wall_s_all_sessions"),
         "peak_mib": timing.get("peak_rss_mib"),
         "nodes": stats.get("scaffold_nodes_final", stats.get("scaffold_nodes")),
     }

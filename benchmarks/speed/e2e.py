@@ -128,24 +128,23 @@ class StageProfiles:
 
 
 def instrument(profiles: StageProfiles) -> None:
-    """Switch profilers at the Base method's stage boundaries (and around WorldTree's tree growth)."""
+    """Switch profilers at the stage boundaries of the Base-family methods (their :meth:`stages` lists)."""
     from methods.base import BaseMethod
-    from methods.worldtree import WorldTreeMethod
+    from methods.stages import Stage
 
-    timed = BaseMethod._timed
+    stages = BaseMethod.stages
 
-    def _timed(self, name, fn, *args, **kwargs):
-        with profiles.stage(name):
-            return timed(self, name, fn, *args, **kwargs)
+    def profiled(st: Stage) -> Stage:
+        def run(state) -> None:
+            with profiles.stage(st.name):
+                st.run(state)
 
-    BaseMethod._timed = _timed
-    grow = WorldTreeMethod._grow
+        return Stage(st.name, run)
 
-    def _grow(self):
-        with profiles.stage("tree"):
-            return grow(self)
+    def _stages(self):
+        return [profiled(st) for st in stages(self)]
 
-    WorldTreeMethod._grow = _grow
+    BaseMethod.stages = _stages
 
 
 def main(argv: list[str] | None = None) -> None:

@@ -164,14 +164,14 @@ def test_post_init_checks_still_run():
     # A nested frozen dataclass's own __post_init__ (ValueError) comes back as a UserError with the key.
     with pytest.raises(UserError, match=r"--set mid.leaf.count=-1: .*must be >= 0"):
         apply_overrides(Top(), ["mid.leaf.count=-1"])
-    # BaseConfig.__post_init__ checks and syncs the ablation spellings.
+    # BaseConfig.__post_init__ checks the ablations and folds a stage switched off in its settings into them.
     base = get_method("base").config("smoke")
     with pytest.raises(UserError, match=r"--set ablate=xyz: .*choose among ba, sw"):
         apply_overrides(base, ["ablate=xyz"])
     out = apply_overrides(base, ["ablate=sw"])
-    assert out.ablate == ("sw",) and out.ablate_sw is True and out.ablate_ba is False
-    out = apply_overrides(base, ["ablate_ba=yes"])
-    assert out.ablate == ("ba",)
+    assert out.ablate == ("sw",)
+    out = apply_overrides(base, ["ba.enabled=no"])
+    assert out.ablate == ("ba",) and out.ba.enabled and out == apply_overrides(base, ["ablate=ba"])
 
 
 def test_real_method_configs():
@@ -223,3 +223,12 @@ def test_digest_and_run_tag():
     assert run_tag("quick", {"steps": 5}, None, []) == plain
     opts = {"ablate": ["ba"], "depth": 3}
     assert run_tag("quick", {}, opts, sets) == f"quick-noba-depth3-set{expected}"
+
+
+@pytest.mark.parametrize("method", ["base", "worldtree"])
+def test_a_field_the_method_fills_in_is_refused_not_ignored(method):
+    cfg = get_method(method).config("quick")
+    # The photometric fit's steps come from `steps`; setting the nested copy would rename the run and do nothing.
+    with pytest.raises(UserError, match=r"--set photometric.steps=7: this method sets photometric.steps from steps"):
+        apply_overrides(cfg, ["photometric.steps=7"])
+    assert apply_overrides(cfg, ["steps=7"]).steps == 7

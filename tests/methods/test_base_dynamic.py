@@ -48,15 +48,15 @@ def test_dynamic_content_gets_a_scaffold_and_moving_gaussians(moving_scene, tmp_
     method.fit(TrainContext(checkpoint_dir=tmp_path / "ckpt", progress=False))
     st = method.stats()
     assert st["dynamic_tracks"] > 0 and st["scaffold_nodes"] > 0 and st["num_dynamic"] > 0
-    fit = method.fit_state
+    fit = method.state.fit
     with torch.no_grad():
         m0, _ = fit.dynamic.at(fit.scaffold, 0, fit.cache)
         m9, _ = fit.dynamic.at(fit.scaffold, 9, fit.cache)
     moved = (m9 - m0).norm(dim=-1)
     assert float(moved.max()) > 1e-3  # the sphere's Gaussians follow the scaffold
     assert torch.isfinite(moved).all()
-    img0 = method.render(scene.test_K, scene.test_w2c, scene.width, scene.height, 0)
-    img9 = method.render(scene.test_K, scene.test_w2c, scene.width, scene.height, 9)
+    img0 = method.render(scene.test_K, scene.test_w2c, scene.width, scene.height, 0, test_view=True)
+    img9 = method.render(scene.test_K, scene.test_w2c, scene.width, scene.height, 9, test_view=True)
     assert img0.shape == (scene.height, scene.width, 3) and torch.isfinite(img0).all()
     # Time matters for the render: without motion the two renders are bit-identical (same Gaussians, same
     # camera), so any change of at least one 8-bit level (what a stored render can show) proves it. The

@@ -17,10 +17,11 @@ from methods.worldtree import WorldTreeConfig
 from worldtree.errors import UserError
 
 
-def test_ablations_are_normalised_and_mirror_the_base_flags():
+def test_ablations_are_normalised_and_have_one_spelling():
     cfg = WorldTreeConfig(ablate=("sac", "ba"))
-    assert cfg.ablate == ("ba", "sac") and cfg.ablate_ba and not cfg.ablate_sw
-    assert WorldTreeConfig(ablate_sw=True).ablate == ("sw",)
+    assert cfg.ablate == ("ba", "sac")
+    sw_off = WorldTreeConfig(sw=dataclasses.replace(WorldTreeConfig().sw, enabled=False))
+    assert sw_off.ablate == ("sw",) and sw_off == WorldTreeConfig(ablate=("sw",))
     assert dataclasses.replace(cfg, ablate=("tpt",)).tree_depth == 0
     assert WorldTreeConfig(depth=3).tree_depth == 3
 

@@ -73,7 +73,7 @@ def test_default_tree_has_seven_nodes_with_binary_intervals_and_timings(runs):
     assert sorted(map(int, layers[0]["nodes_s"])) == [2, 3]
     assert sorted(map(int, layers[1]["nodes_s"])) == [4, 5, 6, 7]
     assert all(lay["wall_s"] > 0 and all(v > 0 for v in lay["nodes_s"].values()) for lay in layers)
-    assert st["stages_s"]["tree"] > 0
+    assert st["stages_s"]["tree"] > 0 and st["stages"][-2:] == ["tree", "test_pose"]
     for j in range(1, 8):
         node = NodeState.load(runs["default"] / "model" / "tree" / f"node{j}.pt")
         assert [node.interval.start, node.interval.end] == INTERVALS[j]
