@@ -7,7 +7,12 @@ from pathlib import Path
 import typer
 
 from worldtree.errors import UserError
-from worldtree.priors.config import DepthConfig, DepthImportConfig, EpiConfig  # light: dataclasses only
+from worldtree.priors.config import (  # light: dataclasses only
+    DepthConfig,
+    DepthImportConfig,
+    EpiConfig,
+    MotionConfig,
+)
 
 
 def register(app: typer.Typer) -> None:
@@ -54,13 +59,20 @@ def register(app: typer.Typer) -> None:
             help="Epipolar errors from fundamental matrices estimated on the flow (LMedS), not from the "
             "poses: for a clip imported with `nvls import --no-poses`.",
         ),
+        motion: bool | None = typer.Option(
+            None,
+            "--motion/--no-motion",
+            help="Motion discovery (cues fused into the masks, dynamic tracks chained through flow); "
+            "default: priors.motion.enabled's default.",
+        ),
     ) -> None:
         _run(scene, depth, depth_kind, depth_fit, depth_png_scale, tracks, flow, masks, cache, preview,
-             downscale, epi_threshold, planes, epi_from_flow, depth_merge)  # fmt: skip
+             downscale, epi_threshold, planes, epi_from_flow, depth_merge, motion)  # fmt: skip
 
 
 def _run(scene_dir, depth, depth_kind, depth_fit, depth_png_scale, tracks, flow, masks, cache, preview,
-         downscale, epi_threshold, planes, epi_from_flow=False, depth_merge="replace") -> None:  # fmt: skip
+         downscale, epi_threshold, planes, epi_from_flow=False, depth_merge="replace",
+         motion=None) -> None:  # fmt: skip
     import dataclasses
 
     from rich.console import Console
@@ -94,6 +106,7 @@ def _run(scene_dir, depth, depth_kind, depth_fit, depth_png_scale, tracks, flow,
         tracks_source=tracks,
         flow_source=flow,
         masks_source=str(masks) if masks is not None else None,
+        motion=MotionConfig() if motion is None else dataclasses.replace(MotionConfig(), enabled=motion),
     )
     cache_dir = cache if cache is not None else Path(scene_dir) / "priors" / f"x{downscale}"
     with Progress(

@@ -43,3 +43,32 @@ def test_psnr_against_scikit_image():
     m[5:10, 3:20] = True
     np.testing.assert_allclose(masked_psnr_u8(a, b, m), peak_signal_noise_ratio(a[m], b[m], data_range=255))
     assert masked_psnr_u8(a, b, np.zeros_like(m)) is None
+
+
+def test_training_frame_render_uses_the_camera_the_model_trained_with():
+    from types import SimpleNamespace
+
+    from benchmarks.evaluation.leave_one_out import render_training_frame
+
+    sc = PlanarScene(PlanarSceneConfig(width=16, height=12, num_frames=4, supersample=1)).to_scene()
+    seen = []
+    optimised = torch.eye(4).repeat(4, 1, 1) * 2.0  # distinguishable from every given pose
+
+    def fit_render(K, w2c, W, H, t):
+        seen.append(("fit", w2c.clone(), W, H, t))
+        return SimpleNamespace(rgb=torch.full((H, W, 3), 2.0))  # clamped to 1 by the caller
+
+    base_like = SimpleNamespace(
+        fit_state=SimpleNamespace(cameras=lambda: optimised, render=fit_render), device=torch.device("cpu")
+    )
+    img = render_training_frame(base_like, sc, 2)
+    assert img.shape == (12, 16, 3) and float(img.max()) == 1.0
+    assert seen[-1][0] == "fit" and torch.equal(seen[-1][1], optimised[2]) and seen[-1][4] == 2
+
+    def method_render(K, w2c, W, H, t):
+        seen.append(("given", w2c.clone(), W, H, t))
+        return torch.zeros(H, W, 3)
+
+    static_like = SimpleNamespace(render=method_render)
+    render_training_frame(static_like, sc, 1)
+    assert seen[-1][0] == "given" and torch.equal(seen[-1][1], sc.w2cs[1]) and seen[-1][4] == 1

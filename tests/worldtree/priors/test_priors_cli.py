@@ -79,3 +79,15 @@ def test_prep_epi_from_flow_is_recorded(scene_dir, tmp_path):
     assert r.exit_code == 0, r.output
     rec = json.loads((tmp_path / "c" / "priors.json").read_text())
     assert rec["config"]["epi"]["use_poses"] is False
+
+
+def test_prep_motion_switch_chooses_the_masks(scene_dir, tmp_path):
+    # --motion fuses the motion cues into the masks (and chains dynamic tracks); --no-motion keeps the plain
+    # epipolar masks; the record says which.
+    for flag, expect in (("--motion", "motion cues"), ("--no-motion", "epipolar")):
+        cache = tmp_path / flag
+        res = CliRunner().invoke(app, ["prep", str(scene_dir), "--planes", "8", "--cache", str(cache), flag])
+        assert res.exit_code == 0, res.output
+        rec = json.loads((cache / "priors.json").read_text())
+        assert rec["sources"]["masks"].startswith(expect), rec["sources"]
+        assert rec["config"]["motion"]["enabled"] is (flag == "--motion")
