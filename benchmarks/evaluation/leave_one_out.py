@@ -131,7 +131,7 @@ def render_training_frame(method, sub: Scene, t: int) -> torch.Tensor:
     """``[H, W, 3]`` of the trained model at its own training frame ``t`` (of ``sub``), through the camera it
     trained with: the optimised pose for a Base-family model, the given one otherwise."""
     H, W = sub.height, sub.width
-    fit = getattr(method, "fit_state", None)
+    fit = getattr(getattr(method, "state", None), "fit", None)  # a Base-family method's photometric fit
     if fit is not None and hasattr(fit, "cameras"):
         out = fit.render(sub.Ks[t].to(method.device, torch.float32), fit.cameras()[t], W, H, t)
         return out.rgb.clamp(0.0, 1.0)
@@ -195,10 +195,9 @@ def run_one(args, spec, cfg, scene: Scene, k: int, device, prior_dirs: dict[str,
     }
     if isinstance(row["stats"].get("migration"), dict):
         row["stats"]["migration"] = {k: v for k, v in row["stats"]["migration"].items() if k != "events"}
-    info = getattr(method, "info", {})
     for key in ("dynamic_tracks", "scaffold_nodes", "priors", "motion_refine"):
-        if key in info:
-            row["stats"][key] = info[key]
+        if key in stats:
+            row["stats"][key] = stats[key]
     return row
 
 

@@ -59,7 +59,8 @@ def test_training_frame_render_uses_the_camera_the_model_trained_with():
         return SimpleNamespace(rgb=torch.full((H, W, 3), 2.0))  # clamped to 1 by the caller
 
     base_like = SimpleNamespace(
-        fit_state=SimpleNamespace(cameras=lambda: optimised, render=fit_render), device=torch.device("cpu")
+        state=SimpleNamespace(fit=SimpleNamespace(cameras=lambda: optimised, render=fit_render)),
+        device=torch.device("cpu"),
     )
     img = render_training_frame(base_like, sc, 2)
     assert img.shape == (12, 16, 3) and float(img.max()) == 1.0
