@@ -50,6 +50,7 @@ from methods.registry import MethodSpec, register_method
 from methods.stages import Ablation, Stage
 from worldtree.atomic import atomic_write_bytes, atomic_write_json
 from worldtree.budget import BudgetConfig, negligible
+from worldtree.dynamic import gaussians_at
 from worldtree.errors import UserError
 from worldtree.gaussians import inverse_sigmoid
 from worldtree.plateau import PlateauRule
@@ -243,11 +244,9 @@ class NodeFit(PhotometricFit):
 
     def gaussians_at(self, t: int, cache=None):
         """Static + own dynamic at node-local frame ``t``, then the ancestors at global ``t0 + t``."""
-        own = super().gaussians_at(t, cache)
         anc = chain_gaussians_at(self.chain, self.t0 + int(t))
-        if anc is None:
-            return own
-        return tuple(torch.cat([a, b]) for a, b in zip(own, anc, strict=True))
+        own_cache = cache if cache is not None else self.cache
+        return gaussians_at(self.static, self.dynamic, self.scaffold, t, own_cache, anc)
 
     def track_means_at(self, j: int) -> torch.Tensor:
         """The root's track loss also colours the ancestors' Gaussians by their pixel in frame ``j``."""
@@ -322,6 +321,45 @@ def _load_context(tree_dir: Path, device: str) -> tuple[dict[str, torch.Tensor],
     return _CONTEXT[key]
 
 
+def _node_photometric(cfg: NodeTrainConfig, steps: int) -> PhotometricConfig:
+    """The root's photometric settings for a child node of ``steps`` steps: cameras fixed, no density control
+    and no migration (all three only at the root: children's sets are tied to their ancestors')."""
+    return dataclasses.replace(
+        cfg.photometric,
+        steps=steps,
+        camera_start_step=steps + 1,
+        static_strategy=_NO_DENSIFY,
+        dynamic_strategy=_NO_DENSIFY,
+        node_densify_every=0,
+        migrate_every=0,
+    )
+
+
+def _node_fit(state: NodeState, pcfg: PhotometricConfig, data: dict, cfg: NodeTrainConfig, seed: int,
+              with_tracks: bool = True) -> NodeFit:  # fmt: skip
+    """The photometric fit of ``state`` on its own frames of the run's context ``data``."""
+    iv = state.interval
+    sl = slice(iv.start, iv.end + 1)
+    tracks = data["tracks"][sl] if with_tracks and data["tracks"].shape[1] else None
+    vis = data["track_vis"][sl] if tracks is not None else None
+    return NodeFit(
+        pcfg, data["images"][sl], data["depth"][sl], data["Ks"][sl], state.w2cs, state.static, state.dynamic,
+        state.scaffold, tracks, vis, cfg.extent, seed=seed, t0=iv.start, chain=state.chain, policy=cfg.policy,
+    )  # fmt: skip
+
+
+def _prune_inherited(state: NodeState, pcfg: PhotometricConfig, data: dict, cfg: NodeTrainConfig, seed: int):
+    """Budget on: keep what this node's frames see (contributions with the parent's opacities), then reset the
+    inherited opacities to ``inherit_opacity`` as without the budget. Returns the pruning counts."""
+    pre = _node_fit(state, pcfg, data, cfg, seed, with_tracks=False)
+    counts = pre.prune_negligible(cfg.budget.prune_contribution)
+    state.static, state.dynamic = pre.static, pre.dynamic
+    cap = inverse_sigmoid(torch.tensor(cfg.inherit_opacity)).item()
+    with torch.no_grad():
+        state.dynamic.params["opacity_logits"].clamp_(max=cap)
+    return counts
+
+
 def train_node(payload: dict, ctx: NodeContext) -> dict:
     """Train one child node (the :mod:`worldtree.tree.build` node-function contract).
 
@@ -331,40 +369,15 @@ def train_node(payload: dict, ctx: NodeContext) -> dict:
     state, depth = read_node_input(payload, ctx.device)
     data, cfg = _load_context(Path(ctx.folder).parent.parent, ctx.device)
     iv = state.interval
-    sl = slice(iv.start, iv.end + 1)
     if cfg.no_ancestors:
         state.chain = []
     steps = cfg.steps_at(depth)
-    pcfg = dataclasses.replace(
-        cfg.photometric,
-        steps=steps,
-        camera_start_step=steps + 1,  # cameras are optimised at the root only
-        static_strategy=_NO_DENSIFY,
-        dynamic_strategy=_NO_DENSIFY,
-        node_densify_every=0,  # density control (Gaussians and scaffold nodes) only at the root
-        migrate_every=0,  # static <-> dynamic migration too (children's sets are tied to their ancestors')
-    )
-    tracks = data["tracks"][sl] if data["tracks"].shape[1] else None
-    vis = data["track_vis"][sl] if tracks is not None else None
+    pcfg = _node_photometric(cfg, steps)
     t0 = time.perf_counter()
     adaptive: dict[str, Any] = {}
     if cfg.budget is not None:
-        # Keep what this node's frames see: contributions with the parent's opacities, then the usual reset.
-        pre = NodeFit(
-            pcfg, data["images"][sl], data["depth"][sl], data["Ks"][sl], state.w2cs, state.static,
-            state.dynamic, state.scaffold, None, None, cfg.extent, seed=ctx.seed, t0=iv.start,
-            chain=state.chain, policy=cfg.policy,
-        )  # fmt: skip
-        adaptive["inherit_prune"] = pre.prune_negligible(cfg.budget.prune_contribution)
-        state.static, state.dynamic = pre.static, pre.dynamic
-        cap = inverse_sigmoid(torch.tensor(cfg.inherit_opacity)).item()
-        with torch.no_grad():
-            state.dynamic.params["opacity_logits"].clamp_(max=cap)
-    fit = NodeFit(
-        pcfg, data["images"][sl], data["depth"][sl], data["Ks"][sl], state.w2cs, state.static, state.dynamic,
-        state.scaffold, tracks, vis, cfg.extent, seed=ctx.seed, t0=iv.start, chain=state.chain,
-        policy=cfg.policy,
-    )  # fmt: skip
+        adaptive["inherit_prune"] = _prune_inherited(state, pcfg, data, cfg, ctx.seed)
+    fit = _node_fit(state, pcfg, data, cfg, ctx.seed)
     stop = cfg.early_stop.detector(iv.length) if cfg.early_stop is not None else None
     summary = Trainer(
         TrainerConfig(steps=steps, checkpoint_every=cfg.checkpoint_every, log_every=cfg.log_every),
@@ -380,9 +393,6 @@ def train_node(payload: dict, ctx: NodeContext) -> dict:
     if cfg.budget is not None:
         adaptive["prune"] = fit.prune_negligible(cfg.budget.prune_contribution)
         adaptive["prune_ancestors"] = fit.prune_chain(cfg.budget.prune_contribution)
-    decision = None
-    if cfg.auto is not None:
-        decision = decide_split(fit.residuals(), data["masks"][sl], cfg.min_len, cfg.auto).to_dict()
     state.static, state.dynamic, state.scaffold = fit.static, fit.dynamic, fit.scaffold
     state.chain = fit.chain
     stats = {
@@ -399,8 +409,11 @@ def train_node(payload: dict, ctx: NodeContext) -> dict:
         "steps_max": steps,
         "adaptive": adaptive,
     }
-    if decision is not None:
-        stats["auto_split"] = decision
+    if cfg.auto is not None:
+        sl = slice(iv.start, iv.end + 1)
+        stats["auto_split"] = decide_split(
+            fit.residuals(), data["masks"][sl], cfg.min_len, cfg.auto
+        ).to_dict()
     return node_output(state, fit.profile.profile(), stats)
 
 

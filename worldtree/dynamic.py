@@ -104,3 +104,30 @@ class DynamicGaussians(GaussianSet):
         if "t_ref" not in data:
             raise UserError(f"{path}: a static Gaussian file (no t_ref); expected dynamic Gaussians")
         return cls(data)
+
+
+RenderList = tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]
+"""``(means [N, 3], quats [N, 4], log_scales [N, 3], opacities [N], colours [N, 3])`` for
+:func:`worldtree.render.rasterize`."""
+
+
+def gaussians_at(
+    static: GaussianSet,
+    dynamic: DynamicGaussians,
+    scaffold: Scaffold,
+    t: int,
+    cache: SkinCache | None = None,
+    extra: RenderList | None = None,
+) -> RenderList:
+    """The one place that assembles what a frame renders: the static Gaussians, then the dynamic ones deformed
+    by ``scaffold`` to its frame ``t`` (``cache``: their skinning cache, computed when None), then ``extra``
+    (a tree node's ancestors, :func:`worldtree.tree.sac.chain_gaussians_at`), concatenated in that order.
+    Differentiable in every input's parameters."""
+    dm, dq = dynamic.at(scaffold, t, cache)
+    parts = [
+        (static.means, static.quats, static.log_scales, static.opacities, static.colors),
+        (dm, dq, dynamic.log_scales, dynamic.opacities, dynamic.colors),
+    ]
+    if extra is not None:
+        parts.append(extra)
+    return tuple(torch.cat(xs) for xs in zip(*parts, strict=True))  # type: ignore[return-value]

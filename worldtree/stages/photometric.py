@@ -33,7 +33,7 @@ from typing import Any
 import torch
 
 from worldtree.budget import growth_cap, negligible, render_contributions
-from worldtree.dynamic import DynamicGaussians
+from worldtree.dynamic import DynamicGaussians, gaussians_at
 from worldtree.gaussians import GaussianSet
 from worldtree.losses import ssim
 from worldtree.motion.regularizers import MotionLossConfig, motion_losses
@@ -294,15 +294,10 @@ class PhotometricFit:
             return torch.stack([self.camera(i) for i in range(self.T)])
 
     def gaussians_at(self, t: int, cache=None):
-        """Joint tensors ``(means, quats, log_scales, opacities, colours)`` of static + dynamic at frame t."""
-        dm, dq = self.dynamic.at(self.scaffold, t, cache if cache is not None else self.cache)
-        s, d = self.static, self.dynamic
-        return (
-            torch.cat([s.means, dm]),
-            torch.cat([s.quats, dq]),
-            torch.cat([s.log_scales, d.log_scales]),
-            torch.cat([s.opacities, d.opacities]),
-            torch.cat([s.colors, d.colors]),
+        """Joint tensors ``(means, quats, log_scales, opacities, colours)`` of static + dynamic at frame t
+        (:func:`worldtree.dynamic.gaussians_at`)."""
+        return gaussians_at(
+            self.static, self.dynamic, self.scaffold, t, cache if cache is not None else self.cache
         )
 
     def render(self, K, w2c, width, height, t: int, colors=None, cache=None):

@@ -8,12 +8,12 @@ strategies), :mod:`~worldtree.tree.sac` (ancestor copies, policy, time conventio
 root). Toy node trainers for the tests and the speed script live in ``benchmarks/fixtures/toy_nodes.py``.
 """
 
+from worldtree.tree.split import build_intervals
 from worldtree.tree.tpt import (
     DEFAULT_MIN_LEN,
     Interval,
     TemporalPartitionTree,
     ancestors,
-    build_intervals,
     children,
     depth_of,
     layer_indices,

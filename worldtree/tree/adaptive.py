@@ -28,6 +28,8 @@ from dataclasses import asdict, dataclass
 
 import torch
 
+from worldtree.tree.tpt import can_split
+
 __all__ = ["AutoSplitConfig", "SplitDecision", "decide_split", "residual_stats"]
 
 
@@ -104,7 +106,7 @@ def decide_split(
     """Apply the criterion to a trained node's residual ``[T, H, W]`` and dynamic mask ``[T, H, W]``."""
     st = residual_stats(residual, dynamic)
     frames = int(residual.shape[0])
-    if frames < max(min_len, 2):
+    if not can_split(frames, min_len):
         split, reason = False, f"interval: {frames} frames < min_len {min_len}"
     elif st["dynamic_fraction"] < cfg.min_dynamic_fraction:
         split = False

@@ -15,7 +15,7 @@ from pathlib import Path
 import torch
 
 import worldtree
-from worldtree.dynamic import DynamicGaussians
+from worldtree.dynamic import DynamicGaussians, gaussians_at
 from worldtree.gaussians import GaussianSet
 from worldtree.motion.scaffold import Scaffold, SkinCache
 from worldtree.torchfile import load_torch, save_torch
@@ -76,16 +76,8 @@ class NodeState:
         Returns ``(means [N, 3], quats [N, 4], log_scales [N, 3], opacities [N], colours [N, 3])`` for
         :func:`worldtree.render.rasterize`; ``cache`` is the node's own skinning cache (computed when None).
         """
-        s, d = self.static, self.dynamic
-        dm, dq = d.at(self.scaffold, self.local_time(t_global), cache)
-        parts = [
-            (s.means, s.quats, s.log_scales, s.opacities, s.colors),
-            (dm, dq, d.log_scales, d.opacities, d.colors),
-        ]
         anc = chain_gaussians_at(self.chain, t_global, chain_length)
-        if anc is not None:
-            parts.append(anc)
-        return tuple(torch.cat(xs) for xs in zip(*parts, strict=True))  # type: ignore[return-value]
+        return gaussians_at(self.static, self.dynamic, self.scaffold, self.local_time(t_global), cache, anc)
 
     def to_payload(self) -> dict:
         """Plain dict of CPU tensors/numbers (see the module docstring)."""

@@ -27,7 +27,14 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from worldtree.tree.tpt import DEFAULT_MIN_LEN, Interval, min_child_len
+from worldtree.tree.tpt import (
+    DEFAULT_MIN_LEN,
+    Interval,
+    TemporalPartitionTree,
+    binary_point,
+    can_split,
+    split_range,
+)
 
 __all__ = [
     "SPLIT_STRATEGIES",
@@ -55,17 +62,16 @@ class SplitChoice:
 
 
 def _allowed(iv: Interval, min_len: int) -> tuple[int, int]:
-    if iv.length < max(min_len, 2):
+    if not can_split(iv.length, min_len):
         raise ValueError(f"interval {iv} has {iv.length} frames; nodes under {max(min_len, 2)} are not split")
-    c = min_child_len(min_len)
-    return iv.start + c, iv.end + 1 - c
+    return split_range(iv.start, iv.end, min_len)
 
 
 def binary_split(iv: Interval, min_len: int = DEFAULT_MIN_LEN) -> int:
     """``(L + R) // 2`` for an interval of ``>= min_len`` frames (children of ``floor((n-1)/2)`` and
     ``ceil((n+1)/2)`` frames, both ``>= min_child_len``; the clamp into the allowed range only guards)."""
     lo, hi = _allowed(iv, min_len)
-    return int(min(max((iv.start + iv.end) // 2, lo), hi))
+    return int(min(max(binary_point(iv.start, iv.end), lo), hi))
 
 
 def _as_profile(profile: np.ndarray | torch.Tensor, n: int) -> np.ndarray:
@@ -215,3 +221,42 @@ def flow_profile(
     ok = counts > 0
     out[ok] = sums[ok] / counts[ok]
     return out
+
+
+def build_intervals(
+    num_frames: int,
+    depth: int,
+    min_len: int = DEFAULT_MIN_LEN,
+    split: str = "binary",
+    profile: np.ndarray | torch.Tensor | None = None,
+) -> TemporalPartitionTree:
+    """Build the tree's intervals layer by layer down to ``depth`` (0 = root only).
+
+    Args:
+        num_frames: T training frames.
+        depth: deepest layer (the paper: 2, i.e. 3 layers and up to 7 nodes).
+        min_len: nodes shorter than this are leaves.
+        split: ``binary``, ``gradient`` or ``flow`` (this module).
+        profile: for ``gradient``/``flow``, a global per-frame profile ``[T]`` (e.g. flow magnitude of the
+            dynamic regions); each node balances its own slice. Unused by ``binary``. When the profile is
+            only known after training a node (the gradient split), grow the tree with
+            :meth:`TemporalPartitionTree.grow_layer` and a per-node profile instead.
+    """
+    if depth < 0:
+        raise ValueError(f"depth must be >= 0, got {depth}")
+    tree = TemporalPartitionTree(num_frames, min_len)
+    prof = None
+    if profile is not None:
+        prof = profile.detach().cpu().double().numpy() if isinstance(profile, torch.Tensor) else profile
+        prof = np.asarray(prof, dtype=np.float64)
+        if prof.shape != (num_frames,):
+            raise ValueError(f"profile must have shape [{num_frames}], got {prof.shape}")
+
+    def fn(j: int, iv: Interval) -> int:
+        local = None if prof is None else prof[iv.start : iv.end + 1]
+        return choose_split(split, iv, local, min_len).point
+
+    for d in range(depth):
+        if not tree.grow_layer(d, fn):
+            break
+    return tree

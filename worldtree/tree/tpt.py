@@ -5,7 +5,7 @@ and depth ``floor(log2 j)``; layer ``d`` holds the indices ``2^d .. 2^(d+1) - 1`
 
 Intervals are *inclusive* global frame ranges ``[start, end]``. A node ``[L, R]`` split at ``P`` gets the
 children ``[L, P - 1]`` and ``[P, R]`` (the paper's ``[T^L, T^P)`` and ``[T^P, T^R]``); the binary split is
-``P = (L + R) // 2`` (:mod:`worldtree.tree.split` has the others).
+``P = (L + R) // 2`` (:mod:`worldtree.tree.split` has the others, and :func:`~worldtree.tree.split.build_intervals`).
 
 Minimum interval (REFERENCE: "no child is made for an interval shorter than 12 frames"), made precise here:
 it is the *node's own* length that counts. A node with fewer than ``min_len`` frames is a leaf; a node with
@@ -23,20 +23,19 @@ from __future__ import annotations
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 
-import numpy as np
-import torch
-
 __all__ = [
     "DEFAULT_MIN_LEN",
     "Interval",
     "TemporalPartitionTree",
     "ancestors",
-    "build_intervals",
+    "binary_point",
+    "can_split",
     "children",
     "depth_of",
     "layer_indices",
     "min_child_len",
     "parent",
+    "split_range",
 ]
 
 DEFAULT_MIN_LEN = 12
@@ -46,6 +45,24 @@ DEFAULT_MIN_LEN = 12
 def min_child_len(min_len: int) -> int:
     """Shortest child a split may make: ``max(1, (min_len - 1) // 2)`` (binary's shortest; see above)."""
     return max(1, (int(min_len) - 1) // 2)
+
+
+# The three TPT rules, stated once here (the tree, the split strategies and the --depth auto criterion use them).
+def can_split(length: int, min_len: int) -> bool:
+    """Whether a node of ``length`` frames gets children: ``length >= max(min_len, 2)``."""
+    return int(length) >= max(int(min_len), 2)
+
+
+def split_range(start: int, end: int, min_len: int) -> tuple[int, int]:
+    """``(lo, hi)``: the split points ``P`` allowed for the node ``[start, end]`` (inclusive; each child keeps
+    ``>= min_child_len`` frames); only meaningful when :func:`can_split`."""
+    c = min_child_len(min_len)
+    return int(start) + c, int(end) + 1 - c
+
+
+def binary_point(start: int, end: int) -> int:
+    """The binary split point of the node ``[start, end]``: ``(start + end) // 2``."""
+    return (int(start) + int(end)) // 2
 
 
 # ---------------------------------------------------------------------------------------------- indices
@@ -190,13 +207,13 @@ class TemporalPartitionTree:
 
     def can_split(self, j: int) -> bool:
         """Whether node ``j`` has ``>= min_len`` frames (and at least 2), i.e. gets children."""
-        return self.interval(j).length >= max(self.min_len, 2)
+        return can_split(self.interval(j).length, self.min_len)
 
     def split_range(self, j: int) -> tuple[int, int]:
         """``(lo, hi)``: the split points allowed for node ``j`` (inclusive, each child ``>= min_child_len``
         frames); only meaningful when :meth:`can_split`."""
-        iv, c = self.interval(j), min_child_len(self.min_len)
-        return iv.start + c, iv.end + 1 - c
+        iv = self.interval(j)
+        return split_range(iv.start, iv.end, self.min_len)
 
     def covering(self, t: int, max_depth: int | None = None) -> int:
         """The deepest node (at most ``max_depth`` deep) whose interval contains global frame ``t``.
@@ -250,7 +267,7 @@ class TemporalPartitionTree:
             if 2 * j in self.intervals or not self.can_split(j):
                 continue
             iv = self.intervals[j]
-            p = (iv.start + iv.end) // 2 if split is None else split(j, iv)
+            p = binary_point(iv.start, iv.end) if split is None else split(j, iv)
             if p is None:
                 continue
             new.extend(self.add_children(j, int(p)))
@@ -269,44 +286,3 @@ class TemporalPartitionTree:
         tree = cls(int(d["num_frames"]), int(d["min_len"]))
         tree.intervals = {int(k): Interval(int(v[0]), int(v[1])) for k, v in d["nodes"].items()}
         return tree
-
-
-def build_intervals(
-    num_frames: int,
-    depth: int,
-    min_len: int = DEFAULT_MIN_LEN,
-    split: str = "binary",
-    profile: np.ndarray | torch.Tensor | None = None,
-) -> TemporalPartitionTree:
-    """Build the tree's intervals layer by layer down to ``depth`` (0 = root only).
-
-    Args:
-        num_frames: T training frames.
-        depth: deepest layer (the paper: 2, i.e. 3 layers and up to 7 nodes).
-        min_len: nodes shorter than this are leaves.
-        split: ``binary``, ``gradient`` or ``flow`` (:mod:`worldtree.tree.split`).
-        profile: for ``gradient``/``flow``, a global per-frame profile ``[T]`` (e.g. flow magnitude of the
-            dynamic regions); each node balances its own slice. Unused by ``binary``. When the profile is
-            only known after training a node (the gradient split), grow the tree with
-            :meth:`TemporalPartitionTree.grow_layer` and a per-node profile instead.
-    """
-    from worldtree.tree.split import choose_split  # split imports Interval from here
-
-    if depth < 0:
-        raise ValueError(f"depth must be >= 0, got {depth}")
-    tree = TemporalPartitionTree(num_frames, min_len)
-    prof = None
-    if profile is not None:
-        prof = profile.detach().cpu().double().numpy() if isinstance(profile, torch.Tensor) else profile
-        prof = np.asarray(prof, dtype=np.float64)
-        if prof.shape != (num_frames,):
-            raise ValueError(f"profile must have shape [{num_frames}], got {prof.shape}")
-
-    def fn(j: int, iv: Interval) -> int:
-        local = None if prof is None else prof[iv.start : iv.end + 1]
-        return choose_split(split, iv, local, min_len).point
-
-    for d in range(depth):
-        if not tree.grow_layer(d, fn):
-            break
-    return tree

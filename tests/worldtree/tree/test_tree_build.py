@@ -11,7 +11,8 @@ from worldtree.tree.build import TreeConfig, grow_tree, read_node_input
 from worldtree.tree.inherit import InheritConfig
 from worldtree.tree.node import load_payload
 from worldtree.tree.parallel import LayerRunner, ParallelConfig
-from worldtree.tree.tpt import Interval, build_intervals
+from worldtree.tree.split import build_intervals
+from worldtree.tree.tpt import Interval
 
 
 def test_tree_build_binary_depth2_sequential_and_parallel_agree(node_factory, tmp_path):

@@ -8,7 +8,8 @@ import torch
 from worldtree.optim import ConstantLR, GroupedAdam
 from worldtree.tree.inherit import InheritConfig, split_state
 from worldtree.tree.sac import AncestorPolicy, ancestor_optimizer, chain_gaussians_at, truncate_chain
-from worldtree.tree.tpt import Interval, build_intervals
+from worldtree.tree.split import build_intervals
+from worldtree.tree.tpt import Interval
 
 
 def _grow(root, tree, cfg=InheritConfig()):

@@ -7,8 +7,15 @@ import pytest
 import torch
 
 from worldtree.priors.flow import FlowPair
-from worldtree.tree.split import ProfileAccumulator, balanced_split, binary_split, choose_split, flow_profile
-from worldtree.tree.tpt import Interval, build_intervals
+from worldtree.tree.split import (
+    ProfileAccumulator,
+    balanced_split,
+    binary_split,
+    build_intervals,
+    choose_split,
+    flow_profile,
+)
+from worldtree.tree.tpt import Interval
 
 
 def brute_balance(w: np.ndarray, start: int, lo: int, hi: int) -> int:

@@ -4,11 +4,11 @@ from __future__ import annotations
 
 import pytest
 
+from worldtree.tree.split import build_intervals
 from worldtree.tree.tpt import (
     Interval,
     TemporalPartitionTree,
     ancestors,
-    build_intervals,
     children,
     depth_of,
     layer_indices,
