@@ -219,3 +219,18 @@ def test_lpips_needs_31_pixels(lp):
         evaluate_arrays(small, small, lpips_weights=lp)
     with pytest.warns(EvalWarning, match="identical"):
         assert evaluate_arrays(small, small, lpips_weights=False).table.loc[0, "ssim"] == 1.0
+
+
+def test_every_registered_protocol_loads_under_its_own_name(monkeypatch):
+    from benchmarks.evaluation.metrics import protocols
+
+    assert protocols.PROTOCOL_NAMES == ("worldtree", "dycheck")  # the default first
+    for name in protocols.PROTOCOL_NAMES:
+        proto = protocols.get_protocol(name)
+        assert proto.name == name and proto.record()["name"] == name
+    with pytest.raises(UserError, match="--protocol 'nope' is unknown; use one of: worldtree, dycheck"):
+        protocols.get_protocol("nope")
+    # A registry line naming the wrong class is caught, not silently scored under the wrong name.
+    monkeypatch.setitem(protocols.PROTOCOLS, "dycheck", protocols.PROTOCOLS["worldtree"])
+    with pytest.raises(TypeError, match="PROTOCOLS\\['dycheck'\\] is WorldTreeProtocol"):
+        protocols.get_protocol("dycheck")

@@ -1,11 +1,13 @@
 """Evaluation protocols: a named, versioned recipe turning image pairs (and masks) into per-frame scores.
 
-Each protocol is a :class:`Protocol` subclass in its own module and is registered in :data:`PROTOCOLS`.
+Each protocol is a :class:`Protocol` subclass in its own module, registered by one line of :data:`PROTOCOLS`
+(name -> ``module:Class``; its modules import this one, so the registry names them instead of importing them).
 Formulas and the reasons behind every choice are in docs/evaluation.md.
 """
 
 from __future__ import annotations
 
+import importlib
 from abc import ABC, abstractmethod
 from typing import Any, ClassVar
 
@@ -84,16 +86,21 @@ def lpips_input(img: torch.Tensor) -> torch.Tensor:
     return (img.to(torch.float64) / 127.5 - 1.0).to(torch.float32)
 
 
+#: The registered protocols, default first: name -> ``"module:Class"`` (the one place a protocol is added).
+PROTOCOLS: dict[str, str] = {
+    "worldtree": "benchmarks.evaluation.metrics.protocol_worldtree:WorldTreeProtocol",
+    "dycheck": "benchmarks.evaluation.metrics.protocol_dycheck:DycheckProtocol",
+}
+#: Names of the registered protocols, default first.
+PROTOCOL_NAMES = tuple(PROTOCOLS)
+
+
 def get_protocol(name: str) -> Protocol:
     """The registered protocol called ``name``; an unknown name is a :class:`UserError` listing the choices."""
-    from benchmarks.evaluation.metrics.protocol_dycheck import DycheckProtocol
-    from benchmarks.evaluation.metrics.protocol_worldtree import WorldTreeProtocol
-
-    protocols = {p.name: p for p in (WorldTreeProtocol, DycheckProtocol)}
-    if name not in protocols:
-        raise UserError(f"--protocol {name!r} is unknown; use one of: {', '.join(protocols)}")
-    return protocols[name]()
-
-
-#: Names of the registered protocols, default first.
-PROTOCOL_NAMES = ("worldtree", "dycheck")
+    if name not in PROTOCOLS:
+        raise UserError(f"--protocol {name!r} is unknown; use one of: {', '.join(PROTOCOLS)}")
+    module, cls_name = PROTOCOLS[name].split(":")
+    cls = getattr(importlib.import_module(module), cls_name)
+    if cls.name != name:  # a registry line naming the wrong class
+        raise TypeError(f"PROTOCOLS[{name!r}] is {cls.__name__}, whose name is {cls.name!r}")
+    return cls()
