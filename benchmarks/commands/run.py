@@ -2,20 +2,13 @@
 
 from __future__ import annotations
 
-import shlex
-import sys
 import warnings
 from pathlib import Path
 
 import typer
 
-# Help of the imported-prior options, worded as `wtbench prep`'s options for the same files.
-PRIOR_HELP = {
-    "masks": "Folder of dynamic masks (one per frame) replacing EPI masks; sets priors.masks_source.",
-    "tracks": "CoTracker .npy/.npz/.pt file of tracks to import; sets priors.tracks_source.",
-    "depth_maps": "Depth file/folder to import (prep's --depth PATH); sets priors.depth_source.",
-    "flow": "Folder of <i>_<j>.flo/.npy flow to import; sets priors.flow_source.",
-}
+from benchmarks.commands import run_options as opt
+from benchmarks.commands.run_options import RunOptions, one_line_warning
 
 
 def register(app: typer.Typer) -> None:
@@ -33,11 +26,11 @@ def register(app: typer.Typer) -> None:
         scene: Path | None = typer.Option(
             None, "--scene", "-s", help="Scene folder written by `nvls build`."
         ),
-        runs_dir: Path = typer.Option(Path("runs"), "--out", "-o", help="Root folder of the run folders."),
-        preset: str = typer.Option("paper", "--preset", help="Config preset: quick (CPU minutes) or paper."),
-        device: str = typer.Option("auto", "--device", help="auto, cpu, cuda or cuda:N."),
-        steps: int | None = typer.Option(None, "--steps", help="Override the number of training steps."),
-        seed: int | None = typer.Option(None, "--seed", help="Override the random seed."),
+        runs_dir: Path = opt.OUT,
+        preset: str = opt.PRESET,
+        device: str = opt.DEVICE,
+        steps: int | None = opt.STEPS,
+        seed: int | None = opt.SEED,
         downscale: int | None = typer.Option(None, "--downscale", help="Override the training image shrink."),
         ablate: list[str] | None = typer.Option(
             None, "--ablate", help="worldtree: ablate a component (ba, sw, tpt, sac); repeat for several."
@@ -56,20 +49,12 @@ def register(app: typer.Typer) -> None:
         sequential: bool = typer.Option(
             False, "--sequential", help="worldtree: train each layer's nodes one after another."
         ),
-        set_: list[str] | None = typer.Option(
-            None,
-            "--set",
-            metavar="KEY=VALUE",
-            help="Change any config field, e.g. photometric.lambda_depth=0.1 or priors.epi.threshold_px=1.0 "
-            "(dotted path, value parsed by the field's type); repeatable. See docs/running.md.",
-        ),
-        masks: Path | None = typer.Option(None, "--masks", help=PRIOR_HELP["masks"]),
-        tracks: Path | None = typer.Option(None, "--tracks", help=PRIOR_HELP["tracks"]),
-        depth_maps: Path | None = typer.Option(None, "--depth-maps", help=PRIOR_HELP["depth_maps"]),
-        flow: Path | None = typer.Option(None, "--flow", help=PRIOR_HELP["flow"]),
-        lpips_weights: Path | None = typer.Option(
-            None, "--lpips-weights", help="Folder holding alexnet-owt-7be5be79.pth and alex.pth."
-        ),
+        set_: list[str] | None = opt.SET,
+        masks: Path | None = opt.MASKS,
+        tracks: Path | None = opt.TRACKS,
+        depth_maps: Path | None = opt.DEPTH_MAPS,
+        flow: Path | None = opt.FLOW,
+        lpips_weights: Path | None = opt.LPIPS_WEIGHTS,
         tensorboard: bool = typer.Option(False, "--tensorboard", help="Log scalars for TensorBoard."),
         force: bool = typer.Option(False, "--force", help="Delete an existing run folder and start again."),
         tag: str | None = typer.Option(None, "--tag", help="Run-folder name instead of preset+overrides."),
@@ -77,7 +62,7 @@ def register(app: typer.Typer) -> None:
             False, "--list", help="List the registered methods and presets, then exit."
         ),
     ) -> None:
-        from benchmarks.runner.runs import RunRequest, execute, resolve_prior_paths
+        from benchmarks.runner.runs import execute
         from worldtree.errors import UserError
 
         if list_:
@@ -87,45 +72,13 @@ def register(app: typer.Typer) -> None:
             raise UserError(
                 "`wtbench run` needs --method NAME and --scene FOLDER (see --list for the methods)"
             )
-        overrides = {
-            k: v for k, v in (("steps", steps), ("seed", seed), ("downscale", downscale)) if v is not None
-        }
-        options = _options(ablate, depth, chain_length, split, sequential)
-        sets = list(set_ or [])
-        priors = resolve_prior_paths(
-            {"masks": masks, "tracks": tracks, "depth_maps": depth_maps, "flow": flow}
-        )
-        req = RunRequest(
-            scene=scene,
-            method=method,
-            runs_dir=runs_dir,
-            preset=preset,
-            device=device,
-            overrides=overrides,
-            options=options,
-            sets=sets,
-            priors=priors,
-            lpips_weights=lpips_weights,
-            tensorboard=tensorboard,
-            force=force,
-            tag=tag,
-            command=_command_line(
-                method,
-                scene,
-                runs_dir,
-                preset,
-                device,
-                overrides,
-                lpips_weights,
-                tensorboard,
-                tag,
-                options,
-                sets=sets,
-                priors=priors,
-            ),
-        )
+        run = RunOptions.from_cli(
+            method, masks, tracks, depth_maps, flow, steps, seed, downscale, set_, runs_dir=runs_dir,
+            preset=preset, device=device, lpips_weights=lpips_weights, tensorboard=tensorboard, tag=tag,
+        )  # fmt: skip
+        req = run.request(scene, _options(ablate, depth, chain_length, split, sequential), force=force)
         with warnings.catch_warnings():
-            warnings.showwarning = _one_line_warning
+            warnings.showwarning = one_line_warning
             result = execute(req)
         if not result.skipped:
             scores = "  ".join(f"{k} {v:.4f}" for k, v in result.mean.items())
@@ -145,45 +98,6 @@ def _options(ablate, depth, chain_length, split, sequential) -> dict:
     if sequential:
         opts["sequential"] = True
     return opts
-
-
-def _command_line(
-    method, scene, runs_dir, preset, device, overrides, lpips_weights, tensorboard, tag, options=None,
-    sets=None, priors=None,
-) -> str:  # fmt: skip
-    """The command in canonical form (every resolved option), so that it can be pasted to repeat the run
-    however it was invoked (shell, script, or in-process)."""
-    from benchmarks.runner.runs import option_flag
-
-    parts = ["wtbench", "run", "--method", method, "--scene", str(scene), "-o", str(runs_dir)]
-    parts += ["--preset", preset, "--device", device]
-    for k, v in overrides.items():
-        parts += [f"--{k}", str(v)]
-    for k, v in (options or {}).items():
-        flag = option_flag(k)
-        if k == "ablate":
-            for a in v:
-                parts += [flag, a]
-        elif k == "sequential":
-            parts.append(flag)
-        else:
-            parts += [flag, str(v)]
-    for item in sets or ():
-        parts += ["--set", item]
-    for k, v in (priors or {}).items():
-        parts += [option_flag(k), str(v)]
-    if lpips_weights is not None:
-        parts += ["--lpips-weights", str(lpips_weights)]
-    if tensorboard:
-        parts.append("--tensorboard")
-    if tag is not None:
-        parts += ["--tag", tag]
-    return shlex.join(parts)
-
-
-def _one_line_warning(message, category, filename, lineno, file=None, line=None) -> None:
-    """Show warnings (e.g. missing LPIPS weights) as one ``warning:`` line, without source code."""
-    print(f"warning: {message}", file=sys.stderr)
 
 
 def _print_methods() -> None:

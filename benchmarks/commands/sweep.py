@@ -6,7 +6,8 @@ from pathlib import Path
 
 import typer
 
-from benchmarks.commands.run import PRIOR_HELP
+from benchmarks.commands import run_options as opt
+from benchmarks.commands.run_options import RunOptions
 
 
 def register(app: typer.Typer) -> None:
@@ -25,25 +26,17 @@ def register(app: typer.Typer) -> None:
             "paper-ablation", "--grid", help="paper-ablation, depth, chain, split or seeds."
         ),
         method: str = typer.Option("worldtree", "--method", "-m", help="Registered method to sweep."),
-        runs_dir: Path = typer.Option(Path("runs"), "--out", "-o", help="Root folder of the run folders."),
-        preset: str = typer.Option("paper", "--preset", help="Config preset: quick or paper."),
-        device: str = typer.Option("auto", "--device", help="auto, cpu, cuda or cuda:N."),
-        steps: int | None = typer.Option(None, "--steps", help="Override the root's training steps."),
-        seed: int | None = typer.Option(None, "--seed", help="Override the random seed."),
-        lpips_weights: Path | None = typer.Option(
-            None, "--lpips-weights", help="Folder holding alexnet-owt-7be5be79.pth and alex.pth."
-        ),
-        set_: list[str] | None = typer.Option(
-            None,
-            "--set",
-            metavar="KEY=VALUE",
-            help="Change any config field in every run, e.g. photometric.lambda_depth=0.1; repeatable "
-            "(as `wtbench run --set`).",
-        ),
-        masks: Path | None = typer.Option(None, "--masks", help=PRIOR_HELP["masks"]),
-        tracks: Path | None = typer.Option(None, "--tracks", help=PRIOR_HELP["tracks"]),
-        depth_maps: Path | None = typer.Option(None, "--depth-maps", help=PRIOR_HELP["depth_maps"]),
-        flow: Path | None = typer.Option(None, "--flow", help=PRIOR_HELP["flow"]),
+        runs_dir: Path = opt.OUT,
+        preset: str = opt.PRESET,
+        device: str = opt.DEVICE,
+        steps: int | None = opt.STEPS,
+        seed: int | None = opt.SEED,
+        lpips_weights: Path | None = opt.LPIPS_WEIGHTS,
+        set_: list[str] | None = opt.SET,
+        masks: Path | None = opt.MASKS,
+        tracks: Path | None = opt.TRACKS,
+        depth_maps: Path | None = opt.DEPTH_MAPS,
+        flow: Path | None = opt.FLOW,
         dry_run: bool = typer.Option(False, "--dry-run", help="List the runs and exit."),
         executor: str = typer.Option(
             "local",
@@ -82,7 +75,6 @@ def register(app: typer.Typer) -> None:
             help="Show each run's state under RUNS_DIR (done, running, queued, failed) and exit.",
         ),
     ) -> None:
-        from benchmarks.runner.runs import resolve_prior_paths
         from benchmarks.runner.sweep_executors import (
             ExecutorConfig,
             SlurmOptions,
@@ -96,9 +88,10 @@ def register(app: typer.Typer) -> None:
             return
         if not scenes:
             raise UserError("`wtbench sweep` needs --scenes FOLDER (or --status RUNS_DIR)")
-        priors = resolve_prior_paths(
-            {"masks": masks, "tracks": tracks, "depth_maps": depth_maps, "flow": flow}
-        )
+        run = RunOptions.from_cli(
+            method, masks, tracks, depth_maps, flow, steps, seed, sets=set_, runs_dir=runs_dir, preset=preset,
+            device=device, lpips_weights=lpips_weights,
+        )  # fmt: skip
         slurm = SlurmOptions(
             partition=slurm_partition,
             time_min=parse_slurm_time(slurm_time),
@@ -107,11 +100,7 @@ def register(app: typer.Typer) -> None:
             mem=slurm_mem,
             extra=parse_slurm_args(slurm_arg or []),
         )
-        sweep(
-            scenes, grid, method, runs_dir, preset, device, steps, seed, lpips_weights, dry_run,
-            sets=list(set_ or []), priors=priors,
-            executor=ExecutorConfig(kind=executor, max_parallel=max_parallel, slurm=slurm),
-        )  # fmt: skip
+        sweep(scenes, grid, run, dry_run, ExecutorConfig(kind=executor, max_parallel=max_parallel, slurm=slurm))
 
 
 def show_status(runs_dir: Path) -> None:
@@ -131,32 +120,18 @@ def show_status(runs_dir: Path) -> None:
     print(f"{len(states)} runs: " + ", ".join(counts))
 
 
-def sweep(
-    scenes,
-    grid,
-    method,
-    runs_dir,
-    preset,
-    device,
-    steps,
-    seed,
-    lpips_weights,
-    dry_run,
-    sets=None,
-    priors=None,
-    executor=None,
-) -> None:
-    """Resolve scenes and grid, run them, print a summary and write RUNS_DIR/sweep-<grid>.json. ``sets``
-    (``KEY=VALUE``) and ``priors`` (``benchmarks.runner.runs.PRIOR_OPTIONS`` name -> path) go to every run; they are
-    checked against the method's config once, before the first run. ``executor``
+def sweep(scenes, grid: str, run: RunOptions, dry_run: bool = False, executor=None) -> None:
+    """Resolve scenes and grid, run them, print a summary and write RUNS_DIR/sweep-<grid>.json. ``run`` (the
+    options `wtbench run` would get; its ``sets`` and ``priors`` go to every run) is checked against the
+    method's config once, before the first run. ``executor``
     (:class:`benchmarks.runner.sweep_executors.ExecutorConfig`; None: in this process) says where runs execute: one
     local run at a time without GPUs runs in this process, anything else as submitit jobs."""
     import dataclasses
     import warnings
 
-    from benchmarks.commands.run import _command_line, _one_line_warning
+    from benchmarks.commands.run_options import one_line_warning
     from benchmarks.runner.config_overrides import split_assignment
-    from benchmarks.runner.runs import RunRequest, execute, resolve_config, run_folder_of
+    from benchmarks.runner.runs import execute, resolve_config, run_folder_of
     from benchmarks.runner.sweep import find_scenes, grid_points, run_sweep, write_report
     from benchmarks.runner.sweep_executors import JOBS_DIR, Task, resolve_kind, run_tasks
     from methods.registry import get_method
@@ -164,10 +139,10 @@ def sweep(
     from worldtree.folder_lock import FolderLock
     from worldtree.output_paths import check_output_folder
 
-    sets, priors = list(sets or []), dict(priors or {})
+    method, runs_dir, device = run.method, run.runs_dir, run.device
+    sets, priors, overrides = run.sets, run.priors, run.overrides
     found = find_scenes(scenes)
     points = grid_points(grid)
-    overrides = {k: v for k, v in (("steps", steps), ("seed", seed)) if v is not None}
     for k in sorted({k for p in points for k in p.overrides} & set(overrides)):
         raise UserError(f"--{k}: the {grid} grid sets {k} itself; drop --{k}")
     grid_keys = {k for p in points for k in p.options} | {k for p in points for k in p.overrides}
@@ -177,10 +152,7 @@ def sweep(
             raise UserError(f"--set {item}: the {grid} grid sets {key} itself; drop the --set")
     if sets or priors:
         # A bad key or path would fail every run of the grid alike: refuse it once, up front.
-        probe = RunRequest(
-            scene=Path("."), method=method, preset=preset, overrides=overrides, sets=sets, priors=priors
-        )
-        resolve_config(get_method(method), probe)
+        resolve_config(get_method(method), run.request(Path(".")))
     if dry_run:
         for s in found:
             for p in points:
@@ -189,37 +161,20 @@ def sweep(
                 print(f"{s.name}: {p.label}  {p.options or p.overrides}{extra}")
         return
 
-    def make_request(scene: Path, pt) -> RunRequest:
-        run_overrides = {**overrides, **pt.overrides}
-        cmd = _command_line(
-            method, scene, runs_dir, preset, device, run_overrides, lpips_weights, False, None, pt.options,
-            sets=sets, priors=priors,
-        )  # fmt: skip
-        return RunRequest(
-            scene=scene,
-            method=method,
-            runs_dir=runs_dir,
-            preset=preset,
-            device=device,
-            overrides=run_overrides,
-            options=dict(pt.options),
-            sets=list(sets),
-            priors=dict(priors),
-            lpips_weights=lpips_weights,
-            command=cmd,
-        )
+    def make_request(scene: Path, pt):
+        return run.request(scene, pt.options, pt.overrides)
 
     check_output_folder(runs_dir, "-o")
     report = runs_dir / f"sweep-{grid}.json"
     kind = resolve_kind(executor.kind) if executor is not None else "local"
     in_process = kind == "local" and (executor is None or _local_in_process(executor, device))
-    report_cfg = _report_config(method, preset, device, overrides, sets, priors, found)
+    report_cfg = _report_config(method, run.preset, device, overrides, sets, priors, found)
     report_cfg["executor"] = kind if not in_process else "in-process"
     report_cfg["executor_config"] = dataclasses.asdict(executor) if not in_process else None
     # One sweep per report: a second `wtbench sweep` of the same grid into the same RUNS_DIR stops at once
     # (each run folder is locked by `wtbench run`'s execute as well).
     with FolderLock(report, "sweep report"), warnings.catch_warnings():
-        warnings.showwarning = _one_line_warning
+        warnings.showwarning = one_line_warning
         if in_process:
             outcomes = run_sweep(found, points, make_request, execute)
         else:

@@ -154,14 +154,14 @@ def run_in_job(request: RunRequest, threads: int | None) -> dict[str, Any]:
     folder, whether it was skipped, its mean scores, the job id, host, device and start/end times."""
     import torch
 
-    from benchmarks.commands.run import _one_line_warning
+    from benchmarks.commands.run_options import one_line_warning
     from benchmarks.runner.runs import execute
 
     started = time.time()
     if threads:
         torch.set_num_threads(threads)
     with warnings.catch_warnings():
-        warnings.showwarning = _one_line_warning
+        warnings.showwarning = one_line_warning
         res = execute(request)
     return {
         "folder": str(res.folder.root),

@@ -16,6 +16,7 @@ from typer.testing import CliRunner
 
 import benchmarks.runner.runs
 from benchmarks.cli import app
+from benchmarks.commands.run_options import RunOptions
 from benchmarks.commands.sweep import sweep
 from benchmarks.runner.runs import RunRequest, resolve_config, run_tag
 from methods.registry import get_method
@@ -136,8 +137,11 @@ def test_sweep_passes_sets_and_priors_to_every_run(tmp_path, monkeypatch):
 
     monkeypatch.setattr(benchmarks.runner.runs, "execute", fake_execute)
     sets = ["priors.epi.threshold_px=1.0", "photometric.lambda_depth=0.2"]
-    sweep([scene], "split", "worldtree", tmp_path / "runs", "quick", "cpu", None, None, None, False,
-          sets=sets, priors={"masks": str(masks)})  # fmt: skip
+
+    def opts(method, **kw):
+        return RunOptions(method, runs_dir=tmp_path / "runs", preset="quick", device="cpu", **kw)
+
+    sweep([scene], "split", opts("worldtree", sets=sets, priors={"masks": str(masks)}))
     assert [r.options for r in seen] == [{"split": s} for s in ("binary", "gradient", "flow")]
     assert all(r.sets == sets and r.priors == {"masks": str(masks)} for r in seen)
     assert all("--set priors.epi.threshold_px=1.0" in r.command for r in seen)
@@ -148,12 +152,33 @@ def test_sweep_passes_sets_and_priors_to_every_run(tmp_path, monkeypatch):
     # Refused once, before any run: a bad key, a key the grid varies, priors on a method without them.
     seen.clear()
     with pytest.raises(UserError, match="has no field 'nosuch'"):
-        sweep([scene], "split", "worldtree", tmp_path / "runs", "quick", "cpu", None, None, None, False,
-              sets=["nosuch=1"])  # fmt: skip
+        sweep([scene], "split", opts("worldtree", sets=["nosuch=1"]))
     with pytest.raises(UserError, match="the split grid sets split itself"):
-        sweep([scene], "split", "worldtree", tmp_path / "runs", "quick", "cpu", None, None, None, False,
-              sets=["split=flow"])  # fmt: skip
+        sweep([scene], "split", opts("worldtree", sets=["split=flow"]))
     with pytest.raises(UserError, match="'static' uses no 2D priors"):
-        sweep([scene], "split", "static", tmp_path / "runs", "quick", "cpu", None, None, None, False,
-              priors={"masks": str(masks)})  # fmt: skip
+        sweep([scene], "split", opts("static", priors={"masks": str(masks)}))
     assert seen == []
+
+
+def test_run_and_sweep_share_one_declaration_of_their_common_options():
+    import typer.main
+
+    cli = typer.main.get_command(app)
+
+    def params(name):
+        return {o: p for p in cli.commands[name].params for o in p.opts}
+
+    run, sw = params("run"), params("sweep")
+    shared = ["--out", "--preset", "--device", "--steps", "--seed", "--lpips-weights", "--set", "--masks",
+              "--tracks", "--depth-maps", "--flow"]  # fmt: skip
+    for flag in shared:
+        assert (run[flag].help, run[flag].default) == (sw[flag].help, sw[flag].default), flag
+    # A sweep's run records the command `wtbench run` would record for the same request.
+    from benchmarks.commands.run_options import RunOptions
+
+    opts = RunOptions("worldtree", preset="quick", sets=["steps=3"], overrides={"seed": 1})
+    req = opts.request(Path("scenes/S"), {"ablate": ["ba"], "sequential": True})
+    assert shlex.split(req.command) == [
+        "wtbench", "run", "--method", "worldtree", "--scene", "scenes/S", "-o", "runs", "--preset", "quick",
+        "--device", "auto", "--seed", "1", "--ablate", "ba", "--sequential", "--set", "steps=3",
+    ]  # fmt: skip
