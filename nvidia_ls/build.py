@@ -189,6 +189,34 @@ def build_scene(
         return _build(raw_dir, final, cfg, log, progress)
 
 
+@dataclass
+class _Plan:
+    """What a build will write, decided (and checked) before anything is written."""
+
+    raw: RawCapture
+    train: list[int]
+    """Training cameras."""
+    kept: list[int]
+    """Source time steps kept, in order (frame ``i`` is source time ``kept[i]``)."""
+    frame_cams: list[int]
+    """Camera of each training frame (ping-pong over ``train``)."""
+    out_wh: tuple[int, int]
+    """Output (width, height)."""
+
+
+@dataclass
+class _Poses:
+    """Rig cameras (intrinsics, distortion, world-to-camera, near/far) and how they were found."""
+
+    Ks: np.ndarray
+    dists: np.ndarray
+    w2cs: np.ndarray
+    bounds: np.ndarray
+    depths: np.ndarray
+    """Depths of the SfM points (or one per camera from the bounds file), for the normalisation."""
+    info: dict
+
+
 def _build(
     raw_dir: Path,
     final: Path,
@@ -206,6 +234,43 @@ def _build(
         warnings.append(msg)
         say(f"warning: {msg}")
 
+    plan = _plan(raw_dir, final, cfg, warn, timer)
+    with timer("sfm"):
+        poses = _rig_poses(plan.raw, cfg, say)
+    world = _normalise(poses, cfg)
+    undist = _undistorters(plan, poses)
+    masks, mask_info = None, {}
+    if cfg.masks is not None:  # imported masks are checked before any frame is processed
+        with timer("masks"):
+            masks = import_masks(cfg.masks, plan.kept, cfg.test_camera, *plan.out_wh)
+        mask_info = {"method": "imported", "source": str(Path(cfg.masks).resolve())}
+    try:
+        with atomic_dir(final, force=cfg.force) as tmp:
+            test_frames, thumbs = _write_frames(tmp, plan, undist, cfg, timer, tick)
+            with timer("masks"):
+                if masks is None:
+                    masks = background_masks(test_frames, cfg.mask)
+                    mask_info = {"method": "background-median", **asdict(cfg.mask)}
+            with timer("write"):
+                _write_cameras(tmp, plan, poses, np.stack([u.K_out for u in undist]), masks, world, cfg)
+                sheet = contact_sheet(
+                    [(f"t{i} cam{plan.frame_cams[i]:02d}", thumbs[i]) for i in sorted(thumbs)],
+                    [(f"test t{i}", test_frames[i], masks[i]) for i in sorted(thumbs)],
+                )
+                save_image(tmp / "preview.png", sheet)
+            with timer("hash"):
+                files = hash_files(tmp)
+            record = _manifest(raw_dir, plan, poses, mask_info, world, cfg)
+            record["timings_s"] = {k: round(v, 4) for k, v in timer.seconds.items()}
+            record["warnings"] = warnings
+            write_manifest(tmp, record, files)
+    except FileExistsError:
+        raise UserError(f"{final}: appeared while building; pass --force to replace it") from None
+    return final
+
+
+def _plan(raw_dir: Path, final: Path, cfg: BuildConfig, warn: Callable[[str], None], timer: _Timer) -> _Plan:
+    """Index the raw capture, sample its time steps and check the output size against it."""
     with timer("index"):
         raw: RawCapture = open_raw(raw_dir, cfg.num_cameras)
     for w in raw.warnings:
@@ -216,8 +281,6 @@ def _build(
     kept = sample_times(raw.times, cfg.frames)
     if len(raw.times) < cfg.frames:
         warn(f"only {len(raw.times)} time steps available, fewer than --frames {cfg.frames}; keeping all")
-    T = len(kept)
-    frame_cams = pingpong(train, T)
     out_wh = cfg.size or (raw.width, raw.height)
     if min(out_wh) < MIN_SIZE:
         raise UserError(
@@ -228,178 +291,143 @@ def _build(
         raise UserError(
             f"--size {out_wh[0]}x{out_wh[1]}: aspect differs from the raw {raw.width}x{raw.height}; keep the aspect"
         )
-    n = len(raw.cameras)
+    return _Plan(raw, train, kept, pingpong(train, len(kept)), out_wh)
 
-    # --- poses ---------------------------------------------------------------------------------------
-    pose_info: dict
-    with timer("sfm"):
-        if cfg.poses is not None:
-            Ks, w2cs, bounds = llff.load_poses_bounds(cfg.poses, n, raw.width, raw.height)
-            dists = np.zeros((n, 5))
-            depths = np.sqrt(bounds[:, 0] * bounds[:, 1])
-            pose_info = {"method": "file", "file": str(Path(cfg.poses).resolve())}
-        else:
-            res = run_sfm(
-                raw,
-                sfm_candidates(raw.times, cfg.sfm_tries),
-                cfg.camera_model,
-                cfg.sfm_threads,
-                cfg.seed,
-                log=say,
-            )
-            Ks, dists, w2cs = res.Ks, res.dists, res.w2cs
-            depths = _point_depths(res.points, res.obs_point, res.obs_cam, w2cs)
-            bounds = np.zeros((n, 2))
-            for i in range(n):
-                d = depths[(res.obs_cam == i) & (depths > 0)]
-                if d.size < 5:  # too few own points for percentiles: use the whole reconstruction's
-                    d = depths[depths > 0]
-                if d.size == 0:
-                    raise UserError("SfM triangulated no points in front of the cameras; pass --poses FILE")
-                bounds[i] = [0.9 * np.percentile(d, 1), 1.1 * np.percentile(d, 99)]
-            pose_info = {
-                "method": "sfm",
-                "tool": "pycolmap",
-                "camera_model": cfg.camera_model,
-                "sfm_time": res.time,
-                "tried_times": res.tried,
-                "num_points": len(res.points),
-                "reprojection_error_px": res.reprojection_error,
-                "distortion": res.dists.tolist(),
-                "raw_intrinsics": res.Ks.tolist(),
-            }
+
+def _rig_poses(raw: RawCapture, cfg: BuildConfig, say: Callable[[str], None]) -> _Poses:
+    """The rig's cameras from the ``--poses`` file, or from SfM on one time step (near/far from its points)."""
+    n = len(raw.cameras)
+    if cfg.poses is not None:
+        Ks, w2cs, bounds = llff.load_poses_bounds(cfg.poses, n, raw.width, raw.height)
+        info = {"method": "file", "file": str(Path(cfg.poses).resolve())}
+        return _Poses(Ks, np.zeros((n, 5)), w2cs, bounds, np.sqrt(bounds[:, 0] * bounds[:, 1]), info)
+    res = run_sfm(
+        raw, sfm_candidates(raw.times, cfg.sfm_tries), cfg.camera_model, cfg.sfm_threads, cfg.seed, log=say
+    )
+    depths = _point_depths(res.points, res.obs_point, res.obs_cam, res.w2cs)
+    bounds = np.zeros((n, 2))
+    for i in range(n):
+        d = depths[(res.obs_cam == i) & (depths > 0)]
+        if d.size < 5:  # too few own points for percentiles: use the whole reconstruction's
+            d = depths[depths > 0]
+        if d.size == 0:
+            raise UserError("SfM triangulated no points in front of the cameras; pass --poses FILE")
+        bounds[i] = [0.9 * np.percentile(d, 1), 1.1 * np.percentile(d, 99)]
+    info = {
+        "method": "sfm",
+        "tool": "pycolmap",
+        "camera_model": cfg.camera_model,
+        "sfm_time": res.time,
+        "tried_times": res.tried,
+        "num_points": len(res.points),
+        "reprojection_error_px": res.reprojection_error,
+        "distortion": res.dists.tolist(),
+        "raw_intrinsics": res.Ks.tolist(),
+    }
+    return _Poses(res.Ks, res.dists, res.w2cs, bounds, depths, info)
+
+
+def _normalise(poses: _Poses, cfg: BuildConfig) -> dict:
+    """Move ``poses`` into the world frame of ``--normalize`` (in place); returns the transform's record."""
     mode = cfg.normalize if cfg.normalize != "auto" else ("none" if cfg.poses is not None else "rig")
     if mode == "rig":
-        s, R, t = _rig_normalisation(w2cs, depths[depths > 0])
-        w2cs = _apply_similarity(w2cs, s, R, t)
-        bounds = bounds * s
+        s, R, t = _rig_normalisation(poses.w2cs, poses.depths[poses.depths > 0])
+        poses.w2cs = _apply_similarity(poses.w2cs, s, R, t)
+        poses.bounds = poses.bounds * s
     else:
         s, R, t = 1.0, np.eye(3), np.zeros(3)
-    world = {
-        "scale": s,
-        "R": R.tolist(),
-        "t": t.tolist(),
-        "mode": mode,
-        "note": "world = scale * R @ sfm + t",
-    }
-    pose_info["normalize"] = mode
+    poses.info["normalize"] = mode
+    return {"scale": s, "R": R.tolist(), "t": t.tolist(), "mode": mode, "note": "world = scale * R @ sfm + t"}
 
+
+def _undistorters(plan: _Plan, poses: _Poses) -> list[Undistorter]:
+    """One undistort/resize map per rig camera (cameras sharing a model share one remap table)."""
+    raw = plan.raw
     tables: dict[tuple, Undistorter] = {}
     undist: list[Undistorter] = []
-    for i in range(n):
-        key = (tuple(np.round(Ks[i].ravel(), 9)), tuple(np.round(dists[i], 12)))
-        if key not in tables:  # a shared camera model needs one remap table for the whole rig
-            tables[key] = Undistorter(Ks[i], dists[i], (raw.width, raw.height), out_wh)
+    for i in range(len(raw.cameras)):
+        key = (tuple(np.round(poses.Ks[i].ravel(), 9)), tuple(np.round(poses.dists[i], 12)))
+        if key not in tables:
+            tables[key] = Undistorter(poses.Ks[i], poses.dists[i], (raw.width, raw.height), plan.out_wh)
         undist.append(tables[key])
-    K_out = np.stack([u.K_out for u in undist])
+    return undist
 
-    masks, mask_info = None, {}
-    if cfg.masks is not None:  # imported masks are checked before any frame is processed
-        with timer("masks"):
-            masks = import_masks(cfg.masks, kept, cfg.test_camera, out_wh[0], out_wh[1])
-        mask_info = {"method": "imported", "source": str(Path(cfg.masks).resolve())}
 
-    try:
-        with atomic_dir(final, force=cfg.force) as tmp:
-            # --- frames ------------------------------------------------------------------------------
-            test_frames = np.zeros((T, out_wh[1], out_wh[0], 3), np.uint8)
-            thumbs_idx = set(
-                np.unique(np.round(np.linspace(0, T - 1, min(cfg.preview_frames, T))).astype(int))
-            )
-            thumbs: dict[int, np.ndarray] = {}
-            time_pos = {s_: i for i, s_ in enumerate(kept)}
-            for k, cid in enumerate(raw.cameras):
-                need = kept if cid == cfg.test_camera else [kept[i] for i in range(T) if frame_cams[i] == cid]
-                und = undist[k]
-                it = raw.iter_frames(cid, need)
-                while True:
-                    with timer("read"):
-                        item = next(it, None)
-                    if item is None:
-                        break
-                    src_t, img = item
-                    with timer("undistort"):
-                        img = und(img)
-                    ti = time_pos[src_t]
-                    if cid == cfg.test_camera:
-                        test_frames[ti] = img
-                        with timer("write"):
-                            save_image(tmp / test_file(ti), img)
-                    else:
-                        with timer("write"):
-                            save_image(tmp / frame_file(ti), img)
-                        if ti in thumbs_idx:
-                            thumbs[ti] = img
-                tick("frames", k + 1, n)
-
-            # --- masks -------------------------------------------------------------------------------
-            with timer("masks"):
-                if masks is None:
-                    masks = background_masks(test_frames, cfg.mask)
-                    mask_info = {"method": "background-median", **asdict(cfg.mask)}
+def _write_frames(tmp: Path, plan: _Plan, undist: list[Undistorter], cfg: BuildConfig, timer: _Timer, tick):
+    """Undistort and write every training frame and test view; returns the test views ``[T, H, W, 3]`` (for
+    the background masks) and the preview's training thumbnails by frame."""
+    raw, kept, T = plan.raw, plan.kept, len(plan.kept)
+    test_frames = np.zeros((T, plan.out_wh[1], plan.out_wh[0], 3), np.uint8)
+    thumbs_idx = set(np.unique(np.round(np.linspace(0, T - 1, min(cfg.preview_frames, T))).astype(int)))
+    thumbs: dict[int, np.ndarray] = {}
+    time_pos = {s_: i for i, s_ in enumerate(kept)}
+    for k, cid in enumerate(raw.cameras):
+        test = cid == cfg.test_camera
+        need = kept if test else [kept[i] for i in range(T) if plan.frame_cams[i] == cid]
+        it = raw.iter_frames(cid, need)
+        while True:
+            with timer("read"):
+                item = next(it, None)
+            if item is None:
+                break
+            src_t, img = item
+            with timer("undistort"):
+                img = undist[k](img)
+            ti = time_pos[src_t]
+            if test:
+                test_frames[ti] = img
+            elif ti in thumbs_idx:
+                thumbs[ti] = img
             with timer("write"):
-                for ti in range(T):
-                    save_image(tmp / mask_file(ti), masks[ti])
-                pb = llff.opencv_to_llff(w2cs, K_out, out_wh[1], out_wh[0], bounds)
-                buf = io.BytesIO()
-                np.save(buf, pb)
-                atomic_write_bytes(tmp / "poses_bounds.npy", buf.getvalue())
-                atomic_write_json(
-                    tmp / "cameras.json",
-                    cameras_document(
-                        width=out_wh[0],
-                        height=out_wh[1],
-                        cameras=raw.cameras,
-                        test_camera=cfg.test_camera,
-                        Ks=K_out,
-                        w2cs=w2cs,
-                        bounds=bounds,
-                        frame_cameras=frame_cams,
-                        source_times=kept,
-                        has_masks=True,
-                        world_transform=world,
-                    ),
-                )
-                sheet = contact_sheet(
-                    [(f"t{i} cam{frame_cams[i]:02d}", thumbs[i]) for i in sorted(thumbs)],
-                    [(f"test t{i}", test_frames[i], masks[i]) for i in sorted(thumbs)],
-                )
-                save_image(tmp / "preview.png", sheet)
-            with timer("hash"):
-                files = hash_files(tmp)
-            cfg_record = asdict(cfg)
-            for key in ("masks", "poses"):
-                cfg_record[key] = None if cfg_record[key] is None else str(cfg_record[key])
-            write_manifest(
-                tmp,
-                {
-                    "tool": "nvls build",
-                    "tool_version": __version__,
-                    "created_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
-                    "source": {
-                        "path": str(raw_dir.resolve()),
-                        "layout": raw.layout,
-                        "root": str(raw.root),
-                        "cameras": raw.cameras,
-                        "time_steps": len(raw.times),
-                        "width": raw.width,
-                        "height": raw.height,
-                    },
-                    "source_times": kept,
-                    "image_size": list(out_wh),
-                    "test_camera": cfg.test_camera,
-                    "train_cameras": train,
-                    "camera_order": frame_cams,
-                    "counts": {"frames": T, "test_frames": T, "masks": T, "cameras": n},
-                    "poses": pose_info,
-                    "masks": mask_info,
-                    "world_transform": world,
-                    "config": cfg_record,
-                    "timings_s": {k: round(v, 4) for k, v in timer.seconds.items()},
-                    "warnings": warnings,
-                },
-                files,
-            )
-    except FileExistsError:
-        raise UserError(f"{final}: appeared while building; pass --force to replace it") from None
-    return final
+                save_image(tmp / (test_file(ti) if test else frame_file(ti)), img)
+        tick("frames", k + 1, len(raw.cameras))
+    return test_frames, thumbs
+
+
+def _write_cameras(tmp: Path, plan: _Plan, poses: _Poses, K_out: np.ndarray, masks, world: dict, cfg) -> None:
+    """The test masks, ``poses_bounds.npy`` (LLFF) and ``cameras.json`` of the output images."""
+    T = len(plan.kept)
+    for ti in range(T):
+        save_image(tmp / mask_file(ti), masks[ti])
+    pb = llff.opencv_to_llff(poses.w2cs, K_out, plan.out_wh[1], plan.out_wh[0], poses.bounds)
+    buf = io.BytesIO()
+    np.save(buf, pb)
+    atomic_write_bytes(tmp / "poses_bounds.npy", buf.getvalue())
+    doc = cameras_document(
+        width=plan.out_wh[0], height=plan.out_wh[1], cameras=plan.raw.cameras, test_camera=cfg.test_camera,
+        Ks=K_out, w2cs=poses.w2cs, bounds=poses.bounds, frame_cameras=plan.frame_cams, source_times=plan.kept,
+        has_masks=True, world_transform=world,
+    )  # fmt: skip
+    atomic_write_json(tmp / "cameras.json", doc)
+
+
+def _manifest(raw_dir: Path, plan: _Plan, poses: _Poses, mask_info: dict, world: dict, cfg: BuildConfig) -> dict:
+    """``manifest.json``'s record of the build (without timings, warnings and the file hashes)."""
+    raw, T = plan.raw, len(plan.kept)
+    cfg_record = asdict(cfg)
+    for key in ("masks", "poses"):
+        cfg_record[key] = None if cfg_record[key] is None else str(cfg_record[key])
+    return {
+        "tool": "nvls build",
+        "tool_version": __version__,
+        "created_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+        "source": {
+            "path": str(raw_dir.resolve()),
+            "layout": raw.layout,
+            "root": str(raw.root),
+            "cameras": raw.cameras,
+            "time_steps": len(raw.times),
+            "width": raw.width,
+            "height": raw.height,
+        },
+        "source_times": plan.kept,
+        "image_size": list(plan.out_wh),
+        "test_camera": cfg.test_camera,
+        "train_cameras": plan.train,
+        "camera_order": plan.frame_cams,
+        "counts": {"frames": T, "test_frames": T, "masks": T, "cameras": len(raw.cameras)},
+        "poses": poses.info,
+        "masks": mask_info,
+        "world_transform": world,
+        "config": cfg_record,
+    }

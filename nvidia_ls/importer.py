@@ -247,6 +247,24 @@ def _resize_map(a: np.ndarray, W: int, H: int) -> np.ndarray:
 
 
 # ------------------------------------------------------------------------------------------------ writing
+@dataclass
+class _Geometry:
+    """The imported scene's size and cameras, checked before anything is written."""
+
+    size0: tuple[int, int]
+    """Source image (width, height)."""
+    size: tuple[int, int]
+    """Output (width, height)."""
+    ids: list[int]
+    """Camera ids in ``cameras.json`` order; ``Ks``, ``w2cs``, ``bounds`` follow it."""
+    Ks: np.ndarray
+    w2cs: np.ndarray
+    bounds: np.ndarray
+    frame_cams: list[int]
+    test_cam: int
+    pose_note: object
+
+
 def import_scene(
     source: str | Path, out_dir: str | Path, cfg: ImportConfig = ImportConfig(), log=print
 ) -> Path:
@@ -258,32 +276,68 @@ def import_scene(
     t0 = time.perf_counter()
     root = Path(source)
     src = scan_source(root, cfg)
+    geo = _geometry(root, src, cfg)
+    times, has_tmasks, depth_files, warnings = _check_inputs(root, src)
+    name = cfg.name or root.resolve().name
+    final = Path(out_dir) / name
+    if final.exists() and not cfg.force:
+        raise UserError(f"{final}: exists; pass --force to replace it")
+    try:
+        with atomic_dir(final, force=cfg.force) as tmp:
+            thumbs, test_thumbs = _write_images(tmp, src, geo, times, has_tmasks)
+            record_priors = _write_priors(tmp, root, src, geo.size, depth_files)
+            world = {"scale": 1.0, "R": np.eye(3).tolist(), "t": [0.0, 0.0, 0.0], "mode": "none",
+                     "note": "world = scale * R @ source + t (the source's LLFF frame kept as is)"}  # fmt: skip
+            _write_cameras(tmp, geo, len(src.images), has_tmasks, bool(times), world)
+            save_image(tmp / "preview.png", contact_sheet(thumbs, test_thumbs))
+            files = hash_files(tmp)
+            record = _manifest(root, src, cfg, geo, times, has_tmasks, record_priors, world)
+            record["timings_s"] = {"total": round(time.perf_counter() - t0, 3)}
+            record["warnings"] = warnings
+            write_manifest(tmp, record, files)
+    except FileExistsError:
+        raise UserError(f"{final}: appeared while importing; pass --force to replace it") from None
+    for w in warnings:
+        log(f"warning: {w}")
+    return final
+
+
+def _geometry(root: Path, src: _Source, cfg: ImportConfig) -> _Geometry:
+    """Output size and cameras from the first image and ``poses_bounds.npy`` (hwf column, bounds and
+    rotations checked)."""
     T = len(src.images)
     first = read_image(src.images[0])
     H0, W0 = first.shape[:2]
     W, H = cfg.size if cfg.size is not None else (W0, H0)
     _check_aspect((H0, W0), W, H, src.images[0], "the first image")
-    rows, frame_cams, test_cam, pose_note = _cameras(src, T, cfg.test_row, root / "poses_bounds.npy")
+    pb_path = root / "poses_bounds.npy"
+    rows, frame_cams, test_cam, pose_note = _cameras(src, T, cfg.test_row, pb_path)
     pb = src.pb.astype(np.float64)
     mat = pb[:, :15].reshape(-1, 3, 5)
     h_file, w_file = mat[:, 0, 4], mat[:, 1, 4]
     if (h_file <= 0).any() or (w_file <= 0).any() or (mat[:, 2, 4] <= 0).any():
-        raise UserError(f"{root / 'poses_bounds.npy'}: non-positive H, W or focal length in the hwf column")
+        raise UserError(f"{pb_path}: non-positive H, W or focal length in the hwf column")
     if np.abs(w_file / h_file - W0 / H0).max() > 0.01 * W0 / H0:
         raise UserError(
-            f"{root / 'poses_bounds.npy'}: stored size {int(w_file[0])}x{int(h_file[0])} has another aspect "
+            f"{pb_path}: stored size {int(w_file[0])}x{int(h_file[0])} has another aspect "
             f"than the {W0}x{H0} images; give the poses of these images"
         )
     bad = pb[:, 15] <= 0
     if bad.any() or (pb[:, 16] <= pb[:, 15]).any():
-        raise UserError(f"{root / 'poses_bounds.npy'}: near/far bounds must satisfy 0 < near < far")
+        raise UserError(f"{pb_path}: near/far bounds must satisfy 0 < near < far")
     ids = sorted(rows)
     Ks, w2cs, bounds = llff.llff_to_opencv(pb[[rows[c] for c in ids]], W, H)
     for k, c in enumerate(ids):
         R = w2cs[k, :3, :3]
         if np.abs(R @ R.T - np.eye(3)).max() > 1e-3 or np.linalg.det(R) < 0:
-            raise UserError(f"{root / 'poses_bounds.npy'}: row {rows[c]} is not a rotation; check the file")
+            raise UserError(f"{pb_path}: row {rows[c]} is not a rotation; check the file")
+    return _Geometry((W0, H0), (W, H), ids, Ks, w2cs, bounds, frame_cams, test_cam, pose_note)
 
+
+def _check_inputs(root: Path, src: _Source) -> tuple[list[int], bool, list[Path], list[str]]:
+    """Test views, test masks, motion masks, depth maps and flow pairs against the frame count. Returns the
+    test times, whether test masks are used, the depth files and the warnings."""
+    T = len(src.images)
     warnings: list[str] = []
     times = sorted(src.test_views)
     if times and times != list(range(T)):
@@ -315,148 +369,129 @@ def import_scene(
     for (i, j), p in src.flow.items():
         if not (0 <= i < T and 0 <= j < T) or i == j:
             raise UserError(f"{p}: flow pair ({i}, {j}) outside frames 0..{T - 1}; remove the file")
+    return times, has_tmasks, depth_files, warnings
 
-    name = cfg.name or root.resolve().name
-    final = Path(out_dir) / name
-    if final.exists() and not cfg.force:
-        raise UserError(f"{final}: exists; pass --force to replace it")
+
+def _write_images(tmp: Path, src: _Source, geo: _Geometry, times: list[int], has_tmasks: bool):
+    """Training frames, test views and test masks at the output size; returns the preview's thumbnails
+    (training, test)."""
+    (W0, H0), (W, H) = geo.size0, geo.size
+    T = len(src.images)
+    thumbs = []
+    keep = set(np.unique(np.round(np.linspace(0, T - 1, min(6, T))).astype(int)).tolist())
+    for t, p in enumerate(src.images):
+        img = read_image(p)
+        if img.shape[:2] != (H0, W0):
+            raise UserError(f"{p}: {img.shape[1]}x{img.shape[0]}, the first frame is {W0}x{H0}")
+        img = _resize_map(img, W, H)
+        save_image(tmp / frame_file(t), img)
+        if t in keep:
+            thumbs.append((f"t{t}", img))
+    test_thumbs = []
+    for t in times:
+        img = _resize_map(read_image(src.test_views[t]), W, H)
+        save_image(tmp / test_file(t), img)
+        m = None
+        if has_tmasks:
+            m = read_mask(src.test_masks[t])
+            m = cv2.resize(m.astype(np.uint8) * 255, (W, H), interpolation=cv2.INTER_NEAREST) > 127
+            save_image(tmp / mask_file(t), m)
+        if t in keep:
+            test_thumbs.append((f"test t{t}", img, m))
+    return thumbs, test_thumbs
+
+
+def _write_priors(tmp: Path, root: Path, src: _Source, size: tuple[int, int], depth_files: list[Path]) -> dict:
+    """The network priors at the scene's size under ``imported/``, and ``imported.json`` naming them (with
+    the ``wtbench run`` options that use them). Returns the manifest's record of them."""
+    W, H = size
     record_priors: dict = {}
-    run_args: list[str] = []
-    try:
-        with atomic_dir(final, force=cfg.force) as tmp:
-            thumbs = []
-            keep = set(np.unique(np.round(np.linspace(0, T - 1, min(6, T))).astype(int)).tolist())
-            for t, p in enumerate(src.images):
-                img = read_image(p)
-                if img.shape[:2] != (H0, W0):
-                    raise UserError(f"{p}: {img.shape[1]}x{img.shape[0]}, the first frame is {W0}x{H0}")
-                img = _resize_map(img, W, H)
-                save_image(tmp / frame_file(t), img)
-                if t in keep:
-                    thumbs.append((f"t{t}", img))
-            test_thumbs = []
-            for t in times:
-                img = _resize_map(read_image(src.test_views[t]), W, H)
-                save_image(tmp / test_file(t), img)
-                m = None
-                if has_tmasks:
-                    m = read_mask(src.test_masks[t])
-                    m = cv2.resize(m.astype(np.uint8) * 255, (W, H), interpolation=cv2.INTER_NEAREST) > 127
-                    save_image(tmp / mask_file(t), m)
-                if t in keep:
-                    test_thumbs.append((f"test t{t}", img, m))
+    args: list[str] = []
+    if depth_files:
+        sub = "disp" if src.depth_kind == "disparity" else "depth"
+        ddir = _mkdir(tmp / IMPORTED / sub)
+        for t, p in enumerate(depth_files):
+            a = np.squeeze(np.asarray(_load_array(p, ("disp", "disparity", "depth", "pred")), np.float32))
+            if a.ndim != 2 or not np.isfinite(a).all():
+                raise UserError(f"{p}: map of shape {a.shape} (or non-finite); expected finite [H, W]")
+            _check_aspect(a.shape, W, H, p, "the map")
+            np.save(ddir / f"{t:05d}.npy", _resize_map(a, W, H))
+        record_priors["depth"] = {"path": f"{IMPORTED}/{sub}", "kind": src.depth_kind,
+                                  "source": str(src.depth_dir.resolve())}  # fmt: skip
+        args += ["--depth-maps", f"{IMPORTED}/{sub}"]
+        args += ["--set", f"priors.depth_import.kind={src.depth_kind}"]
+        if src.depth_kind == "disparity":  # relative (MiDaS-like): scale and shift are unknown
+            # Fitted to stereo, and used only where stereo measures nothing (moving objects): on
+            # Balloon1 MiDaS is 11-16% off the static background where stereo is 1-2% off.
+            args += ["--set", "priors.depth_import.fit_scale_shift=true"]
+            args += ["--set", "priors.depth_import.merge=fill"]
+    if src.flow:
+        fdir = _mkdir(tmp / IMPORTED / "flow")
+        sizes = set()
+        for (i, j), p in sorted(src.flow.items()):
+            f = _read_flow_file(p)
+            _check_aspect(f.shape[:2], W, H, p, "the flow")
+            sizes.add((f.shape[1], f.shape[0]))
+            np.save(fdir / f"{i:05d}_{j:05d}.npy", resize_flow(f, H, W))
+        record_priors["flow"] = {"path": f"{IMPORTED}/flow", "pairs": len(src.flow),
+                                 "source": str(next(iter(src.flow.values())).parent.resolve()),
+                                 "source_sizes": sorted(sizes)}  # fmt: skip
+        args += ["--flow", f"{IMPORTED}/flow"]
+    if src.motion_masks:
+        mdir = _mkdir(tmp / IMPORTED / "masks")
+        for t, p in enumerate(src.motion_masks):
+            m = read_mask(p)
+            _check_aspect(m.shape, W, H, p, "the mask")
+            m = cv2.resize(m.astype(np.uint8) * 255, (W, H), interpolation=cv2.INTER_NEAREST) > 127
+            save_image(mdir / f"{t:05d}.png", m)
+        record_priors["masks"] = {"path": f"{IMPORTED}/masks", "source": str(root / "motion_masks")}
+        args += ["--masks", f"{IMPORTED}/masks"]
+    if record_priors:
+        atomic_write_json(tmp / "imported.json", {"priors": record_priors, "wtbench_run_args": args})
+    return record_priors
 
-            # --- priors, at the scene's size --------------------------------------------------------
-            if depth_files:
-                sub = "disp" if src.depth_kind == "disparity" else "depth"
-                ddir = _mkdir(tmp / IMPORTED / sub)
-                for t, p in enumerate(depth_files):
-                    a = np.squeeze(
-                        np.asarray(_load_array(p, ("disp", "disparity", "depth", "pred")), np.float32)
-                    )
-                    if a.ndim != 2 or not np.isfinite(a).all():
-                        raise UserError(
-                            f"{p}: map of shape {a.shape} (or non-finite); expected finite [H, W]"
-                        )
-                    _check_aspect(a.shape, W, H, p, "the map")
-                    np.save(ddir / f"{t:05d}.npy", _resize_map(a, W, H))
-                record_priors["depth"] = {"path": f"{IMPORTED}/{sub}", "kind": src.depth_kind,
-                                          "source": str(src.depth_dir.resolve())}  # fmt: skip
-                run_args += ["--depth-maps", f"{IMPORTED}/{sub}"]
-                run_args += ["--set", f"priors.depth_import.kind={src.depth_kind}"]
-                if src.depth_kind == "disparity":  # relative (MiDaS-like): scale and shift are unknown
-                    # Fitted to stereo, and used only where stereo measures nothing (moving objects): on
-                    # Balloon1 MiDaS is 11-16% off the static background where stereo is 1-2% off.
-                    run_args += ["--set", "priors.depth_import.fit_scale_shift=true"]
-                    run_args += ["--set", "priors.depth_import.merge=fill"]
-            if src.flow:
-                fdir = _mkdir(tmp / IMPORTED / "flow")
-                sizes = set()
-                for (i, j), p in sorted(src.flow.items()):
-                    f = _read_flow_file(p)
-                    _check_aspect(f.shape[:2], W, H, p, "the flow")
-                    sizes.add((f.shape[1], f.shape[0]))
-                    np.save(fdir / f"{i:05d}_{j:05d}.npy", resize_flow(f, H, W))
-                record_priors["flow"] = {"path": f"{IMPORTED}/flow", "pairs": len(src.flow),
-                                         "source": str(next(iter(src.flow.values())).parent.resolve()),
-                                         "source_sizes": sorted(sizes)}  # fmt: skip
-                run_args += ["--flow", f"{IMPORTED}/flow"]
-            if src.motion_masks:
-                mdir = _mkdir(tmp / IMPORTED / "masks")
-                for t, p in enumerate(src.motion_masks):
-                    m = read_mask(p)
-                    _check_aspect(m.shape, W, H, p, "the mask")
-                    m = cv2.resize(m.astype(np.uint8) * 255, (W, H), interpolation=cv2.INTER_NEAREST) > 127
-                    save_image(mdir / f"{t:05d}.png", m)
-                record_priors["masks"] = {"path": f"{IMPORTED}/masks", "source": str(root / "motion_masks")}
-                run_args += ["--masks", f"{IMPORTED}/masks"]
-            if record_priors:
-                atomic_write_json(
-                    tmp / "imported.json", {"priors": record_priors, "wtbench_run_args": run_args}
-                )
 
-            world = {"scale": 1.0, "R": np.eye(3).tolist(), "t": [0.0, 0.0, 0.0], "mode": "none",
-                     "note": "world = scale * R @ source + t (the source's LLFF frame kept as is)"}  # fmt: skip
-            buf = io.BytesIO()
-            np.save(buf, llff.opencv_to_llff(w2cs, Ks, H, W, bounds))
-            atomic_write_bytes(tmp / "poses_bounds.npy", buf.getvalue())
-            atomic_write_json(
-                tmp / "cameras.json",
-                cameras_document(
-                    width=W, height=H, cameras=ids, test_camera=test_cam, Ks=Ks, w2cs=w2cs, bounds=bounds,
-                    frame_cameras=frame_cams, source_times=list(range(T)), has_masks=has_tmasks,
-                    world_transform=world,
-                ),
-            )  # fmt: skip
-            if not times:  # cameras_document lists a test view per time; there are none to list
-                import json
+def _write_cameras(tmp: Path, geo: _Geometry, T: int, has_tmasks: bool, has_views: bool, world: dict) -> None:
+    """``poses_bounds.npy`` (LLFF) and ``cameras.json`` of the output images."""
+    W, H = geo.size
+    buf = io.BytesIO()
+    np.save(buf, llff.opencv_to_llff(geo.w2cs, geo.Ks, H, W, geo.bounds))
+    atomic_write_bytes(tmp / "poses_bounds.npy", buf.getvalue())
+    doc = cameras_document(
+        width=W, height=H, cameras=geo.ids, test_camera=geo.test_cam, Ks=geo.Ks, w2cs=geo.w2cs,
+        bounds=geo.bounds, frame_cameras=geo.frame_cams, source_times=list(range(T)), has_masks=has_tmasks,
+        world_transform=world,
+    )  # fmt: skip
+    if not has_views:  # cameras_document lists a test view per time; there are none to list
+        doc["test_frames"] = []
+    atomic_write_json(tmp / "cameras.json", doc)
 
-                doc = json.loads((tmp / "cameras.json").read_text())
-                doc["test_frames"] = []
-                atomic_write_json(tmp / "cameras.json", doc)
-            save_image(tmp / "preview.png", contact_sheet(thumbs, test_thumbs))
-            files = hash_files(tmp)
-            cfg_record = {k: (str(v) if isinstance(v, Path) else v) for k, v in asdict(cfg).items()}
-            write_manifest(
-                tmp,
-                {
-                    "tool": "nvls import",
-                    "tool_version": __version__,
-                    "created_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
-                    "source": {
-                        "path": str(root.resolve()),
-                        "layout": src.layout,
-                        "time_steps": T,
-                        "width": W0,
-                        "height": H0,
-                    },  # fmt: skip
-                    "source_times": list(range(T)),
-                    "image_size": [W, H],
-                    "test_camera": test_cam,
-                    "camera_order": frame_cams,
-                    "counts": {
-                        "frames": T,
-                        "test_frames": len(times),
-                        "masks": len(times) if has_tmasks else 0,
-                        "cameras": len(ids),
-                    },  # fmt: skip
-                    "poses": {"method": "none", "note": "identity poses, focal guessed (--no-poses)"}
-                    if cfg.no_poses
-                    else {"method": "file", "rows": pose_note},
-                    "masks": {"method": "imported" if has_tmasks else "none"},
-                    "imported_priors": record_priors,
-                    "world_transform": world,
-                    "config": cfg_record,
-                    "timings_s": {"total": round(time.perf_counter() - t0, 3)},
-                    "warnings": warnings,
-                },
-                files,
-            )
-    except FileExistsError:
-        raise UserError(f"{final}: appeared while importing; pass --force to replace it") from None
-    for w in warnings:
-        log(f"warning: {w}")
-    return final
+
+def _manifest(root: Path, src: _Source, cfg: ImportConfig, geo: _Geometry, times: list[int], has_tmasks: bool,
+              record_priors: dict, world: dict) -> dict:  # fmt: skip
+    """``manifest.json``'s record of the import (without timings, warnings and the file hashes)."""
+    T = len(src.images)
+    cfg_record = {k: (str(v) if isinstance(v, Path) else v) for k, v in asdict(cfg).items()}
+    return {
+        "tool": "nvls import",
+        "tool_version": __version__,
+        "created_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+        "source": {"path": str(root.resolve()), "layout": src.layout, "time_steps": T,
+                   "width": geo.size0[0], "height": geo.size0[1]},  # fmt: skip
+        "source_times": list(range(T)),
+        "image_size": list(geo.size),
+        "test_camera": geo.test_cam,
+        "camera_order": geo.frame_cams,
+        "counts": {"frames": T, "test_frames": len(times), "masks": len(times) if has_tmasks else 0,
+                   "cameras": len(geo.ids)},  # fmt: skip
+        "poses": {"method": "none", "note": "identity poses, focal guessed (--no-poses)"}
+        if cfg.no_poses
+        else {"method": "file", "rows": geo.pose_note},
+        "masks": {"method": "imported" if has_tmasks else "none"},
+        "imported_priors": record_priors,
+        "world_transform": world,
+        "config": cfg_record,
+    }
 
 
 def _mkdir(p: Path) -> Path:
