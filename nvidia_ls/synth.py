@@ -488,85 +488,77 @@ def write_raw_scene(
     if out_dir.exists() and not force:
         raise UserError(f"{out_dir}: already exists; choose another folder or pass --force to replace it")
     scene = make_scene(cfg)
-    n, steps = cfg.cameras, cfg.steps
     with atomic_dir(out_dir, force=True) as tmp:
-        gt = tmp / "gt"
-        bounds = []
-        for ci in range(n):
-            cam = ci + 1
-            renderer = _CameraRenderer(
-                scene, scene.Ks[ci], scene.w2cs[ci], cfg.width, cfg.height, cfg.supersample
-            )
-            bounds.append(_near_far(renderer.static[0][0]))
-            writer = None
-            if cfg.layout == "videos":
-                writer = cv2.VideoWriter(
-                    str(tmp / f"cam{cam:02d}.mp4"),
-                    cv2.VideoWriter_fourcc(*"mp4v"),
-                    cfg.fps,
-                    (cfg.width, cfg.height),
-                )
-                if not writer.isOpened():
-                    raise UserError("OpenCV cannot write mp4v videos here; use --layout multiview")
-            for t in range(steps):
-                view = renderer.render(float(t))
-                if cfg.layout == "multiview":
-                    save_image(tmp / "mv_images" / f"{t:05d}" / f"cam{cam:02d}.{cfg.image_ext}", view.rgb)
-                elif cfg.layout == "camera_folders":
-                    save_image(tmp / f"cam{cam:02d}" / f"{t:05d}.{cfg.image_ext}", view.rgb)
-                else:
-                    writer.write(cv2.cvtColor(view.rgb, cv2.COLOR_RGB2BGR))
-                save_image(gt / "masks" / f"{t:05d}" / f"cam{cam:02d}.png", view.dynamic_mask)
-                if cfg.depth:
-                    (gt / "depth" / f"{t:05d}").mkdir(parents=True, exist_ok=True)
-                    np.save(gt / "depth" / f"{t:05d}" / f"cam{cam:02d}.npy", view.depth)
-            if writer is not None:
-                writer.release()
-            if progress is not None:
-                progress(ci + 1, n)
-        bounds = np.asarray(bounds)
-        gt.mkdir(parents=True, exist_ok=True)
-        np.save(
-            gt / "poses_bounds.npy", llff.opencv_to_llff(scene.w2cs, scene.Ks, cfg.height, cfg.width, bounds)
-        )
-        atomic_write_json(
-            gt / "cameras.json",
-            {
-                "convention": "opencv: x right, y down, z forward; w2c maps world to camera; pixel centres at "
-                "integer coordinates",
-                "width": cfg.width,
-                "height": cfg.height,
-                "cameras": [
-                    {
-                        "id": i + 1,
-                        "K": scene.Ks[i],
-                        "w2c": scene.w2cs[i],
-                        "near": bounds[i, 0],
-                        "far": bounds[i, 1],
-                    }
-                    for i in range(n)
-                ],
-                "config": asdict(cfg),
-                "tool_version": __version__,
-            },
-        )
-        atomic_write_json(
-            gt / "objects.json",
-            {
-                "note": "world_from_object 4x4 per time step; object ids match gt/masks (id k = objects[k-1])",
-                "objects": [
-                    {
-                        "id": i + 1,
-                        "kind": p.kind,
-                        "size": p.size,
-                        "world_from_object": [scene.object_pose(i, float(t)) for t in range(steps)],
-                    }
-                    for i, p in enumerate(scene.objects)
-                ],
-                "phase": [scene.phase(float(t)) for t in range(steps)],
-            },
-        )
+        bounds = np.asarray([_write_camera(tmp, scene, cfg, ci, progress) for ci in range(cfg.cameras)])
+        _write_gt(tmp / "gt", scene, cfg, bounds)
     return out_dir
+
+
+def _write_camera(tmp: Path, scene, cfg: SynthConfig, ci: int, progress) -> list[float]:
+    """Render rig camera ``ci`` (0-based) at every time step: its raw images (or video), ground-truth masks
+    and depth. Returns its (near, far)."""
+    cam, gt = ci + 1, tmp / "gt"
+    renderer = _CameraRenderer(scene, scene.Ks[ci], scene.w2cs[ci], cfg.width, cfg.height, cfg.supersample)
+    near_far = _near_far(renderer.static[0][0])
+    writer = None
+    if cfg.layout == "videos":
+        fourcc = cv2.VideoWriter_fourcc(*"mp4v")
+        writer = cv2.VideoWriter(str(tmp / f"cam{cam:02d}.mp4"), fourcc, cfg.fps, (cfg.width, cfg.height))
+        if not writer.isOpened():
+            raise UserError("OpenCV cannot write mp4v videos here; use --layout multiview")
+    for t in range(cfg.steps):
+        view = renderer.render(float(t))
+        if cfg.layout == "multiview":
+            save_image(tmp / "mv_images" / f"{t:05d}" / f"cam{cam:02d}.{cfg.image_ext}", view.rgb)
+        elif cfg.layout == "camera_folders":
+            save_image(tmp / f"cam{cam:02d}" / f"{t:05d}.{cfg.image_ext}", view.rgb)
+        else:
+            writer.write(cv2.cvtColor(view.rgb, cv2.COLOR_RGB2BGR))
+        save_image(gt / "masks" / f"{t:05d}" / f"cam{cam:02d}.png", view.dynamic_mask)
+        if cfg.depth:
+            (gt / "depth" / f"{t:05d}").mkdir(parents=True, exist_ok=True)
+            np.save(gt / "depth" / f"{t:05d}" / f"cam{cam:02d}.npy", view.depth)
+    if writer is not None:
+        writer.release()
+    if progress is not None:
+        progress(ci + 1, cfg.cameras)
+    return near_far
+
+
+def _write_gt(gt: Path, scene, cfg: SynthConfig, bounds: np.ndarray) -> None:
+    """``gt/poses_bounds.npy``, ``gt/cameras.json`` and ``gt/objects.json`` (see :func:`write_raw_scene`)."""
+    n, steps = cfg.cameras, cfg.steps
+    gt.mkdir(parents=True, exist_ok=True)
+    np.save(gt / "poses_bounds.npy", llff.opencv_to_llff(scene.w2cs, scene.Ks, cfg.height, cfg.width, bounds))
+    cams = [
+        {"id": i + 1, "K": scene.Ks[i], "w2c": scene.w2cs[i], "near": bounds[i, 0], "far": bounds[i, 1]}
+        for i in range(n)
+    ]
+    atomic_write_json(
+        gt / "cameras.json",
+        {
+            "convention": "opencv: x right, y down, z forward; w2c maps world to camera; pixel centres at "
+            "integer coordinates",
+            "width": cfg.width,
+            "height": cfg.height,
+            "cameras": cams,
+            "config": asdict(cfg),
+            "tool_version": __version__,
+        },
+    )
+    objects = [
+        {"id": i + 1, "kind": p.kind, "size": p.size,
+         "world_from_object": [scene.object_pose(i, float(t)) for t in range(steps)]}
+        for i, p in enumerate(scene.objects)
+    ]  # fmt: skip
+    atomic_write_json(
+        gt / "objects.json",
+        {
+            "note": "world_from_object 4x4 per time step; object ids match gt/masks (id k = objects[k-1])",
+            "objects": objects,
+            "phase": [scene.phase(float(t)) for t in range(steps)],
+        },
+    )
 
 
 def read_gt_cameras(raw_dir: str | Path) -> tuple[np.ndarray, np.ndarray]:
