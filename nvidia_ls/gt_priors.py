@@ -453,41 +453,46 @@ def write_gt_priors(
                 seed_frame=pri.seed_frame,
                 object_id=pri.object_id,
             )
-            atomic_write_json(
-                tmp / "gt_priors.json",
-                {
-                    "tool": "nvls gt-priors",
-                    "tool_version": __version__,
-                    "created_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
-                    "raw": str(raw_dir.resolve()),
-                    "scene": str(scene_dir.resolve()),
-                    "frames": T,
-                    "frame_cameras": inp.frame_cams,
-                    "frame_source_times": inp.frame_times,
-                    "image_size": [W, H],
-                    "counts": {
-                        "masks": T,
-                        "depth": T,
-                        "tracks": int(pri.tracks.shape[1]),
-                        "dynamic_tracks": int((pri.object_id > 0).sum()),
-                        "visible_fraction": float(pri.visibility.mean()) if pri.visibility.size else 0.0,
-                        "dynamic_pixel_fraction": float(pri.masks.mean()),
-                    },
-                    "alignment": {
-                        "note": "scene = scale * R @ generator + t, fitted on the camera centres",
-                        "scale": inp.align.scale,
-                        "R": inp.align.R,
-                        "t": inp.align.t,
-                        "rms_residual": inp.align.rms,
-                        "rms_residual_rel_rig": inp.align.rel_rms,
-                    },
-                    "lens_undistorted": any(m.distorted for m in inp.maps.values()),
-                    "conventions": "depth: z along the camera axis, scene units, 0 = no hit; tracks: pixels "
-                    "(x, y), OpenCV (pixel centres at integers) at image_size; masks: white = moving object",
-                    "settings": asdict(cfg),
-                    "seconds": round(time.perf_counter() - t_start, 3),
-                },
-            )
+            record = _record(raw_dir, scene_dir, inp, pri, cfg)
+            record["seconds"] = round(time.perf_counter() - t_start, 3)
+            atomic_write_json(tmp / "gt_priors.json", record)
     except FileExistsError:
         raise UserError(f"{out}: appeared while writing; pass --force to replace it") from None
     return out
+
+
+def _record(raw_dir: Path, scene_dir: Path, inp, pri, cfg: GtPriorsConfig) -> dict:
+    """``gt_priors.json`` (without the seconds taken): sources, frames, counts, alignment, conventions."""
+    W, H = inp.size
+    T = len(inp.frame_cams)
+    return {
+        "tool": "nvls gt-priors",
+        "tool_version": __version__,
+        "created_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+        "raw": str(raw_dir.resolve()),
+        "scene": str(scene_dir.resolve()),
+        "frames": T,
+        "frame_cameras": inp.frame_cams,
+        "frame_source_times": inp.frame_times,
+        "image_size": [W, H],
+        "counts": {
+            "masks": T,
+            "depth": T,
+            "tracks": int(pri.tracks.shape[1]),
+            "dynamic_tracks": int((pri.object_id > 0).sum()),
+            "visible_fraction": float(pri.visibility.mean()) if pri.visibility.size else 0.0,
+            "dynamic_pixel_fraction": float(pri.masks.mean()),
+        },
+        "alignment": {
+            "note": "scene = scale * R @ generator + t, fitted on the camera centres",
+            "scale": inp.align.scale,
+            "R": inp.align.R,
+            "t": inp.align.t,
+            "rms_residual": inp.align.rms,
+            "rms_residual_rel_rig": inp.align.rel_rms,
+        },
+        "lens_undistorted": any(m.distorted for m in inp.maps.values()),
+        "conventions": "depth: z along the camera axis, scene units, 0 = no hit; tracks: pixels "
+        "(x, y), OpenCV (pixel centres at integers) at image_size; masks: white = moving object",
+        "settings": asdict(cfg),
+    }

@@ -91,6 +91,16 @@ def verify_scene(scene: str | Path, check_hashes: bool = True) -> list[str]:
     # The document's shape, and every file/mask it names lying inside the scene, are checked first: any
     # problem there is one line naming the key or entry (worldtree.scene_schema).
     read_cameras(scene)
+    problems += _count_problems(scene, man, cams)
+    cam_problems, by_id = _camera_problems(cams)
+    problems += cam_problems + _poses_bounds_problems(scene, by_id)
+    return problems
+
+
+def _count_problems(scene: Path, man: dict, cams: dict) -> list[str]:
+    """Frame, test-view and mask counts of the manifest, cameras.json and the folders; the training frames'
+    cameras (never the test camera, ping-pong order)."""
+    problems: list[str] = []
     counts = man.get("counts", {})
     frames, tests = cams.get("frames", []), cams.get("test_frames", [])
     n_img = len(list((scene / "images").glob("*.png")))
@@ -115,8 +125,15 @@ def verify_scene(scene: str | Path, check_hashes: bool = True) -> list[str]:
     train = man.get("train_cameras")
     if train and used != pingpong(train, len(used)):
         problems.append("training frame cameras do not follow the ping-pong order of the manifest")
+    return problems
 
-    by_id = {}
+
+def _camera_problems(cams: dict) -> tuple[list[str], dict]:
+    """Every camera's intrinsics and rotation, the frames' cameras listed, near < far. Returns the problems
+    and the cameras by id."""
+    problems: list[str] = []
+    frames, tests = cams.get("frames", []), cams.get("test_frames", [])
+    by_id: dict = {}
     for c in cams.get("cameras", []):
         cid = c.get("id")
         by_id[cid] = c
@@ -136,7 +153,12 @@ def verify_scene(scene: str | Path, check_hashes: bool = True) -> list[str]:
     near, far = cams.get("near"), cams.get("far")
     if not (isinstance(near, (int, float)) and isinstance(far, (int, float)) and 0 < near < far):
         problems.append(f"cameras.json: near/far must satisfy 0 < near < far (got {near}, {far})")
+    return problems, by_id
 
+
+def _poses_bounds_problems(scene: Path, by_id: dict) -> list[str]:
+    """``poses_bounds.npy`` (when present) against cameras.json's poses."""
+    problems: list[str] = []
     pb_path = scene / "poses_bounds.npy"
     if pb_path.is_file():
         try:
