@@ -114,13 +114,23 @@ class BaseConfig(CommonConfig):
     log_every: int = 100
     """Progress period (when not on a terminal)."""
 
-    #: Fields the method fills in from another setting (``--set`` refuses them: they would change nothing).
-    DERIVED_FIELDS: ClassVar[dict[str, str]] = {"photometric.steps": "steps (--steps or --set steps=N)"}
-
     @classmethod
     def ablation_names(cls) -> tuple[str, ...]:
         """Names accepted by ``--ablate``, in display order."""
         return ("ba", "sw")
+
+    def ignored_settings(self) -> dict[str, str]:
+        """:meth:`CommonConfig.ignored_settings` plus the Base method's: ``photometric.steps`` (filled in from
+        ``steps``), ``sw.steps`` under ``ablate sw``, the density caps the Gaussian budget sets."""
+        out = super().ignored_settings()
+        out["photometric.steps"] = "this method sets it from steps; --steps N or --set steps=N"
+        if "sw" in self.ablate:
+            out["sw.steps"] = "the static warm-up is ablated (0 steps); drop --ablate sw"
+        if self.budget_on():
+            why = "the Gaussian budget sets it; --set budget.enabled=false to cap by hand"
+            for part in ("static_strategy", "dynamic_strategy"):
+                out[f"photometric.{part}.max_gaussians"] = why
+        return out
 
     def __post_init__(self) -> None:
         allowed = self.ablation_names()

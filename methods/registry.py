@@ -57,6 +57,22 @@ class CommonConfig:
         """Whether fits stop at a loss plateau."""
         return self.adaptive_default() if self.early_stop.enabled is None else bool(self.early_stop.enabled)
 
+    def ignored_settings(self) -> dict[str, str]:
+        """Settings (dotted ``--set`` keys) that a run of this config never reads, each with why and the fix:
+        ``--set`` refuses them, so that a ``--set`` either changes the run or is an error (it would rename the
+        run folder and change nothing). Subclasses add their own (``super()`` first)."""
+        out: dict[str, str] = {}
+        if not self.budget_on():
+            out.update(settings_of("budget", self.budget, "the Gaussian budget is off; --set budget.enabled=true"))
+        if not self.early_stop_on():
+            out.update(settings_of("early_stop", self.early_stop, "early stop is off; --set early_stop.enabled=true"))
+        return out
+
+
+def settings_of(prefix: str, obj: Any, why: str, skip: tuple[str, ...] = ("enabled",)) -> dict[str, str]:
+    """``{"<prefix>.<field>": why}`` for every field of the dataclass ``obj`` except ``skip`` (its switch)."""
+    return {f"{prefix}.{f.name}": why for f in fields(obj) if f.name not in skip}
+
 
 class Method(Protocol):
     """What ``wtbench run`` needs from a method built for one scene."""

@@ -82,6 +82,13 @@ class StaticConfig(CommonConfig):
     log_every: int = 100
     """Progress/TensorBoard period in steps (when not on a terminal)."""
 
+    def ignored_settings(self) -> dict[str, str]:
+        """:meth:`CommonConfig.ignored_settings` plus ``strategy.max_gaussians``, which the budget sets."""
+        out = super().ignored_settings()
+        if self.budget_on():
+            out["strategy.max_gaussians"] = "the Gaussian budget sets it; --set budget.enabled=false to cap by hand"
+        return out
+
 
 def paper_config() -> StaticConfig:
     """3DGS schedule: 30k steps, densify every 100 steps from 500 to 15k, opacity reset every 3k, SH degree 3."""

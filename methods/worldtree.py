@@ -46,7 +46,7 @@ from methods.base import (
     quick_config,
     smoke_config,
 )
-from methods.registry import MethodSpec, register_method
+from methods.registry import MethodSpec, register_method, settings_of
 from methods.stages import Ablation, Stage
 from worldtree.atomic import atomic_write_bytes, atomic_write_json
 from worldtree.budget import BudgetConfig, negligible
@@ -157,6 +157,22 @@ class WorldTreeConfig(BaseConfig):
     def steps_at(self, depth: int) -> int:
         """Photometric steps of a node at ``depth`` (>= 1)."""
         return self.layer_steps[min(depth, len(self.layer_steps)) - 1]
+
+    def ignored_settings(self) -> dict[str, str]:
+        """The Base method's plus the tree's: every tree setting when no tree grows (depth 0 or ``ablate
+        tpt``), ``auto_split`` without ``--depth auto``, ``inherit_caps`` under the Gaussian budget (children
+        then inherit everything their frames see)."""
+        out = super().ignored_settings()
+        if not self.auto_depth:
+            out.update(settings_of("auto_split", self.auto_split, "the tree's depth is fixed; --depth auto", ()))
+        if self.budget_on():
+            out["inherit_caps"] = "the Gaussian budget replaces the caps; --set budget.enabled=false"
+        if self.tree_depth == 0:
+            why = "no tree grows (depth 0 or --ablate tpt)"
+            tree = ("chain_length", "split", "layer_steps", "min_len", "inherit_caps", "inherit_opacity",
+                    "ancestors_optimised", "max_workers", "sequential")  # fmt: skip
+            out.update({k: why for k in tree})
+        return out
 
     def tree_config(self) -> TreeConfig:
         policy = AncestorPolicy(optimised_nearest=self.ancestors_optimised)

@@ -15,9 +15,11 @@ annotation                   accepted ``VALUE``
 ``tuple[X, Y, Z]``           exactly that many comma-separated values
 ===========================  ==========================================================================
 
-A nested dataclass is never replaced as a whole: name one of its fields. A field the method fills in from
-another setting (listed in the config class's ``DERIVED_FIELDS``, e.g. ``photometric.steps`` from ``steps``)
-is refused: a ``--set`` either changes the run or is an error. The config is rebuilt with
+A nested dataclass is never replaced as a whole: name one of its fields. A setting the configured run never
+reads is refused, so that a ``--set`` either changes the run or is an error: the config's
+``ignored_settings()`` lists them for the final config (e.g. ``photometric.steps``, which the method fills in
+from ``steps``; ``budget.*`` while the budget is off; the tree's settings under ``--ablate tpt``). The config
+is rebuilt with
 :func:`dataclasses.replace` from the innermost dataclass outwards (frozen dataclasses are not mutated), so
 every ``__post_init__`` on the path validates the new values again.
 """
@@ -82,11 +84,8 @@ def apply_overrides(cfg: Any, items: Sequence[str]) -> Any:
     :class:`UserError` naming the key.
     """
     canonical_sets(items)  # refuses malformed items and keys given twice, before any work
-    derived = getattr(type(cfg), "DERIVED_FIELDS", {})
     for item in items:
         key, raw = split_assignment(item)
-        if key in derived:
-            raise UserError(f"--set {key}={raw}: this method sets {key} from {derived[key]}; set that instead")
         try:
             cfg = _replace_path(cfg, key.split("."), key, raw)
         except UserError as e:
@@ -95,6 +94,11 @@ def apply_overrides(cfg: Any, items: Sequence[str]) -> Any:
             raise UserError(f"--set {key}={raw}: {e}") from e
         except (ValueError, TypeError) as e:
             raise UserError(f"--set {key}={raw}: rejected: {e}") from e
+    ignored = cfg.ignored_settings() if hasattr(cfg, "ignored_settings") else {}
+    for item in items:  # against the final config: `--set budget.enabled=true` may come after a budget key
+        key, raw = split_assignment(item)
+        if key in ignored:
+            raise UserError(f"--set {key}={raw}: this run never reads {key} ({ignored[key]})")
     return cfg
 
 

@@ -229,6 +229,92 @@ def test_digest_and_run_tag():
 def test_a_field_the_method_fills_in_is_refused_not_ignored(method):
     cfg = get_method(method).config("quick")
     # The photometric fit's steps come from `steps`; setting the nested copy would rename the run and do nothing.
-    with pytest.raises(UserError, match=r"--set photometric.steps=7: this method sets photometric.steps from steps"):
+    with pytest.raises(UserError, match=r"--set photometric.steps=7: this run never reads photometric.steps"):
         apply_overrides(cfg, ["photometric.steps=7"])
     assert apply_overrides(cfg, ["steps=7"]).steps == 7
+
+
+def _leaves(obj, prefix=""):
+    """``(dotted key, value)`` of every leaf field of a config dataclass."""
+    for f in dataclasses.fields(obj):
+        v = getattr(obj, f.name)
+        if dataclasses.is_dataclass(v):
+            yield from _leaves(v, f"{prefix}{f.name}.")
+        else:
+            yield f"{prefix}{f.name}", v
+
+
+def _as_text(v) -> str:
+    """A value as `--set` spells it."""
+    if v is None:
+        return "none"
+    if isinstance(v, bool):
+        return str(v).lower()
+    if isinstance(v, tuple):
+        return ",".join(_as_text(x) for x in v)
+    return repr(v) if isinstance(v, float) else str(v)
+
+
+def _configs():
+    base, wt, static = get_method("base"), get_method("worldtree"), get_method("static")
+    on = {"enabled": True}
+    yield "static quick", static.config("quick")
+    yield "static budget", dataclasses.replace(static.config("quick"), budget=dataclasses.replace(
+        static.config("quick").budget, **on))  # fmt: skip
+    yield "base quick", base.config("quick")
+    yield "base -sw, budget and early stop", dataclasses.replace(
+        base.config("smoke"), ablate=("sw",), budget=dataclasses.replace(base.config("smoke").budget, **on),
+        early_stop=dataclasses.replace(base.config("smoke").early_stop, **on),
+    )  # fmt: skip
+    yield "worldtree quick", wt.config("quick")
+    yield "worldtree depth auto", dataclasses.replace(wt.config("quick"), depth="auto")
+    yield "worldtree -tpt", dataclasses.replace(wt.config("quick"), ablate=("tpt",))
+
+
+@pytest.mark.parametrize("label,cfg", list(_configs()), ids=[label for label, _ in _configs()])
+def test_every_set_key_changes_the_run_or_is_refused(label, cfg):
+    """Over every leaf key of the config: a key its run never reads (``ignored_settings``) is refused with
+    the reason; any other key is applied (its own value given back leaves the config as it was)."""
+    ignored = cfg.ignored_settings()
+    keys = dict(_leaves(cfg))
+    assert set(ignored) <= set(keys), "ignored_settings names keys the config does not have"
+    for key, value in keys.items():
+        item = f"{key}={_as_text(value)}"
+        if key in ignored:
+            with pytest.raises(UserError, match=f"this run never reads {key} "):
+                apply_overrides(cfg, [item])
+        else:
+            assert apply_overrides(cfg, [item]) == cfg, item
+
+
+def test_switching_a_feature_on_in_the_same_command_makes_its_settings_count():
+    cfg = get_method("base").config("quick")
+    assert not cfg.budget_on()
+    with pytest.raises(UserError, match="the Gaussian budget is off; --set budget.enabled=true"):
+        apply_overrides(cfg, ["budget.prune_contribution=2.0"])
+    # Checked against the final config, in any order of the items.
+    out = apply_overrides(cfg, ["budget.prune_contribution=2.0", "budget.enabled=true"])
+    assert out.budget.prune_contribution == 2.0 and out.budget_on()
+    with pytest.raises(UserError, match="no tree grows"):
+        apply_overrides(get_method("worldtree").config("quick"), ["depth=0", "layer_steps=5"])
+
+
+def test_every_setting_is_read_somewhere():
+    """A cheap guard against dead settings: every leaf field of every method's config is read as an attribute
+    (``.name`` or ``getattr(x, "name")``) somewhere in the code below the CLI. It cannot tell which object is
+    read; the refusals above cover settings that exist but are not read by a given run."""
+    import ast
+
+    root = Path(__file__).resolve().parents[2]
+    read: set[str] = set()
+    for folder in ("worldtree", "methods", "benchmarks"):
+        for path in (root / folder).rglob("*.py"):
+            for node in ast.walk(ast.parse(path.read_text())):
+                if isinstance(node, ast.Attribute) and isinstance(node.ctx, ast.Load):
+                    read.add(node.attr)
+                elif isinstance(node, ast.Call) and getattr(node.func, "id", None) == "getattr":
+                    if len(node.args) > 1 and isinstance(node.args[1], ast.Constant):
+                        read.add(str(node.args[1].value))
+    for label, cfg in _configs():
+        unread = [k for k, _ in _leaves(cfg) if k.rsplit(".", 1)[-1] not in read]
+        assert unread == [], f"{label}: settings no code reads: {unread}"
