@@ -12,7 +12,7 @@
    ``chain_length``); the test camera is aligned and refined as in the Base method, through the tree's render.
 
 Worker hand-over: ``checkpoints/tree/context.pt`` holds what every node trains on (images, depth priors,
-intrinsics, dynamic tracks; plain tensors) and ``checkpoints/tree/node_config.pkl`` the node settings; a node
+intrinsics, dynamic tracks; plain tensors) and ``checkpoints/tree/node_config.json`` the node settings; a node
 finds them two folders above its own (``tree/layer<d>/node<j>``).
 
 Ablations (``ablate``): ``ba`` / ``sw`` as in the Base method; ``tpt`` trains the root only (depth 0, the Base
@@ -26,7 +26,6 @@ the root's fit) and each child's in :func:`train_node`.
 from __future__ import annotations
 
 import dataclasses
-import pickle
 import tempfile
 import time
 from dataclasses import dataclass, field
@@ -48,8 +47,9 @@ from methods.base import (
 )
 from methods.registry import MethodSpec, register_method, settings_of
 from methods.stages import Ablation, Stage
-from worldtree.atomic import atomic_write_bytes, atomic_write_json
+from worldtree.atomic import atomic_write_json
 from worldtree.budget import BudgetConfig, negligible
+from worldtree.config_json import read_config, write_config
 from worldtree.dynamic import gaussians_at
 from worldtree.errors import UserError
 from worldtree.gaussians import inverse_sigmoid
@@ -330,8 +330,7 @@ def _load_context(tree_dir: Path, device: str) -> tuple[dict[str, torch.Tensor],
     key = f"{tree_dir.resolve()}|{device}"
     if key not in _CONTEXT:
         data = torch.load(tree_dir / "context.pt", map_location=device, weights_only=True)
-        with open(tree_dir / "node_config.pkl", "rb") as f:
-            cfg = pickle.load(f)  # written by this run's main process (trusted)
+        cfg = read_config(tree_dir / "node_config.json", NodeTrainConfig)
         _CONTEXT.clear()
         _CONTEXT[key] = (data, cfg)
     return _CONTEXT[key]
@@ -552,7 +551,7 @@ def _tree_info(s: WorldTreeState, res: TreeResult) -> dict[str, Any]:
 
 
 def _write_context(s: WorldTreeState, tree_dir: Path, no_ancestors: bool) -> None:
-    """What every node trains on (``context.pt``, plain tensors) and its settings (``node_config.pkl``)."""
+    """What every node trains on (``context.pt``, plain tensors) and its settings (``node_config.json``)."""
     sc, c = s.scene, s.cfg
     data = {
         "images": sc.images.detach().cpu().contiguous(),
@@ -578,7 +577,7 @@ def _write_context(s: WorldTreeState, tree_dir: Path, no_ancestors: bool) -> Non
         inherit_opacity=c.inherit_opacity,
         early_stop=c.early_stop if c.early_stop_on() else None,
     )
-    atomic_write_bytes(tree_dir / "node_config.pkl", pickle.dumps(ncfg))
+    write_config(tree_dir / "node_config.json", ncfg)
 
 
 def _root_profile(fit: PhotometricFit) -> torch.Tensor:

@@ -4,7 +4,6 @@ the default tree, ``--ablate sac`` and ``--ablate tpt`` (against the Base method
 from __future__ import annotations
 
 import json
-import pickle
 import shutil
 from pathlib import Path
 
@@ -14,6 +13,8 @@ import torch
 from typer.testing import CliRunner
 
 from benchmarks.cli import app
+from methods.worldtree import NodeTrainConfig
+from worldtree.config_json import read_config, write_config
 from worldtree.imageio import read_image
 from worldtree.render import rasterize
 from worldtree.tree.node import NodeState, load_payload
@@ -138,13 +139,13 @@ def test_node_training_optimises_the_nearest_ancestors_only(runs, tmp_path):
     tree = tmp_path / "tree"
     (tree / "layer2" / "node6").mkdir(parents=True)
     shutil.copy(src / "context.pt", tree / "context.pt")
-    cfg = pickle.loads((src / "node_config.pkl").read_bytes())
     import dataclasses
 
     from worldtree.tree.sac import AncestorPolicy
 
+    cfg = read_config(src / "node_config.json", NodeTrainConfig)
     cfg = dataclasses.replace(cfg, policy=AncestorPolicy(optimised_nearest=1), checkpoint_every=1000)
-    (tree / "node_config.pkl").write_bytes(pickle.dumps(cfg))
+    write_config(tree / "node_config.json", cfg)
     payload = load_payload(src / "layer2" / "node6" / "input.pt")
     before = NodeState.from_payload(payload["state"])
     torch.manual_seed(0)
@@ -174,9 +175,9 @@ def test_interrupted_node_resumes_to_the_same_result(runs, tmp_path):
     folder = tree / "layer2" / "node6"
     folder.mkdir(parents=True)
     shutil.copy(src / "context.pt", tree / "context.pt")
-    cfg = pickle.loads((src / "node_config.pkl").read_bytes())
+    cfg = read_config(src / "node_config.json", NodeTrainConfig)
     cfg = dataclasses.replace(cfg, checkpoint_every=4, layer_steps=(10, 10))
-    (tree / "node_config.pkl").write_bytes(pickle.dumps(cfg))
+    write_config(tree / "node_config.json", cfg)
     ctx = NodeContext(6, 6, "cpu", 1, str(folder))
 
     def run():
@@ -230,11 +231,11 @@ def test_node_with_budget_auto_and_early_stop_records_its_choices(runs, tmp_path
     folder = tree / "layer2" / "node6"
     folder.mkdir(parents=True)
     shutil.copy(src / "context.pt", tree / "context.pt")
-    cfg = pickle.loads((src / "node_config.pkl").read_bytes())
+    cfg = read_config(src / "node_config.json", NodeTrainConfig)
     rule = PlateauRule(enabled=True, rel_tol=0.5, patience=1, min_window=2)  # fires after two windows
     cfg = dataclasses.replace(cfg, layer_steps=(40, 40), auto=AutoSplitConfig(), budget=BudgetConfig(enabled=True),
                               early_stop=rule)  # fmt: skip
-    (tree / "node_config.pkl").write_bytes(pickle.dumps(cfg))
+    write_config(tree / "node_config.json", cfg)
     torch.manual_seed(6)
     out = train_node(
         load_payload(src / "layer2" / "node6" / "input.pt"), NodeContext(6, 6, "cpu", 1, str(folder))
