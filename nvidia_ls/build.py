@@ -11,7 +11,6 @@ from __future__ import annotations
 import io
 import time
 from collections.abc import Callable
-from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -32,6 +31,7 @@ from worldtree.errors import UserError
 from worldtree.folder_lock import FolderLock, lock_paths
 from worldtree.losses import SSIM_WINDOW
 from worldtree.output_paths import check_output_folder, remove_new_folders_on_failure
+from worldtree.timing import StageClock
 
 NORMALIZE = ("auto", "rig", "none")
 # Smallest stored image side: training's SSIM loss needs its whole window inside the image.
@@ -108,19 +108,6 @@ def parse_size(text: str | None) -> tuple[int, int] | None:
     except ValueError:
         raise UserError(f"--size {text!r}: expected WxH, e.g. 480x270") from None
     return w, h
-
-
-@dataclass
-class _Timer:
-    seconds: dict[str, float] = field(default_factory=dict)
-
-    @contextmanager
-    def __call__(self, stage: str):
-        t0 = time.perf_counter()
-        try:
-            yield
-        finally:
-            self.seconds[stage] = self.seconds.get(stage, 0.0) + time.perf_counter() - t0
 
 
 def scene_name(raw_dir: Path, cfg: BuildConfig) -> str:
@@ -227,7 +214,7 @@ def _build(
     """:func:`build_scene` of ``final`` with its lock held."""
     say = log or (lambda _msg: None)
     tick = progress or (lambda _s, _d, _t: None)
-    timer = _Timer()
+    timer = StageClock()  # seconds per build step, for the manifest
     warnings: list[str] = []
 
     def warn(msg: str) -> None:
@@ -235,33 +222,33 @@ def _build(
         say(f"warning: {msg}")
 
     plan = _plan(raw_dir, final, cfg, warn, timer)
-    with timer("sfm"):
+    with timer.stage("sfm"):
         poses = _rig_poses(plan.raw, cfg, say)
     world = _normalise(poses, cfg)
     undist = _undistorters(plan, poses)
     masks, mask_info = None, {}
     if cfg.masks is not None:  # imported masks are checked before any frame is processed
-        with timer("masks"):
+        with timer.stage("masks"):
             masks = import_masks(cfg.masks, plan.kept, cfg.test_camera, *plan.out_wh)
         mask_info = {"method": "imported", "source": str(Path(cfg.masks).resolve())}
     try:
         with atomic_dir(final, force=cfg.force) as tmp:
             test_frames, thumbs = _write_frames(tmp, plan, undist, cfg, timer, tick)
-            with timer("masks"):
+            with timer.stage("masks"):
                 if masks is None:
                     masks = background_masks(test_frames, cfg.mask)
                     mask_info = {"method": "background-median", **asdict(cfg.mask)}
-            with timer("write"):
+            with timer.stage("write"):
                 _write_cameras(tmp, plan, poses, np.stack([u.K_out for u in undist]), masks, world, cfg)
                 sheet = contact_sheet(
                     [(f"t{i} cam{plan.frame_cams[i]:02d}", thumbs[i]) for i in sorted(thumbs)],
                     [(f"test t{i}", test_frames[i], masks[i]) for i in sorted(thumbs)],
                 )
                 save_image(tmp / "preview.png", sheet)
-            with timer("hash"):
+            with timer.stage("hash"):
                 files = hash_files(tmp)
             record = _manifest(raw_dir, plan, poses, mask_info, world, cfg)
-            record["timings_s"] = {k: round(v, 4) for k, v in timer.seconds.items()}
+            record["timings_s"] = {k: round(v, 4) for k, v in timer.stages_s.items()}
             record["warnings"] = warnings
             write_manifest(tmp, record, files)
     except FileExistsError:
@@ -269,9 +256,9 @@ def _build(
     return final
 
 
-def _plan(raw_dir: Path, final: Path, cfg: BuildConfig, warn: Callable[[str], None], timer: _Timer) -> _Plan:
+def _plan(raw_dir: Path, final: Path, cfg: BuildConfig, warn: Callable[[str], None], timer: StageClock) -> _Plan:
     """Index the raw capture, sample its time steps and check the output size against it."""
-    with timer("index"):
+    with timer.stage("index"):
         raw: RawCapture = open_raw(raw_dir, cfg.num_cameras)
     for w in raw.warnings:
         warn(w)
@@ -353,7 +340,7 @@ def _undistorters(plan: _Plan, poses: _Poses) -> list[Undistorter]:
     return undist
 
 
-def _write_frames(tmp: Path, plan: _Plan, undist: list[Undistorter], cfg: BuildConfig, timer: _Timer, tick):
+def _write_frames(tmp: Path, plan: _Plan, undist: list[Undistorter], cfg: BuildConfig, timer: StageClock, tick):
     """Undistort and write every training frame and test view; returns the test views ``[T, H, W, 3]`` (for
     the background masks) and the preview's training thumbnails by frame."""
     raw, kept, T = plan.raw, plan.kept, len(plan.kept)
@@ -366,19 +353,19 @@ def _write_frames(tmp: Path, plan: _Plan, undist: list[Undistorter], cfg: BuildC
         need = kept if test else [kept[i] for i in range(T) if plan.frame_cams[i] == cid]
         it = raw.iter_frames(cid, need)
         while True:
-            with timer("read"):
+            with timer.stage("read"):
                 item = next(it, None)
             if item is None:
                 break
             src_t, img = item
-            with timer("undistort"):
+            with timer.stage("undistort"):
                 img = undist[k](img)
             ti = time_pos[src_t]
             if test:
                 test_frames[ti] = img
             elif ti in thumbs_idx:
                 thumbs[ti] = img
-            with timer("write"):
+            with timer.stage("write"):
                 save_image(tmp / (test_file(ti) if test else frame_file(ti)), img)
         tick("frames", k + 1, len(raw.cameras))
     return test_frames, thumbs
