@@ -14,8 +14,9 @@ training frames too (``k<k>_<method>_prev.png`` / ``_next.png``, ``psnr_train_ne
 is a fitting problem, a sharp fit there and a blur at k an interpolation problem. Imported priors (``--depth-maps``, ``--flow``, ``--masks``: the
 folders `nvls import` writes) are re-indexed without frame k (flow pairs touching k are dropped).
 
-WorldTree does not apply to a 12-frame protocol: its tree makes no child for an interval under 12 frames,
-so its root is the whole model (the Base stages); it is not run here.
+WorldTree is not run: a 12-frame capture leaves 11 training frames, and its tree splits a node only when the
+node itself has at least 12 frames (``worldtree.tree.tpt``), so the root is the whole model (the Base
+stages). On all 12 frames the root would split once, into frames 0-4 and 5-11.
 
 Usage (results appended to OUT/loo.json; finished (k, method) pairs are skipped, so an interrupted run
 resumes)::
