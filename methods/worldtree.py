@@ -68,7 +68,9 @@ from worldtree.tree.sac import (
     AncestorCopy,
     AncestorPolicy,
     ancestor_optimizer,
+    chain_cache_states,
     chain_gaussians_at,
+    restore_chain_caches,
 )
 from worldtree.tree.split import SPLIT_STRATEGIES, ProfileAccumulator, flow_profile
 from worldtree.tree.tpt import Interval, TemporalPartitionTree, depth_of
@@ -310,6 +312,7 @@ class NodeFit(PhotometricFit):
         d["chain"] = [a.to_payload() for a in self.chain]
         d["anc_opt"] = self.anc_opt.state_dict() if self.anc_opt is not None else None
         d["profile"] = self.profile.state_dict()
+        d["chain_caches"] = chain_cache_states(self.chain)
         return d
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
@@ -317,6 +320,7 @@ class NodeFit(PhotometricFit):
         dev = self.images.device
         self.chain[:] = [AncestorCopy.from_payload(a, dev) for a in state["chain"]]
         self._build_ancestor_optimizer()
+        restore_chain_caches(self.chain, state.get("chain_caches"), dev)
         if self.anc_opt is not None and state["anc_opt"] is not None:
             self.anc_opt.load_state_dict(state["anc_opt"])
         self.profile.load_state_dict(state["profile"])

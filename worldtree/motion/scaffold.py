@@ -124,6 +124,16 @@ class SkinCache:
     idx: torch.Tensor
     valid: torch.Tensor
 
+    def to_state(self) -> dict[str, torch.Tensor]:
+        """CPU copies of the three tensors (a checkpoint carries the cache: recomputing it on resume from the
+        checkpoint's node positions would differ from the one the uninterrupted run still uses)."""
+        return {k: getattr(self, k).detach().cpu().clone() for k in ("attach", "idx", "valid")}
+
+    @classmethod
+    def from_state(cls, state: dict[str, torch.Tensor], device: torch.device | str | None = None) -> SkinCache:
+        """Inverse of :meth:`to_state` (optionally onto ``device``)."""
+        return cls(*(state[k].to(device) if device is not None else state[k] for k in ("attach", "idx", "valid")))
+
 
 def subsample_frames(T: int, max_frames: int, device: torch.device | str | None = None) -> torch.Tensor:
     """At most ``max_frames`` evenly spaced frame indices of ``0..T-1`` (all of them when T <= max_frames).

@@ -119,9 +119,9 @@ class MotionConfig:
     """Motion discovery: cues fused into dynamic masks with a confidence, and dynamic tracks chained through
     dense flow inside them (``worldtree.priors.motion_cues``, ``dynamic_masks``, ``dynamic_tracks``)."""
 
-    enabled: bool = False
-    """Fuse the cues into the masks and chain dynamic tracks (``--set priors.motion.enabled=true``; off by
-    default until the tree's node-resume test is bit-exact with it, see docs/priors.md)."""
+    enabled: bool = True
+    """Fuse the cues into the masks and chain dynamic tracks (False: the plain EPI masks and Lucas-Kanade
+    dynamic tracks, the behaviour before motion discovery)."""
     use_epipolar: bool = True
     """Use the epipolar-error cue."""
     use_rigid: bool = True

@@ -37,7 +37,7 @@ from worldtree.dynamic import DynamicGaussians, gaussians_at
 from worldtree.gaussians import GaussianSet
 from worldtree.losses import ssim
 from worldtree.motion.regularizers import MotionLossConfig, motion_losses
-from worldtree.motion.scaffold import Scaffold, densify
+from worldtree.motion.scaffold import Scaffold, SkinCache, densify
 from worldtree.optim import ConstantLR, GroupedAdam, gaussian_schedules
 from worldtree.render import rasterize
 from worldtree.stages import set_migration as mig
@@ -112,9 +112,9 @@ class PhotometricConfig:
     """Period of node densification (0 = never; tree children never densify, as in the paper)."""
     reattach_every: int = 100
     """Skinning neighbourhoods are recomputed this often (and after every density change)."""
-    migrate_every: int = 0
-    """Period of the static <-> dynamic migration (``worldtree.stages.set_migration``; 0 = never, the default
-    for now; 500 with the paper schedule, 100 with the quick one)."""
+    migrate_every: int = 500
+    """Period of the static <-> dynamic migration (``worldtree.stages.set_migration``; 0 = never; the quick
+    schedule: 100)."""
     migrate_start: int = 500
     """First step of the migration."""
     migrate_stop: int = 3000
@@ -145,6 +145,7 @@ def quick_photometric_config() -> PhotometricConfig:
         node_densify_start=100,
         node_densify_stop=450,
         node_densify_every=100,
+        migrate_every=100,
         migrate_start=150,
         migrate_stop=450,
         static_strategy=strat,
@@ -588,6 +589,7 @@ class PhotometricFit:
             "queue": list(self.queue),
             "pairs_rng": self.pairs.get_state(),
             "migration": dict(self.migration),
+            "cache": self.cache.to_state(),
         }
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
@@ -609,4 +611,7 @@ class PhotometricFit:
         self.queue = [int(i) for i in state["queue"]]
         self.pairs.set_state(state["pairs_rng"])
         self.migration = state.get("migration", self.migration)
-        self.cache = self.dynamic.attach(self.scaffold)
+        # The skinning neighbourhoods in use at the checkpoint, not new ones from its (moved) node positions:
+        # they are recomputed only every ``reattach_every`` steps, so a resumed fit must keep the old ones.
+        cache = state.get("cache")
+        self.cache = SkinCache.from_state(cache, dev) if cache is not None else self.dynamic.attach(self.scaffold)

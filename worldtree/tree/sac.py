@@ -192,6 +192,26 @@ class AncestorCopy:
         )
 
 
+def chain_cache_states(chain: list[AncestorCopy]) -> list[dict[str, torch.Tensor]]:
+    """The skinning caches the copies use now (computed where missing), for a checkpoint."""
+    return [(a.cache if a.cache is not None else a.refresh_cache()).to_state() for a in chain]
+
+
+def restore_chain_caches(
+    chain: list[AncestorCopy], states: list[dict[str, torch.Tensor]] | None, device: torch.device | str
+) -> None:
+    """Put the checkpoint's skinning caches back (None, from an older checkpoint: keep the recomputed ones).
+
+    A copy's cache is recomputed only every ``reattach_every`` steps, so a resumed node must use the one the
+    uninterrupted run still holds rather than one computed from the checkpoint's moved node positions."""
+    if states is None:
+        return
+    if len(states) != len(chain):
+        raise ValueError(f"checkpoint holds {len(states)} ancestor caches for a chain of {len(chain)}")
+    for a, st in zip(chain, states, strict=True):
+        a.cache = SkinCache.from_state(st, device)
+
+
 def _cpu(obj):
     if isinstance(obj, torch.Tensor):
         return obj.detach().cpu().clone()

@@ -297,3 +297,38 @@ def test_prune_negligible_keeps_every_contributing_gaussian():
     caps = fit.set_budget(10)
     assert caps["static_cap"] == len(fit.static) and caps["dynamic_cap"] == len(fit.dynamic)  # never below
     assert fit.cfg.static_strategy.max_gaussians == len(fit.static)
+
+
+def test_resumed_fit_keeps_the_skinning_cache_and_ends_identical(tmp_path):
+    """Skinning neighbourhoods are recomputed only every ``reattach_every`` steps: a fit resumed from a
+    checkpoint whose nodes have moved since the last reattachment must go on with the cache in use, not
+    one recomputed from the moved nodes, to end bit-identical to the uninterrupted fit."""
+    from worldtree.checkpoint import load_checkpoint
+
+    def make():
+        imgs, depth, Ks, w2cs, static, dyn, scf = scene()
+        # Large node steps so the nearest node of some Gaussians changes within a few steps.
+        cfg = PhotometricConfig(steps=8, track_every=0, lr_node_pos=0.05, reattach_every=1000)
+        return PhotometricFit(cfg, imgs, depth, Ks, w2cs, static, dyn, scf, None, None, extent=1.0, seed=2)
+
+    def train(fit, folder):
+        Trainer(TrainerConfig(steps=8, checkpoint_every=4), fit, checkpoint_dir=folder, progress=False,
+                generators={"frame_order": fit.order}).fit(resume=True)  # fmt: skip
+
+    full = make()
+    train(full, tmp_path / "a")
+    part = make()
+    train(part, tmp_path / "b")
+    (tmp_path / "b" / "ckpt_0000008.pt").unlink()
+    # The case this test is about: the checkpoint's nodes give other neighbourhoods than the cache in use.
+    state = load_checkpoint(tmp_path / "b" / "ckpt_0000004.pt")["task"]
+    probe = make()
+    probe.load_state_dict(state)
+    fresh = probe.dynamic.attach(probe.scaffold)
+    assert not torch.equal(fresh.attach, state["cache"]["attach"])
+    resumed = make()
+    train(resumed, tmp_path / "b")
+    for k in ("means", "quats", "skin_corr"):
+        assert torch.equal(full.dynamic.params[k], resumed.dynamic.params[k]), k
+    assert torch.equal(full.static.params["means"], resumed.static.params["means"])
+    assert torch.equal(full.scaffold.pos, resumed.scaffold.pos)
