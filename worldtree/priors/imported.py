@@ -49,7 +49,18 @@ def load_numpy(path: Path) -> np.ndarray | dict[str, np.ndarray]:
         if isinstance(obj, np.lib.npyio.NpzFile):
             with obj:
                 obj = {k: obj[k] for k in obj.keys()}  # read every member now: damage shows here
-    except (ValueError, OSError, EOFError, KeyError, zipfile.BadZipFile, zlib.error) as e:
+    # zipfile raises NotImplementedError for an unknown compression method and RuntimeError for an
+    # encrypted member: damaged or foreign files too, not bugs.
+    except (
+        ValueError,
+        OSError,
+        EOFError,
+        KeyError,
+        NotImplementedError,
+        RuntimeError,
+        zipfile.BadZipFile,
+        zlib.error,
+    ) as e:
         raise UserError(f"{path}: cannot read ({e}); re-export it with {what}") from e
     if isinstance(obj, dict) != (path.suffix.lower() == ".npz"):
         held = "several named arrays (.npz)" if isinstance(obj, dict) else "one array (.npy)"

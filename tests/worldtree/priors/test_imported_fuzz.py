@@ -10,6 +10,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
+import pytest
 import torch
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
@@ -169,3 +170,22 @@ def test_mask_folder_reader_takes_any_images(files):
         got = _outcome(lambda: read_masks(d, T, H, W))
     if not isinstance(got, UserError):
         assert got.shape == (T, H, W) and got.dtype == bool
+
+
+def test_npz_with_an_unknown_compression_method_is_one_line(tmp_path):
+    # Hypothesis found this one: a zip member naming a compression method zipfile does not implement.
+    import zipfile
+
+    buf = io.BytesIO()
+    np.savez(buf, tracks=np.zeros((2, 3, 2), np.float32))
+    raw = bytearray(buf.getvalue())
+    for sig, off in ((b"PK\x03\x04", 8), (b"PK\x01\x02", 10)):  # local and central headers' method field
+        i = raw.find(sig)
+        assert i >= 0
+        raw[i + off : i + off + 2] = (99).to_bytes(2, "little")
+    path = tmp_path / "tracks.npz"
+    path.write_bytes(bytes(raw))
+    with zipfile.ZipFile(path) as z, pytest.raises(NotImplementedError):
+        z.open(z.namelist()[0])  # the premise: zipfile itself refuses the member
+    with pytest.raises(UserError, match="tracks.npz"):
+        read_tracks(path, 3, 8, 8)
