@@ -44,8 +44,9 @@ from worldtree.budget import node_budget
 from worldtree.dynamic import DynamicGaussians
 from worldtree.errors import UserError
 from worldtree.gaussians import GaussianSet
-from worldtree.motion.lift import fill_gaps, lift_tracks
+from worldtree.motion.lift import lift_tracks
 from worldtree.motion.scaffold import Scaffold, ScaffoldConfig, build_scaffold
+from worldtree.motion.track_completion import complete_trajectories
 from worldtree.plateau import PlateauDetector
 from worldtree.priors import Priors, PriorsConfig, compute_priors
 from worldtree.priors.api import add_chained_tracks
@@ -390,7 +391,8 @@ def stage_scaffold(s: BaseState) -> None:
         scf = Scaffold.empty(sc.num_frames, c.scaffold.unit_ratio * scale, c.scaffold, device=s.device)
     else:
         pts, valid = lift_tracks(tracks, vis, depth, sc.Ks, s.w2cs)
-        traj, observed = fill_gaps(pts.float(), valid)
+        radius = c.scaffold.complete_radius_units * c.scaffold.unit_ratio * scale
+        traj, observed = complete_trajectories(pts.float(), valid, radius, c.scaffold.complete_k)
         scf = build_scaffold(traj, observed, scale, c.scaffold)
         s.info["scaffold_fit"] = fit_scaffold(scf, scf.pos.detach().clone(), scf.observed, c.scaffold_fit)
     if scf.M == 0:

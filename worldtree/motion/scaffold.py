@@ -73,6 +73,13 @@ class ScaffoldConfig:
     """Multi-level ARAP: neighbours per node in each level's subset."""
     arap_level_weights: tuple[float, ...] = (0.4, 0.3)
     """Multi-level ARAP: weight of each level relative to the base graph (weight 1)."""
+    complete_radius_units: float = 12.0
+    """Track ends are continued with the motion of measured tracks within this distance
+    (:mod:`worldtree.motion.track_completion`; 0 = held constant). Not from the paper: a little under the
+    size of the generated scenes' moving objects (20-30 units across), so one body's motion is not lent to
+    another."""
+    complete_k: int = 8
+    """Most neighbouring tracks averaged per completion step."""
     densify_dist_units: float = 5.0
     """:func:`densify` adds nodes for points farther than this from every node at their frame."""
     densify_max_new: int = 32
