@@ -83,65 +83,75 @@ def intersect(prim: Primitive, o: np.ndarray, d: np.ndarray, R=None, c=None):
     t = np.full(n_rays, np.inf, dtype=dt)
     uv = np.zeros((n_rays, 2), dtype=dt)
     n_world = np.zeros((n_rays, 3), dtype=dt)
-    # Each branch works on the rays that can still hit (``cand``) and fills ``hit`` rows only: most rays
-    # miss most primitives, so this keeps the static set and small objects cheap.
-    if prim.kind == "plane":
-        dz = _safe(dl[:, 2])
-        th = -ol[2] / dz
-        cand = np.nonzero(th > _EPS)[0]
-        px = ol[0] + th[cand] * dl[cand, 0]
-        py = ol[1] + th[cand] * dl[cand, 1]
-        ok = (px >= 0) & (px <= prim.size[0]) & (py >= 0) & (py <= prim.size[1])
-        hit = cand[ok]
-        t[hit] = th[hit]
-        uv[hit, 0] = px[ok]
-        uv[hit, 1] = py[ok]
-        nl = np.zeros((hit.size, 3), dtype=dt)
-        nl[:, 2] = np.where(dz[hit] < 0, 1.0, -1.0)  # two-sided: normal faces the viewer
-    elif prim.kind == "box":
-        h = prim.size.astype(dt)
-        # Cull with the bounding sphere first (a dot product per ray), then run the slab test on the rest.
-        b = dl @ ol
-        cand = np.nonzero(b * b - (ol @ ol - h @ h) >= 0)[0]
-        dc = dl[cand]
-        ds = _safe(dc)
-        t1 = (-h[None, :] - ol[None, :]) / ds
-        t2 = (h[None, :] - ol[None, :]) / ds
-        tnear = np.minimum(t1, t2)
-        tmin = tnear.max(axis=1)
-        tmax = np.maximum(t1, t2).min(axis=1)
-        ok = (tmax >= tmin) & (tmin > _EPS)
-        hit = cand[ok]
-        th = tmin[ok]
-        axis = tnear[ok].argmax(axis=1)
-        p = ol[None, :] + th[:, None] * dc[ok]
-        t[hit] = th
-        # Face coordinates: the two other axes, offset per face so faces do not repeat the same patch.
-        other = np.array([[1, 2], [0, 2], [0, 1]])[axis]
-        rows = np.arange(hit.size)
-        side = np.sign(p[rows, axis])
-        uv[hit, 0] = p[rows, other[:, 0]] + h[other[:, 0]] + 2.3 * axis + 1.1 * (side > 0)
-        uv[hit, 1] = p[rows, other[:, 1]] + h[other[:, 1]]
-        nl = np.zeros((hit.size, 3), dtype=dt)
-        nl[rows, axis] = side
-    elif prim.kind == "sphere":
-        r = prim.size[0]
-        b = dl @ ol
-        disc = b * b - (ol @ ol - r * r)
-        th = -b - np.sqrt(np.maximum(disc, 0.0))
-        hit = np.nonzero((disc >= 0) & (th > _EPS))[0]
-        th = th[hit]
-        p = ol[None, :] + th[:, None] * dl[hit]
-        t[hit] = th
-        lon = np.arctan2(p[:, 0], p[:, 2])
-        lat = np.arcsin(np.clip(p[:, 1] / r, -1.0, 1.0))
-        uv[hit, 0] = (lon + np.pi) * r
-        uv[hit, 1] = (lat + np.pi / 2) * r
-        nl = p / r
-    else:
+    # Each shape works on the rays that can still hit and returns the ``hit`` rows only: most rays miss most
+    # primitives, so this keeps the static set and small objects cheap.
+    shapes = {"plane": _hit_plane, "box": _hit_box, "sphere": _hit_sphere}
+    if prim.kind not in shapes:
         raise ValueError(f"unknown primitive kind {prim.kind!r}")
+    hit, th, u, v, nl = shapes[prim.kind](prim, ol, dl, dt)
+    t[hit] = th
+    uv[hit, 0] = u
+    uv[hit, 1] = v
     n_world[hit] = nl @ R.T.astype(dt)
     return t, uv, n_world
+
+
+def _hit_plane(prim: Primitive, ol: np.ndarray, dl: np.ndarray, dt):
+    """Rectangle ``[0, w] x [0, h]`` of the object's z = 0 plane, two-sided. Returns ``(hit rows, t, u, v,
+    object-space normals)`` for the rays ``dl`` ``[N, 3]`` from ``ol`` (object space)."""
+    dz = _safe(dl[:, 2])
+    th = -ol[2] / dz
+    cand = np.nonzero(th > _EPS)[0]
+    px = ol[0] + th[cand] * dl[cand, 0]
+    py = ol[1] + th[cand] * dl[cand, 1]
+    ok = (px >= 0) & (px <= prim.size[0]) & (py >= 0) & (py <= prim.size[1])
+    hit = cand[ok]
+    nl = np.zeros((hit.size, 3), dtype=dt)
+    nl[:, 2] = np.where(dz[hit] < 0, 1.0, -1.0)  # two-sided: normal faces the viewer
+    return hit, th[hit], px[ok], py[ok], nl
+
+
+def _hit_box(prim: Primitive, ol: np.ndarray, dl: np.ndarray, dt):
+    """Axis-aligned box of half-sizes ``prim.size`` (as :func:`_hit_plane`)."""
+    h = prim.size.astype(dt)
+    # Cull with the bounding sphere first (a dot product per ray), then run the slab test on the rest.
+    b = dl @ ol
+    cand = np.nonzero(b * b - (ol @ ol - h @ h) >= 0)[0]
+    dc = dl[cand]
+    ds = _safe(dc)
+    t1 = (-h[None, :] - ol[None, :]) / ds
+    t2 = (h[None, :] - ol[None, :]) / ds
+    tnear = np.minimum(t1, t2)
+    tmin = tnear.max(axis=1)
+    tmax = np.maximum(t1, t2).min(axis=1)
+    ok = (tmax >= tmin) & (tmin > _EPS)
+    hit = cand[ok]
+    th = tmin[ok]
+    axis = tnear[ok].argmax(axis=1)
+    p = ol[None, :] + th[:, None] * dc[ok]
+    # Face coordinates: the two other axes, offset per face so faces do not repeat the same patch.
+    other = np.array([[1, 2], [0, 2], [0, 1]])[axis]
+    rows = np.arange(hit.size)
+    side = np.sign(p[rows, axis])
+    u = p[rows, other[:, 0]] + h[other[:, 0]] + 2.3 * axis + 1.1 * (side > 0)
+    v = p[rows, other[:, 1]] + h[other[:, 1]]
+    nl = np.zeros((hit.size, 3), dtype=dt)
+    nl[rows, axis] = side
+    return hit, th, u, v, nl
+
+
+def _hit_sphere(prim: Primitive, ol: np.ndarray, dl: np.ndarray, dt):
+    """Sphere of radius ``prim.size[0]`` (as :func:`_hit_plane`; u, v: longitude and latitude in world units)."""
+    r = prim.size[0]
+    b = dl @ ol
+    disc = b * b - (ol @ ol - r * r)
+    th = -b - np.sqrt(np.maximum(disc, 0.0))
+    hit = np.nonzero((disc >= 0) & (th > _EPS))[0]
+    th = th[hit]
+    p = ol[None, :] + th[:, None] * dl[hit]
+    lon = np.arctan2(p[:, 0], p[:, 2])
+    lat = np.arcsin(np.clip(p[:, 1] / r, -1.0, 1.0))
+    return hit, th, (lon + np.pi) * r, (lat + np.pi / 2) * r, p / r
 
 
 def shade(prim: Primitive, uv: np.ndarray, n: np.ndarray) -> np.ndarray:
