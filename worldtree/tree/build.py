@@ -53,11 +53,11 @@ class TreeConfig:
 
     def __post_init__(self) -> None:
         if self.depth < 0:
-            raise ValueError(f"--depth {self.depth}: must be >= 0")
+            raise ValueError(f"TreeConfig.depth {self.depth}: must be >= 0")
         from worldtree.tree.split import SPLIT_STRATEGIES
 
         if self.split not in SPLIT_STRATEGIES:
-            raise ValueError(f"--split {self.split!r}: choose one of {', '.join(SPLIT_STRATEGIES)}")
+            raise ValueError(f"TreeConfig.split {self.split!r}: choose one of {', '.join(SPLIT_STRATEGIES)}")
 
 
 @dataclass

@@ -225,7 +225,7 @@ def truncate_chain(chain: Sequence[AncestorCopy], chain_length: int | None) -> l
     if chain_length is None:
         return list(chain)
     if chain_length < 0:
-        raise ValueError(f"--chain-length {chain_length}: must be >= 0 (0 = no ancestor) or omitted (all)")
+        raise ValueError(f"chain_length {chain_length}: must be >= 0 (0 = no ancestor) or None (all)")
     return list(chain[:chain_length])
 
 
