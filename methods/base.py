@@ -64,6 +64,7 @@ from worldtree.stages.static_warmup import (
     quick_static_warmup_config,
 )
 from worldtree.stages.testview_pose import (
+    FrozenModelRenderer,
     PoseRefineConfig,
     align_sim3,
     quick_pose_refine_config,
@@ -243,6 +244,9 @@ class BaseState:
     renderer: Callable[..., Any] | None = None
     """``renderer(K [3,3], w2c [4,4], width, height, t) -> rasterizer output``: the model that renders
     frame ``t`` (the photometric fit; WorldTree's ``tree`` stage replaces it by the tree's)."""
+    gaussians_at: Callable[[int], tuple[torch.Tensor, ...]] | None = None
+    """``gaussians_at(t) -> (means, quats, log_scales, opacities, colours)``: what ``renderer`` rasterizes at
+    frame ``t`` (set with it), so a stage that renders a fixed model many times per frame computes it once."""
     sim3: Any = None
     """Sim(3) from the given training poses to the optimised ones (stage ``test_pose``)."""
     test_poses: dict[int, torch.Tensor] = field(default_factory=dict)
@@ -438,7 +442,7 @@ def stage_photometric(s: BaseState) -> None:
     if s.stop is not None:
         rec["early_stop"] = s.stop.report()
     s.fit = fit
-    s.renderer = fit.render
+    s.renderer, s.gaussians_at = fit.render, fit.gaussians_at
 
 
 def _adaptive_setup(s: BaseState, fit: PhotometricFit) -> PlateauDetector | None:
@@ -478,6 +482,8 @@ def stage_test_pose(s: BaseState) -> None:
     def render_fn(t: int, w2c: torch.Tensor):
         return s.renderer(sc.test_K, w2c, W, H, t)
 
+    if s.gaussians_at is not None:  # the model is fixed here: its Gaussians once per test frame, not per step
+        render_fn = FrozenModelRenderer(s.gaussians_at, sc.test_K, W, H, s.cfg.photometric.backend)
     res = refine_test_poses(render_fn, start, sc.test_images, times, s.cfg.test_pose)
     s.test_poses = {int(t): res.w2cs[k] for k, t in enumerate(sc.test_times.tolist())}
     s.info["test_pose_l1_before"] = res.loss_before

@@ -471,16 +471,27 @@ def _root_state(s: WorldTreeState) -> NodeState:
     return NodeState(1, Interval(0, T - 1), fit.scaffold, fit.dynamic, fit.static, fit.cameras(), [])
 
 
-def _tree_renderer(s: WorldTreeState):
-    """``renderer(K, w2c, W, H, t)``: the deepest node covering frame ``t`` with its chain (``chain_length``)."""
+def _tree_gaussians(s: WorldTreeState):
+    """``gaussians_at(t)``: the deepest node covering frame ``t`` with its chain (``chain_length``)."""
 
-    def render(K: torch.Tensor, w2c: torch.Tensor, width: int, height: int, t: int):
+    def gaussians_at(t: int):
         t = min(max(int(t), 0), s.scene.num_frames - 1)
         j = s.tree.covering(t) if s.tree is not None else 1
         st = s.states[j]
         if j not in s.caches:
             s.caches[j] = st.dynamic.attach(st.scaffold)
-        m, q, ls, o, col = st.gaussians_at(t, s.cfg.chain_length, s.caches[j])
+        return st.gaussians_at(t, s.cfg.chain_length, s.caches[j])
+
+    return gaussians_at
+
+
+def _tree_renderer(s: WorldTreeState):
+    """``renderer(K, w2c, W, H, t)``: the deepest node covering frame ``t`` with its chain (``chain_length``);
+    sets ``s.gaussians_at`` to the same model."""
+    s.gaussians_at = _tree_gaussians(s)
+
+    def render(K: torch.Tensor, w2c: torch.Tensor, width: int, height: int, t: int):
+        m, q, ls, o, col = s.gaussians_at(t)
         return rasterize(m, q, ls, o, col, K, w2c, width, height, backend=s.cfg.photometric.backend)
 
     return render

@@ -7,7 +7,7 @@ import pytest
 import torch
 from skimage.metrics import structural_similarity
 
-from worldtree.losses import l1, photometric_loss, psnr, ssim
+from worldtree.losses import SsimTargets, l1, photometric_loss, psnr, ssim, ssim_map, ssim_target
 
 
 def _sk(a: np.ndarray, b: np.ndarray) -> float:
@@ -73,3 +73,31 @@ def test_masked_l1_and_psnr():
     assert float(l1(a, b2, torch.zeros(4, 4, dtype=torch.bool))) == 0.0
     assert abs(psnr(a, torch.full((4, 4, 3), 0.1)) - 20.0) < 1e-4
     assert psnr(a, a) == float("inf")
+
+
+def test_cached_target_equals_skimage_and_the_uncached_map_and_gradient():
+    rng = np.random.default_rng(11)
+    a, b = rng.random((27, 35, 3)), rng.random((27, 35, 3))
+    x = torch.from_numpy(a).double().requires_grad_(True)
+    y = torch.from_numpy(b).double()
+    target = ssim_target(y)
+    got = ssim(x, target)
+    assert abs(float(got.detach()) - _sk(a, b)) < 1e-6  # the window weights are float32 (as the plain path)
+    torch.testing.assert_close(ssim_map(x, target), ssim_map(x, y), rtol=0, atol=1e-12)
+    (g_cached,) = torch.autograd.grad(got, [x])
+    (g_plain,) = torch.autograd.grad(ssim(x, y), [x])
+    torch.testing.assert_close(g_cached, g_plain, rtol=0, atol=1e-12)
+    # float32, as training uses it: equal within float rounding
+    xf, yf = x.detach().float(), y.float()
+    torch.testing.assert_close(ssim_map(xf, ssim_target(yf)), ssim_map(xf, yf), rtol=0, atol=1e-5)
+
+
+def test_frame_targets_are_computed_once_and_checked():
+    frames = torch.rand(3, 16, 18, 3)
+    cache = SsimTargets(frames)
+    assert cache[1] is cache[1]
+    torch.testing.assert_close(cache[2].image[0].permute(1, 2, 0), frames[2])
+    with pytest.raises(ValueError):
+        ssim(torch.rand(16, 17, 3), cache[0])
+    with pytest.raises(ValueError):
+        ssim_target(torch.rand(10, 30, 3))

@@ -35,7 +35,7 @@ import torch
 from worldtree.budget import growth_cap, negligible, render_contributions
 from worldtree.dynamic import DynamicGaussians, gaussians_at
 from worldtree.gaussians import GaussianSet
-from worldtree.losses import ssim
+from worldtree.losses import SsimTargets, ssim
 from worldtree.motion.regularizers import MotionLossConfig, motion_losses
 from worldtree.motion.scaffold import Scaffold, SkinCache, densify
 from worldtree.optim import ConstantLR, GroupedAdam, gaussian_schedules
@@ -235,6 +235,7 @@ class PhotometricFit:
         self.tracks, self.track_vis = tracks, track_vis
         self.extent = float(extent)
         self.T = images.shape[0]
+        self.ssim_targets = SsimTargets(images)  # the frames' SSIM statistics, once per frame
         self.cam_xi = torch.zeros(max(self.T - 1, 0), 6, device=images.device, requires_grad=True)
         self.seed = int(seed)
         self.order = torch.Generator().manual_seed(seed)
@@ -346,7 +347,7 @@ class PhotometricFit:
         loss = l1
         parts = {"l1": float(l1.detach())}
         if c.lambda_dssim > 0:
-            s = ssim(out.rgb, self.images[i])
+            s = ssim(out.rgb, self.ssim_targets[i])
             loss = loss + c.lambda_dssim * (1.0 - s)
             parts["ssim"] = float(s.detach())
         loss = c.lambda_rgb * loss

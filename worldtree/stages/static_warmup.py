@@ -24,7 +24,7 @@ import torch.nn.functional as F
 
 from worldtree.errors import UserError
 from worldtree.gaussians import GaussianSet
-from worldtree.losses import ssim_map
+from worldtree.losses import SsimTargets, ssim_map
 from worldtree.optim import GroupedAdam, gaussian_schedules
 from worldtree.render import rasterize
 from worldtree.strategy import DensifyStrategy
@@ -181,6 +181,7 @@ class StaticWarmup(DensifiedGaussianTrainable):
         self.images, self.depth, self.Ks, self.w2cs = images, depth, Ks, w2cs
         self.static = static_weights(dynamic.to(images.device), cfg.dilate_px)
         self.ssim_w = ssim_weights(self.static)
+        self.ssim_targets = SsimTargets(images)  # the frames' SSIM statistics, once per frame
         self.extent = float(extent)
         self.order = torch.Generator().manual_seed(seed)
         self.queue: list[int] = []
@@ -218,7 +219,7 @@ class StaticWarmup(DensifiedGaussianTrainable):
         parts = {"l1": float(l1.detach())}
         if c.lambda_dssim > 0:
             sw = self.ssim_w[i]
-            smap = ssim_map(out.rgb, self.images[i]).mean(1)[0]  # [H-10, W-10], channels averaged
+            smap = ssim_map(out.rgb, self.ssim_targets[i]).mean(1)[0]  # [H-10, W-10], channels averaged
             s = (smap * sw).sum() / sw.sum().clamp_min(1.0)
             loss = loss + c.lambda_dssim * (1.0 - s) * (sw.sum() > 0)
             parts["ssim"] = float(s.detach())

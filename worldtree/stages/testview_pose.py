@@ -21,11 +21,47 @@ import torch
 
 from worldtree.motion import se3
 from worldtree.optim import ExponentialLR
+from worldtree.render import rasterize
 from worldtree.stages.cameras import Sim3, apply_delta, centres
 
 RenderFn = Callable[[int, torch.Tensor], object]
 """``render_fn(time, w2c [4, 4]) -> RenderOutput`` (needs ``.rgb [H, W, 3]`` and ``.alpha [H, W]``),
 differentiable with respect to ``w2c``."""
+
+GaussiansAt = Callable[[int], tuple[torch.Tensor, ...]]
+"""``gaussians_at(time) -> (means [N, 3], quats [N, 4], log_scales [N, 3], opacities [N], colours [N, 3])``."""
+
+
+class FrozenModelRenderer:
+    """A :data:`RenderFn` over a model that does not change while the test pose is refined.
+
+    The Gaussians at a frame (scaffold motion and skinning of every dynamic Gaussian, the ancestors' too) depend
+    on the frame only, not on the pose being optimised, so they are computed once per frame, without autograd,
+    and reused by every pose step of that frame; gradients reach ``w2c`` only. The last frame's tensors are
+    kept (:func:`refine_test_poses` visits each frame once, in order). Renders equal the uncached
+    ``rasterize(*gaussians_at(t), ...)`` and the pose gradient equals the one with the model in the graph.
+
+    Args:
+        gaussians_at: the model's Gaussians at a frame (:data:`GaussiansAt`).
+        K: [3, 3] intrinsics of the test camera. width, height: render size in pixels.
+        backend: rasterizer backend.
+    """
+
+    def __init__(self, gaussians_at: GaussiansAt, K: torch.Tensor, width: int, height: int, backend: str):
+        self.gaussians_at, self.K, self.width, self.height = gaussians_at, K, int(width), int(height)
+        self.backend = backend
+        self._time: int | None = None
+        self._gaussians: tuple[torch.Tensor, ...] = ()
+        self.computed = 0
+        """How many times the Gaussians were computed (once per distinct consecutive frame)."""
+
+    def __call__(self, time: int, w2c: torch.Tensor):
+        if self._time != int(time):
+            with torch.no_grad():
+                self._gaussians = tuple(x.detach() for x in self.gaussians_at(int(time)))
+            self._time = int(time)
+            self.computed += 1
+        return rasterize(*self._gaussians, self.K, w2c, self.width, self.height, backend=self.backend)
 
 
 @dataclass

@@ -9,7 +9,12 @@ from scipy.spatial.transform import Rotation
 
 from worldtree.render import rasterize
 from worldtree.stages.cameras import Sim3, apply_delta, centres, rotation_angle_deg
-from worldtree.stages.testview_pose import PoseRefineConfig, align_sim3, refine_test_poses
+from worldtree.stages.testview_pose import (
+    FrozenModelRenderer,
+    PoseRefineConfig,
+    align_sim3,
+    refine_test_poses,
+)
 
 
 def numpy_umeyama(src: np.ndarray, dst: np.ndarray):
@@ -209,3 +214,64 @@ def test_orientation_alignment_is_robust_on_a_small_noisy_rig():
     err_ce = rotation_angle_deg(align_sim3(src_t, dst_t, "centres").R, torch.from_numpy(R_true))
     assert float(err_or) < 1e-6
     assert float(err_ce) > 1.0
+
+
+# ---------------------------------------------------------------------------------- frozen-model renderer
+def moving_model(seed: int = 0):
+    """``gaussians_at(t)`` of a trainable-looking model whose Gaussians drift with the frame (leaf tensors
+    with ``requires_grad``, as a trained fit's parameters are), K, and a call counter."""
+    g = torch.Generator().manual_seed(seed)
+    n = 200
+    xy = (torch.rand(n, 2, generator=g) - 0.5) * torch.tensor([3.0, 2.2])
+    base = torch.cat([xy, 4.0 + 0.3 * torch.rand(n, 1, generator=g)], 1).requires_grad_(True)
+    velocity = (0.05 * torch.randn(n, 3, generator=g)).requires_grad_(True)
+    quats = torch.tensor([[1.0, 0.0, 0.0, 0.0]]).repeat(n, 1).requires_grad_(True)
+    log_scales = torch.full((n, 3), float(np.log(0.1)), requires_grad=True)
+    opac = torch.full((n,), 0.85, requires_grad=True)
+    colors = torch.rand(n, 3, generator=g).requires_grad_(True)
+    K = torch.tensor([[40.0, 0.0, (W - 1) / 2], [0.0, 40.0, (H - 1) / 2], [0.0, 0.0, 1.0]])
+    calls = []
+
+    def gaussians_at(t: int):
+        calls.append(t)
+        return base + t * velocity, quats * 1.0, log_scales * 1.0, opac * 1.0, colors * 1.0
+
+    return gaussians_at, K, calls
+
+
+def test_frozen_renderer_equals_uncached_render_and_pose_gradient():
+    gaussians_at, K, calls = moving_model()
+    cached = FrozenModelRenderer(gaussians_at, K, W, H, "auto")
+    for t in (0, 0, 3, 3, 3):
+        xi = torch.tensor([0.02, -0.01, 0.01, 0.005, 0.0, -0.004], requires_grad=True)
+        w2c = apply_delta(xi, torch.eye(4))
+        # Uncached: the model's tensors stay in the graph, as before the cache.
+        ref = rasterize(*gaussians_at(t), K, w2c, W, H)
+        (g_ref,) = torch.autograd.grad((ref.rgb * torch.linspace(0, 1, 3)).sum() + ref.alpha.sum(), [xi])
+        out = cached(t, apply_delta(xi, torch.eye(4)))
+        (g_got,) = torch.autograd.grad((out.rgb * torch.linspace(0, 1, 3)).sum() + out.alpha.sum(), [xi])
+        torch.testing.assert_close(out.rgb, ref.rgb.detach(), rtol=0, atol=1e-6)
+        torch.testing.assert_close(out.alpha, ref.alpha.detach(), rtol=0, atol=1e-6)
+        torch.testing.assert_close(g_got, g_ref, rtol=1e-5, atol=1e-6)
+    assert cached.computed == 2  # once for frame 0, once for frame 3
+
+
+def test_refinement_with_the_frozen_renderer_matches_the_uncached_one():
+    gaussians_at, K, calls = moving_model(2)
+    truth = torch.eye(4)
+    with torch.no_grad():
+        targets = torch.stack([rasterize(*gaussians_at(t), K, truth, W, H).rgb for t in (0, 1, 2)])
+    start = apply_delta(torch.tensor([0.03, 0.02, 0.0, 0.0, 0.01, 0.0]), truth)
+    cfg = PoseRefineConfig(first_steps=20, next_steps=4)
+
+    def uncached(t: int, w2c: torch.Tensor):
+        return rasterize(*gaussians_at(t), K, w2c, W, H)
+
+    ref = refine_test_poses(uncached, start, targets, [0, 1, 2], cfg)
+    calls.clear()
+    renderer = FrozenModelRenderer(gaussians_at, K, W, H, "auto")
+    got = refine_test_poses(renderer, start, targets, [0, 1, 2], cfg)
+    torch.testing.assert_close(got.w2cs, ref.w2cs, rtol=0, atol=1e-5)
+    np.testing.assert_allclose(got.loss_after, ref.loss_after, rtol=1e-4, atol=1e-7)
+    assert got.steps == ref.steps == [20, 4, 4]
+    assert calls == [0, 1, 2]  # the model was evaluated once per frame, not once per step (34 renders)
