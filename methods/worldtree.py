@@ -48,7 +48,7 @@ from methods.base import (
 from methods.registry import MethodSpec, register_method, settings_of
 from methods.stages import Ablation, Stage
 from worldtree.atomic import atomic_write_json
-from worldtree.budget import BudgetConfig, negligible
+from worldtree.budget import BudgetConfig, inherited_prune_due, negligible
 from worldtree.config_json import read_config, write_config
 from worldtree.dynamic import gaussians_at
 from worldtree.errors import UserError
@@ -59,7 +59,7 @@ from worldtree.stages.photometric import PhotometricConfig, PhotometricFit
 from worldtree.strategy import DensifyStrategy, remove
 from worldtree.torchfile import save_torch
 from worldtree.trainer import TrainContext, Trainer, TrainerConfig, TrainSummary
-from worldtree.tree.adaptive import AutoSplitConfig, decide_split
+from worldtree.tree.adaptive import AutoSplitConfig, decide_fit_split
 from worldtree.tree.build import TreeConfig, TreeResult, grow_tree, node_output, read_node_input
 from worldtree.tree.inherit import InheritConfig
 from worldtree.tree.node import NodeState
@@ -410,7 +410,9 @@ def train_node(payload: dict, ctx: NodeContext) -> dict:
     if stop is not None:
         adaptive["early_stop"] = stop.report()
     if cfg.budget is not None:
-        adaptive["prune"] = fit.prune_negligible(cfg.budget.prune_contribution)
+        # Inherited dynamic Gaussians (opacity reset) are pruned only once they had steps to recover.
+        due = inherited_prune_due(summary.end_step, fit.T, cfg.budget)
+        adaptive["prune"] = {**fit.prune_negligible(cfg.budget.prune_contribution, dynamic=due), "dynamic_due": due}
         adaptive["prune_ancestors"] = fit.prune_chain(cfg.budget.prune_contribution)
     state.static, state.dynamic, state.scaffold = fit.static, fit.dynamic, fit.scaffold
     state.chain = fit.chain
@@ -430,9 +432,7 @@ def train_node(payload: dict, ctx: NodeContext) -> dict:
     }
     if cfg.auto is not None:
         sl = slice(iv.start, iv.end + 1)
-        stats["auto_split"] = decide_split(
-            fit.residuals(), data["masks"][sl], cfg.min_len, cfg.auto
-        ).to_dict()
+        stats["auto_split"] = decide_fit_split(fit, data["masks"][sl], cfg.min_len, cfg.auto).to_dict()
     return node_output(state, fit.profile.profile(), stats)
 
 
@@ -514,7 +514,7 @@ def _grow(s: WorldTreeState, no_ancestors: bool) -> None:
     root_decision = None
     if tcfg.auto is not None:  # --depth auto: does the trained root need children?
         masks = s.P["epi_mask"].bool()
-        root_decision = decide_split(s.fit.residuals(), masks, tcfg.min_len, tcfg.auto).to_dict()
+        root_decision = decide_fit_split(s.fit, masks, tcfg.min_len, tcfg.auto).to_dict()
     if (
         tcfg.max_depth == 0
         or s.scene.num_frames < tcfg.min_len

@@ -13,6 +13,13 @@ over the pixels, per channel). A Gaussian whose contribution is below ``prune_co
 one pixel's worth) changes no training view by more than one pixel of colour in total: it is *negligible*.
 Pruning (:func:`negligible`) removes exactly those and never one at or above the threshold.
 
+**Inherited Gaussians recover first.** A tree child inherits its parent's dynamic Gaussians with their
+opacity reset low (``inherit_opacity``, 0.05): right after inheritance most of them are below the threshold
+only because of the reset. Their post-training pruning is therefore deferred (:func:`inherited_prune_due`)
+until the node has trained ``prune_min_epochs`` passes over its frames; a node that stopped earlier keeps
+them (the pruning at inheritance, with the parent's opacities, has already removed what its frames do not
+see).
+
 **Budget.** A model's Gaussians are capped at growth time (``DensifyStrategy.max_gaussians``) by
 :func:`node_budget`: ``gaussians_per_pixel * H * W * clamp(error / error_ref, min_scale, 1)``, the pixels of
 one of its views scaled down when its photometric error is already low (an easy node gets less), or a fixed
@@ -30,7 +37,14 @@ import torch
 
 from worldtree.render import rasterize
 
-__all__ = ["BudgetConfig", "growth_cap", "negligible", "node_budget", "render_contributions"]
+__all__ = [
+    "BudgetConfig",
+    "growth_cap",
+    "inherited_prune_due",
+    "negligible",
+    "node_budget",
+    "render_contributions",
+]
 
 GaussiansFn = Callable[[int], tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]]
 """``fn(t) -> (means [N,3], quats [N,4], log_scales [N,3], opacities [N], colors [N,3])`` at frame ``t``."""
@@ -53,6 +67,9 @@ class BudgetConfig:
     """A fixed budget instead of the derived one."""
     prune_contribution: float = 1.0
     """A Gaussian whose total blending weight stays below this (pixels) in every training view is removed."""
+    prune_min_epochs: float = 10.0
+    """Inherited (opacity-reset) dynamic Gaussians are pruned after training only once the node has trained at
+    least this many passes over its frames (:func:`inherited_prune_due`)."""
 
     def __post_init__(self) -> None:
         if not (self.gaussians_per_pixel > 0 and self.error_ref > 0 and 0 < self.min_scale <= 1):
@@ -64,6 +81,8 @@ class BudgetConfig:
             raise ValueError(f"BudgetConfig.override must be >= 1, got {self.override}")
         if not self.prune_contribution >= 0:
             raise ValueError(f"BudgetConfig.prune_contribution must be >= 0, got {self.prune_contribution}")
+        if not self.prune_min_epochs >= 0:
+            raise ValueError(f"BudgetConfig.prune_min_epochs must be >= 0, got {self.prune_min_epochs}")
 
 
 def node_budget(width: int, height: int, error: float, cfg: BudgetConfig) -> int:
@@ -76,6 +95,12 @@ def node_budget(width: int, height: int, error: float, cfg: BudgetConfig) -> int
     e = float(error) if math.isfinite(float(error)) else cfg.error_ref
     scale = min(1.0, max(cfg.min_scale, e / cfg.error_ref))
     return max(1, math.ceil(cfg.gaussians_per_pixel * int(width) * int(height) * scale))
+
+
+def inherited_prune_due(steps: int, frames: int, cfg: BudgetConfig) -> bool:
+    """Whether a node that trained ``steps`` steps (one frame each) over ``frames`` frames may prune the
+    dynamic Gaussians it inherited with a reset opacity: ``steps / frames >= cfg.prune_min_epochs``."""
+    return int(steps) >= cfg.prune_min_epochs * max(int(frames), 1)
 
 
 def growth_cap(budget: int, current: int) -> int:

@@ -207,7 +207,10 @@ def test_depth_auto_grows_the_tree_its_decisions_say(runs):
     for j, d in auto.items():
         assert isinstance(d["reason"], str) and d["reason"]
         assert d["applied"] == (2 * j in nodes), j  # children exactly where the decision applied
-        assert d["split"] == (d["excess"] >= 0.01 and d["dynamic_fraction"] >= 0.002 and d["frames"] >= 12)
+        moves = d["motion_px"] >= d["motion_min_px"]  # the scaffold's motion was measured for every node
+        assert d["split"] == (
+            d["excess"] >= 0.01 and d["dynamic_fraction"] >= 0.002 and d["frames"] >= 12 and moves
+        )
     # Budget and early stop come with --depth auto: recorded for the root (the Base stages).
     ad = st["adaptive"]
     assert ad["budget_on"] and ad["early_stop_on"] and ad["steps_taken"] <= ad["steps_max"]

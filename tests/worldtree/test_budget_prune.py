@@ -9,7 +9,14 @@ import math
 import pytest
 import torch
 
-from worldtree.budget import BudgetConfig, growth_cap, negligible, node_budget, render_contributions
+from worldtree.budget import (
+    BudgetConfig,
+    growth_cap,
+    inherited_prune_due,
+    negligible,
+    node_budget,
+    render_contributions,
+)
 from worldtree.render import rasterize
 
 W, H = 32, 24
@@ -85,3 +92,12 @@ def test_budget_closed_form(err):
 def test_growth_cap_never_below_current():
     assert growth_cap(100, 250) == 250
     assert growth_cap(300, 250) == 300
+
+
+def test_inherited_gaussians_are_pruned_only_after_enough_epochs():
+    cfg = BudgetConfig(prune_min_epochs=10.0)
+    assert not inherited_prune_due(199, 20, cfg)  # 9.95 passes over 20 frames
+    assert inherited_prune_due(200, 20, cfg)
+    assert inherited_prune_due(0, 20, BudgetConfig(prune_min_epochs=0.0))
+    with pytest.raises(ValueError):
+        BudgetConfig(prune_min_epochs=-1.0)

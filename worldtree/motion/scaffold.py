@@ -16,8 +16,8 @@ from dataclasses import asdict, dataclass
 import torch
 from torch import nn
 
+from worldtree.motion import dualquat, se3, skinning
 from worldtree.motion import quaternion as Q
-from worldtree.motion import se3, skinning
 
 __all__ = [
     "ArapGraph",
@@ -532,11 +532,22 @@ class Scaffold(nn.Module):
         p_ref = skinning.gather_frames(self.pos, t_ref, idx)
         if torch.as_tensor(t).dim() == 0 and self.T * self.M < idx.numel():
             # One target frame and many Gaussians: build the [T, M] table of every node's motion from each
-            # frame to t once, then gather, instead of composing a transform per (Gaussian, neighbour).
+            # frame to t once, as dual quaternions, then gather, instead of composing and converting a
+            # transform per (Gaussian, neighbour). The same per-entry arithmetic as the per-pair path.
             ti = int(t)
             q_tab, t_tab = se3.relative(self.quat[ti][None], self.pos[ti][None], self.quat, self.pos)
-            q_rel = skinning.gather_frames(q_tab, t_ref, idx)
-            t_rel = skinning.gather_frames(t_tab, t_ref, idx)
+            real, dual = dualquat.from_quat_trans(q_tab, t_tab)  # [T, M, 4] each
+            return skinning.deform_dual_neighbours(
+                points,
+                quats,
+                p_ref,
+                self.sigma[idx],
+                skinning.gather_frames(real, t_ref, idx),
+                skinning.gather_frames(dual, t_ref, idx),
+                cache.valid,
+                correction,
+                self.cfg.mix_identity,
+            )
         else:
             q_ref = skinning.gather_frames(self.quat, t_ref, idx)
             p_t = skinning.gather_frames(self.pos, t_vec, idx)

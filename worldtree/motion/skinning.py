@@ -17,7 +17,7 @@ import torch
 
 from worldtree.motion import dualquat, se3
 
-__all__ = ["deform", "deform_neighbours", "gather_frames", "knn", "normalize_weights", "skinning_weights"]
+__all__ = ["deform", "deform_dual_neighbours", "deform_neighbours", "gather_frames", "knn", "normalize_weights", "skinning_weights"]
 
 WEIGHT_FLOOR = 1e-6
 """Added to every unmasked Gaussian kernel value (MoSca), so a point never has all-zero raw weights."""
@@ -143,8 +143,25 @@ def deform_neighbours(
     return _deform_dual(points, quats, nb_pos_ref, nb_sigma, real, dual, valid, correction, mix_identity)
 
 
+def deform_dual_neighbours(
+    points: torch.Tensor,
+    quats: torch.Tensor,
+    nb_pos_ref: torch.Tensor,
+    nb_sigma: torch.Tensor,
+    nb_real: torch.Tensor,
+    nb_dual: torch.Tensor,
+    valid: torch.Tensor | None = None,
+    correction: torch.Tensor | None = None,
+    mix_identity: bool = True,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """:func:`deform_neighbours` with the relative transforms already given as unit dual quaternions
+    ``nb_real, nb_dual`` [..., K, 4] (:func:`worldtree.motion.dualquat.from_quat_trans`), so a caller can
+    convert each node's motion once and gather the results per Gaussian."""
+    return _deform_dual(points, quats, nb_pos_ref, nb_sigma, nb_real, nb_dual, valid, correction, mix_identity)
+
+
 def _deform_dual(points, quats, nb_pos_ref, nb_sigma, nb_real, nb_dual, valid, correction, mix_identity):
-    """Shared tail of the two deform functions, with neighbour transforms as dual quaternions [..., K, 4]."""
+    """Shared tail of the deform functions, with neighbour transforms as dual quaternions [..., K, 4]."""
     w = skinning_weights(points, nb_pos_ref, nb_sigma, valid, correction)
     q_b, t_b = dualquat.blend_dual(nb_real, nb_dual, w, mix_identity=mix_identity)
     return dualquat.apply_points(q_b, t_b, points), dualquat.apply_rotations(q_b, quats)

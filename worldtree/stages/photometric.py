@@ -445,17 +445,17 @@ class PhotometricFit:
         with torch.no_grad():
             return self.camera(i).detach()
 
-    def prune_negligible(self, threshold: float) -> dict[str, int]:
-        """Remove the static and dynamic Gaussians whose contribution over this fit's frames is below
-        ``threshold`` (pixels; :mod:`worldtree.budget`); their Adam moments and density statistics go with
-        them. Returns the counts before and after."""
-        return self._prune_with(self.contributions(), threshold)
+    def prune_negligible(self, threshold: float, dynamic: bool = True) -> dict[str, int]:
+        """Remove the static and (with ``dynamic``) dynamic Gaussians whose contribution over this fit's frames
+        is below ``threshold`` (pixels; :mod:`worldtree.budget`); their Adam moments and density statistics go
+        with them. Returns the counts before and after."""
+        return self._prune_with(self.contributions(), threshold, dynamic)
 
-    def _prune_with(self, contrib: torch.Tensor, thr: float) -> dict[str, int]:
+    def _prune_with(self, contrib: torch.Tensor, thr: float, dynamic: bool = True) -> dict[str, int]:
         n_s, n_d = len(self.static), len(self.dynamic)
         report = {"static_before": n_s, "dynamic_before": n_d}
         drop_s = negligible(contrib[:n_s], thr)
-        drop_d = negligible(contrib[n_s : n_s + n_d], thr)
+        drop_d = negligible(contrib[n_s : n_s + n_d], thr) & dynamic
         if bool(drop_s.any()):
             remove(self.static, self.static_opt, self.static_state, drop_s)
         if bool(drop_d.any()):

@@ -11,11 +11,24 @@ per-frame motion mask, ``[T, H, W]`` bool):
   with one set of scaffold trajectories over the node's interval leaves unexplained;
 - ``dynamic_fraction``: share of the node's pixels that are dynamic.
 
+The residual alone cannot tell an object the node has not reconstructed yet (too few steps or Gaussians:
+splitting time does not help) from motion that one canonical space cannot hold. So the criterion also measures
+the motion itself, from the node's trained scaffold (:func:`scaffold_motion_px`):
+
+- ``motion_px``: how far the scene's moving parts travel on screen within the node's interval, camera motion
+  removed: for each scaffold node the largest distance, over the interval's frames ``t``, between its pixel
+  at ``t`` and the pixel its middle-frame position would have in the same camera ``t``; the 90th percentile
+  over the nodes (robust to a few stray nodes).
+
 The node is split when all of these hold (otherwise ``reason`` names the first that failed):
 
 1. it has ``>= min_len`` frames (the tree's minimum interval; shorter nodes are leaves anyway);
 2. ``dynamic_fraction >= min_dynamic_fraction`` (a near-static interval has nothing for children to add);
-3. ``excess >= min_excess`` (default 0.01, i.e. 2.6 grey levels of 255 on average over the moving pixels):
+3. ``motion_px >= min_motion_frac * max(H, W)`` (default 5 % of the image's larger side, 8 px at 160x90)
+   when the motion was measured: content that moves less than that over the interval is held by one
+   scaffold and canonical space whatever its residual (the generated ``near_static`` scene moves about 5 px
+   over 40 frames at 160x90, ``slow`` about 50 px, the fast half of ``slow_fast`` about 90 px);
+4. ``excess >= min_excess`` (default 0.01, i.e. 2.6 grey levels of 255 on average over the moving pixels):
    the moving regions are fit clearly worse than the static ones.
 
 Intervals where the model already follows the motion stay leaves, so branches of one tree differ. Every
@@ -30,7 +43,8 @@ import torch
 
 from worldtree.tree.tpt import can_split
 
-__all__ = ["AutoSplitConfig", "SplitDecision", "decide_split", "residual_stats"]
+__all__ = ["AutoSplitConfig", "SplitDecision", "decide_fit_split", "decide_split", "residual_stats",
+           "scaffold_motion_px"]  # fmt: skip
 
 
 @dataclass(frozen=True)
@@ -42,14 +56,23 @@ class AutoSplitConfig:
     (colour units in [0, 1])."""
     min_dynamic_fraction: float = 0.002
     """Split only when at least this share of the node's pixels is dynamic."""
+    min_motion_frac: float = 0.05
+    """Split only when the scaffold's motion over the interval (``motion_px``) reaches this fraction of the
+    image's larger side (when the motion was measured)."""
     max_depth: int = 6
     """Safety bound on the depth ``auto`` may reach (the minimum interval usually stops it first)."""
 
     def __post_init__(self) -> None:
-        if not self.min_excess >= 0 or not 0 <= self.min_dynamic_fraction <= 1 or self.max_depth < 0:
+        if (
+            not self.min_excess >= 0
+            or not 0 <= self.min_dynamic_fraction <= 1
+            or self.max_depth < 0
+            or not self.min_motion_frac >= 0
+        ):
             raise ValueError(
-                f"AutoSplitConfig needs min_excess >= 0, 0 <= min_dynamic_fraction <= 1 and max_depth >= 0; "
-                f"got {self.min_excess}, {self.min_dynamic_fraction}, {self.max_depth}"
+                "AutoSplitConfig needs min_excess >= 0, 0 <= min_dynamic_fraction <= 1, max_depth >= 0 and "
+                f"min_motion_frac >= 0; got {self.min_excess}, {self.min_dynamic_fraction}, {self.max_depth}, "
+                f"{self.min_motion_frac}"
             )
 
 
@@ -65,6 +88,10 @@ class SplitDecision:
     static_error: float
     excess: float
     dynamic_fraction: float
+    motion_px: float | None = None
+    """Scaffold motion over the interval in pixels (:func:`scaffold_motion_px`); None when not measured."""
+    motion_min_px: float | None = None
+    """The motion threshold applied (``min_motion_frac * max(H, W)``); None when not measured."""
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -100,20 +127,73 @@ def residual_stats(residual: torch.Tensor, dynamic: torch.Tensor) -> dict[str, f
     }
 
 
+@torch.no_grad()
+def scaffold_motion_px(pos: torch.Tensor, Ks: torch.Tensor, w2cs: torch.Tensor, quantile: float = 0.9) -> float:
+    """On-screen motion of scaffold nodes over an interval, camera motion removed (pixels).
+
+    Args:
+        pos: ``[T, M, 3]`` node positions per frame (world units). Ks: ``[T, 3, 3]``. w2cs: ``[T, 4, 4]``.
+        quantile: over the nodes, of each node's largest displacement.
+
+    For node ``m`` and frame ``t``: ``|pi_t(pos[t, m]) - pi_t(pos[mid, m])|`` with ``pi_t`` frame ``t``'s
+    camera and ``mid = T // 2``; a node's motion is its largest value over ``t`` (pairs with a point within
+    1e-6 of the camera plane or behind it are skipped). Returns the ``quantile`` over nodes, 0.0 with no node
+    or a single frame.
+    """
+    T, M = int(pos.shape[0]), int(pos.shape[1])
+    if M == 0 or T < 2:
+        return 0.0
+    p = pos.detach().double()
+    K, w2c = Ks.detach().double().to(p.device), w2cs.detach().double().to(p.device)
+    R, tr = w2c[:, None, :3, :3], w2c[:, None, :3, 3]
+
+    def pixels(x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        cam = (R @ x[..., None])[..., 0] + tr  # [T, M, 3]
+        z = cam[..., 2]
+        ok = z > 1e-6
+        zs = torch.where(ok, z, torch.ones_like(z))
+        u = K[:, None, 0, 0] * cam[..., 0] / zs + K[:, None, 0, 2]
+        v = K[:, None, 1, 1] * cam[..., 1] / zs + K[:, None, 1, 2]
+        return torch.stack([u, v], -1), ok
+
+    now, ok_now = pixels(p)
+    still, ok_still = pixels(p[T // 2].expand(T, M, 3))
+    d = (now - still).norm(dim=-1)
+    d = torch.where(ok_now & ok_still & torch.isfinite(d), d, torch.zeros_like(d))
+    per_node = d.amax(dim=0)  # [M]
+    return float(torch.quantile(per_node, float(quantile)))
+
+
 def decide_split(
-    residual: torch.Tensor, dynamic: torch.Tensor, min_len: int, cfg: AutoSplitConfig = AutoSplitConfig()
+    residual: torch.Tensor,
+    dynamic: torch.Tensor,
+    min_len: int,
+    cfg: AutoSplitConfig = AutoSplitConfig(),
+    motion_px: float | None = None,
 ) -> SplitDecision:
-    """Apply the criterion to a trained node's residual ``[T, H, W]`` and dynamic mask ``[T, H, W]``."""
+    """Apply the criterion to a trained node's residual ``[T, H, W]``, dynamic mask ``[T, H, W]`` and, when
+    given, its scaffold motion ``motion_px`` (:func:`scaffold_motion_px`; None skips that test)."""
     st = residual_stats(residual, dynamic)
     frames = int(residual.shape[0])
+    min_motion = cfg.min_motion_frac * max(int(residual.shape[1]), int(residual.shape[2]))
     if not can_split(frames, min_len):
         split, reason = False, f"interval: {frames} frames < min_len {min_len}"
     elif st["dynamic_fraction"] < cfg.min_dynamic_fraction:
         split = False
         reason = f"near-static: dynamic fraction {st['dynamic_fraction']:.4g} < {cfg.min_dynamic_fraction:g}"
+    elif motion_px is not None and not motion_px >= min_motion:
+        split, reason = False, f"near-static: scaffold motion {motion_px:.3g} px < {min_motion:.3g} px"
     elif st["excess"] < cfg.min_excess:
         split, reason = False, f"motion fit: excess {st['excess']:.4g} < {cfg.min_excess:g}"
     else:
         split, reason = True, f"excess {st['excess']:.4g} >= {cfg.min_excess:g}"
     return SplitDecision(split, reason, frames, st["dynamic_error"], st["static_error"], st["excess"],
-                         st["dynamic_fraction"])  # fmt: skip
+                         st["dynamic_fraction"], motion_px, None if motion_px is None else min_motion)  # fmt: skip
+
+
+def decide_fit_split(fit, dynamic: torch.Tensor, min_len: int, cfg: AutoSplitConfig) -> SplitDecision:
+    """:func:`decide_split` for a trained photometric fit (``worldtree.stages.photometric.PhotometricFit`` or a
+    tree node's fit): its residuals on its own frames, ``dynamic`` ``[T, H, W]`` masks of those frames, and
+    the motion of its own scaffold seen by its own cameras."""
+    motion = scaffold_motion_px(fit.scaffold.pos, fit.Ks, fit.cameras())
+    return decide_split(fit.residuals(), dynamic, min_len, cfg, motion_px=motion)

@@ -332,3 +332,16 @@ def test_resumed_fit_keeps_the_skinning_cache_and_ends_identical(tmp_path):
         assert torch.equal(full.dynamic.params[k], resumed.dynamic.params[k]), k
     assert torch.equal(full.static.params["means"], resumed.static.params["means"])
     assert torch.equal(full.scaffold.pos, resumed.scaffold.pos)
+
+
+def test_deferred_dynamic_prune_keeps_the_dynamic_set():
+    imgs, depth, Ks, w2cs, static, dyn, scf = scene()
+    fit = PhotometricFit(PhotometricConfig(steps=10, track_every=0), imgs, depth, Ks, w2cs, static, dyn, scf,
+                         None, None, extent=1.0)  # fmt: skip
+    n_s, n_d = len(fit.static), len(fit.dynamic)
+    assert n_s > 0 and n_d > 0
+    # A threshold above every contribution: the static set goes, the deferred dynamic set stays whole.
+    rep = fit._prune_with(fit.contributions(), 1e12, dynamic=False)
+    assert rep == {"static_before": n_s, "dynamic_before": n_d, "static_after": 0, "dynamic_after": n_d}
+    rep = fit._prune_with(fit.contributions(), 1e12, dynamic=True)
+    assert rep["dynamic_after"] == 0
