@@ -28,6 +28,9 @@ for _name in COMMAND_MODULES:
 
 def main() -> None:
     """Console-script entry point."""
+    from worldtree import openmp_policy
+
+    openmp_policy.configure()  # before torch is imported: OpenMP threads sleep on an oversubscribed machine
     run_cli(app)
 
 

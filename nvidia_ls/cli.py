@@ -237,6 +237,9 @@ def info(scene: Path = typer.Argument(..., help="Scene folder written by `nvls b
 
 def main() -> None:
     """Console-script entry point."""
+    from worldtree import openmp_policy
+
+    openmp_policy.configure()  # before torch is imported: OpenMP threads sleep on an oversubscribed machine
     run_cli(app)
 
 

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import os
 import resource
 import shutil
 import sys
@@ -364,6 +365,7 @@ def _execute_locked(req, spec, cfg, folder, root, view, device, timer, method, b
         "rasterizer_target": _kernel_target(device),
         "device": str(device),
         "torch_threads": torch.get_num_threads(),
+        "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY"),
         "method_stats": stats,
     }
     atomic_write_json(folder.timing_json, timing)
