@@ -465,7 +465,8 @@ def _adaptive_setup(s: BaseState, fit: PhotometricFit) -> PlateauDetector | None
 
 def stage_prune(s: BaseState) -> None:
     """Gaussians whose contribution is negligible removed from the fitted model (runs with ``budget`` on)."""
-    s.info["adaptive"]["prune"] = s.fit.prune_negligible(s.cfg.budget.prune_contribution)
+    b = s.cfg.budget
+    s.info["adaptive"]["prune"] = s.fit.prune_negligible(b.prune_contribution, total_frac=b.prune_total_frac)
 
 
 def stage_test_pose(s: BaseState) -> None:

@@ -271,7 +271,7 @@ class StaticGaussians(DensifiedGaussianTrainable):
         if stop is not None:
             self.adaptive["early_stop"] = stop.report()
         if c.budget_on():
-            self.adaptive["prune"] = self._prune(c.budget.prune_contribution)
+            self.adaptive["prune"] = self._prune(c.budget.prune_contribution, c.budget.prune_total_frac)
         return summary
 
     @torch.no_grad()
@@ -283,8 +283,9 @@ class StaticGaussians(DensifiedGaussianTrainable):
         e = float(np.mean(errs))
         return e if np.isfinite(e) else float("inf")
 
-    def _prune(self, threshold: float) -> dict[str, int]:
-        """Remove the Gaussians whose contribution over the training views is below ``threshold`` (pixels)."""
+    def _prune(self, threshold: float, total_frac: float | None = None) -> dict[str, int]:
+        """Remove the Gaussians whose contribution over the training views is below ``threshold`` (pixels),
+        smallest first and only while they sum to at most ``total_frac`` of a view's pixels."""
         s, gs = self.scene, self.gaussians
         views = [(i, s.Ks[i], s.w2cs[i]) for i in range(s.num_frames)]
         contrib = render_contributions(
@@ -292,7 +293,8 @@ class StaticGaussians(DensifiedGaussianTrainable):
             self.cfg.backend,
         )  # fmt: skip
         before = len(gs)
-        drop = negligible(contrib, threshold)
+        total = None if total_frac is None else float(total_frac) * s.width * s.height
+        drop = negligible(contrib, threshold, total)
         if bool(drop.any()):
             remove(gs, self.optimizer, self.strategy_state, drop)
         self._render_cache = None

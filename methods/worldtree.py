@@ -288,17 +288,21 @@ class NodeFit(PhotometricFit):
                 a.refresh_cache()
         return res
 
-    def prune_chain(self, threshold: float) -> dict[str, list[int]]:
+    def prune_chain(self, threshold: float, total_frac: float | None = None) -> dict[str, list[int]]:
         """Remove from this node's ancestor copies the Gaussians whose contribution over the node's frames is
         below ``threshold`` (the copies only ever render this node's frames, and its children's, which lie
-        inside). Call after training: the ancestor optimiser is rebuilt without moments."""
+        inside), with ``total_frac`` at most as many as sum to that fraction of a frame's pixels over the whole
+        chain. Call after training: the ancestor optimiser is rebuilt without moments."""
         contrib = self.contributions()
         at = len(self.static) + len(self.dynamic)
-        before, after = [], []
+        H, W = self.images.shape[1:3]
+        total = None if total_frac is None else float(total_frac) * H * W
+        chosen = negligible(contrib[at:], threshold, total)  # one shared total for the whole chain
+        before, after, k = [], [], 0
         for a in self.chain:
             n = len(a.dynamic)
-            drop = negligible(contrib[at : at + n], threshold)
-            at += n
+            drop = chosen[k : k + n]
+            k += n
             before.append(n)
             if bool(drop.any()):
                 remove(a.dynamic, None, {}, drop)
@@ -371,7 +375,7 @@ def _prune_inherited(state: NodeState, pcfg: PhotometricConfig, data: dict, cfg:
     """Budget on: keep what this node's frames see (contributions with the parent's opacities), then reset the
     inherited opacities to ``inherit_opacity`` as without the budget. Returns the pruning counts."""
     pre = _node_fit(state, pcfg, data, cfg, seed, with_tracks=False)
-    counts = pre.prune_negligible(cfg.budget.prune_contribution)
+    counts = pre.prune_negligible(cfg.budget.prune_contribution, total_frac=cfg.budget.prune_total_frac)
     state.static, state.dynamic = pre.static, pre.dynamic
     cap = inverse_sigmoid(torch.tensor(cfg.inherit_opacity)).item()
     with torch.no_grad():
@@ -412,8 +416,10 @@ def train_node(payload: dict, ctx: NodeContext) -> dict:
     if cfg.budget is not None:
         # Inherited dynamic Gaussians (opacity reset) are pruned only once they had steps to recover.
         due = inherited_prune_due(summary.end_step, fit.T, cfg.budget)
-        adaptive["prune"] = {**fit.prune_negligible(cfg.budget.prune_contribution, dynamic=due), "dynamic_due": due}
-        adaptive["prune_ancestors"] = fit.prune_chain(cfg.budget.prune_contribution)
+        b = cfg.budget
+        pruned = fit.prune_negligible(b.prune_contribution, dynamic=due, total_frac=b.prune_total_frac)
+        adaptive["prune"] = {**pruned, "dynamic_due": due}
+        adaptive["prune_ancestors"] = fit.prune_chain(b.prune_contribution, b.prune_total_frac)
     state.static, state.dynamic, state.scaffold = fit.static, fit.dynamic, fit.scaffold
     state.chain = fit.chain
     stats = {

@@ -11,7 +11,8 @@ its per-view totals (:func:`render_contributions`).
 is at most ``w_i`` for colours in [0, 1]; so over a view the image changes by at most ``sum_px w_i`` (L1 summed
 over the pixels, per channel). A Gaussian whose contribution is below ``prune_contribution`` (default 1.0,
 one pixel's worth) changes no training view by more than one pixel of colour in total: it is *negligible*.
-Pruning (:func:`negligible`) removes exactly those and never one at or above the threshold.
+Pruning (:func:`negligible`) removes only those, never one at or above the threshold, and at most as many
+(smallest first) as keep their summed contributions within ``prune_total_frac`` of a view's pixels (1 %).
 
 **Inherited Gaussians recover first.** A tree child inherits its parent's dynamic Gaussians with their
 opacity reset low (``inherit_opacity``, 0.05): right after inheritance most of them are below the threshold
@@ -44,6 +45,7 @@ __all__ = [
     "negligible",
     "node_budget",
     "render_contributions",
+    "total_px",
 ]
 
 GaussiansFn = Callable[[int], tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]]
@@ -67,6 +69,12 @@ class BudgetConfig:
     """A fixed budget instead of the derived one."""
     prune_contribution: float = 1.0
     """A Gaussian whose total blending weight stays below this (pixels) in every training view is removed."""
+    prune_total_frac: float = 0.01
+    """One pruning removes Gaussians (smallest contribution first) only while their contributions add up to at
+    most this fraction of a view's pixels: each one alone changes a view by less than ``prune_contribution``, but
+    thousands together (small images, many Gaussians) can change it a lot. The sum is a first-order bound on
+    the total change of any training view (exact for Gaussians that do not overlap; a removed Gaussian lets the
+    ones behind it show through more)."""
     prune_min_epochs: float = 10.0
     """Inherited (opacity-reset) dynamic Gaussians are pruned after training only once the node has trained at
     least this many passes over its frames (:func:`inherited_prune_due`)."""
@@ -81,6 +89,8 @@ class BudgetConfig:
             raise ValueError(f"BudgetConfig.override must be >= 1, got {self.override}")
         if not self.prune_contribution >= 0:
             raise ValueError(f"BudgetConfig.prune_contribution must be >= 0, got {self.prune_contribution}")
+        if not 0 <= self.prune_total_frac:
+            raise ValueError(f"BudgetConfig.prune_total_frac must be >= 0, got {self.prune_total_frac}")
         if not self.prune_min_epochs >= 0:
             raise ValueError(f"BudgetConfig.prune_min_epochs must be >= 0, got {self.prune_min_epochs}")
 
@@ -146,6 +156,20 @@ def render_contributions(
     return best
 
 
-def negligible(contribution: torch.Tensor, threshold: float) -> torch.Tensor:
-    """``[N]`` bool: the Gaussians whose contribution is strictly below ``threshold`` (the ones to prune)."""
-    return contribution < float(threshold)
+def negligible(contribution: torch.Tensor, threshold: float, total: float | None = None) -> torch.Tensor:
+    """``[N]`` bool: the Gaussians to prune, strictly below ``threshold`` each; with ``total``, only the
+    smallest of them whose contributions add up to at most ``total`` (see ``BudgetConfig.prune_total_frac``)."""
+    below = contribution < float(threshold)
+    if total is None or not bool(below.any()):
+        return below
+    vals = torch.where(below, contribution, torch.full_like(contribution, float("inf")))
+    order = torch.argsort(vals, stable=True)
+    within = torch.cumsum(vals[order].double(), 0) <= float(total)
+    out = torch.zeros_like(below)
+    out[order[within]] = True
+    return out & below
+
+
+def total_px(cfg: BudgetConfig, width: int, height: int) -> float:
+    """The summed contribution pruning may remove from a model of ``width x height`` views (pixels)."""
+    return cfg.prune_total_frac * int(width) * int(height)

@@ -16,6 +16,7 @@ from worldtree.budget import (
     negligible,
     node_budget,
     render_contributions,
+    total_px,
 )
 from worldtree.render import rasterize
 
@@ -101,3 +102,25 @@ def test_inherited_gaussians_are_pruned_only_after_enough_epochs():
     assert inherited_prune_due(0, 20, BudgetConfig(prune_min_epochs=0.0))
     with pytest.raises(ValueError):
         BudgetConfig(prune_min_epochs=-1.0)
+
+
+def test_total_cap_removes_the_smallest_within_the_sum_and_never_above_threshold():
+    g = torch.Generator().manual_seed(7)
+    contrib = torch.cat([torch.rand(200, generator=g) * 2.0, torch.tensor([0.0, 0.0, 5.0])])
+    below = contrib < 1.0
+    for total in (0.0, 0.3, 3.0, 25.0, 1e9):
+        mask = negligible(contrib, 1.0, total)
+        assert not mask[~below].any()  # never one at or above the threshold
+        assert float(contrib[mask].sum()) <= total + 1e-9
+        # Brute force: the removed ones are the k smallest below the threshold, k as large as the sum allows.
+        vals = sorted(contrib[below].tolist())
+        k = 0
+        while k < len(vals) and sum(vals[: k + 1]) <= total:
+            k += 1
+        assert int(mask.sum()) == k
+        if k:
+            assert float(contrib[mask].max()) <= vals[k - 1]
+    assert negligible(contrib, 1.0, 1e9).equal(below)  # an unlimited total is the plain rule
+    assert total_px(BudgetConfig(prune_total_frac=0.01), 80, 45) == 36.0
+    with pytest.raises(ValueError):
+        BudgetConfig(prune_total_frac=-0.1)

@@ -445,17 +445,27 @@ class PhotometricFit:
         with torch.no_grad():
             return self.camera(i).detach()
 
-    def prune_negligible(self, threshold: float, dynamic: bool = True) -> dict[str, int]:
+    def prune_negligible(
+        self, threshold: float, dynamic: bool = True, total_frac: float | None = None
+    ) -> dict[str, int]:
         """Remove the static and (with ``dynamic``) dynamic Gaussians whose contribution over this fit's frames
-        is below ``threshold`` (pixels; :mod:`worldtree.budget`); their Adam moments and density statistics go
-        with them. Returns the counts before and after."""
-        return self._prune_with(self.contributions(), threshold, dynamic)
+        is below ``threshold`` (pixels; :mod:`worldtree.budget`), with ``total_frac`` only the smallest whose
+        contributions add up to at most that fraction of a frame's pixels; their Adam moments and density
+        statistics go with them. Returns the counts before and after."""
+        H, W = self.images.shape[1:3]
+        total = None if total_frac is None else float(total_frac) * H * W
+        return self._prune_with(self.contributions(), threshold, dynamic, total)
 
-    def _prune_with(self, contrib: torch.Tensor, thr: float, dynamic: bool = True) -> dict[str, int]:
+    def _prune_with(
+        self, contrib: torch.Tensor, thr: float, dynamic: bool = True, total: float | None = None
+    ) -> dict[str, int]:
         n_s, n_d = len(self.static), len(self.dynamic)
         report = {"static_before": n_s, "dynamic_before": n_d}
-        drop_s = negligible(contrib[:n_s], thr)
-        drop_d = negligible(contrib[n_s : n_s + n_d], thr) & dynamic
+        own = contrib[: n_s + n_d].clone()
+        if not dynamic:
+            own[n_s:] = float("inf")  # deferred: never selected
+        drop = negligible(own, thr, total)  # one shared total for both sets
+        drop_s, drop_d = drop[:n_s], drop[n_s:]
         if bool(drop_s.any()):
             remove(self.static, self.static_opt, self.static_state, drop_s)
         if bool(drop_d.any()):

@@ -345,3 +345,17 @@ def test_deferred_dynamic_prune_keeps_the_dynamic_set():
     assert rep == {"static_before": n_s, "dynamic_before": n_d, "static_after": 0, "dynamic_after": n_d}
     rep = fit._prune_with(fit.contributions(), 1e12, dynamic=True)
     assert rep["dynamic_after"] == 0
+
+
+def test_prune_total_cap_bounds_what_one_pruning_removes():
+    imgs, depth, Ks, w2cs, static, dyn, scf = scene()
+    fit = PhotometricFit(PhotometricConfig(steps=10, track_every=0), imgs, depth, Ks, w2cs, static, dyn, scf,
+                         None, None, extent=1.0)  # fmt: skip
+    contrib = fit.contributions()
+    n = len(fit.static) + len(fit.dynamic)
+    total = 0.02 * H * W
+    rep = fit.prune_negligible(1e12, total_frac=0.02)  # everything is "negligible": only the total limits it
+    removed = n - rep["static_after"] - rep["dynamic_after"]
+    smallest = torch.sort(contrib[:n]).values
+    expect = int((torch.cumsum(smallest.double(), 0) <= total).sum())
+    assert removed == expect and 0 < removed < n
