@@ -62,7 +62,9 @@ def test_static_budget_and_early_stop(tiny_scene):
 
     scene = load_scene(tiny_scene)
     seed_everything(0)
-    cfg = tiny_config(budget=BudgetConfig(enabled=True), early_stop=PlateauRule(enabled=True, min_window=10))
+    # No total cap (tested in tests/worldtree/test_budget_prune.py): every negligible Gaussian goes.
+    budget = BudgetConfig(enabled=True, prune_total_frac=1e9)
+    cfg = tiny_config(budget=budget, early_stop=PlateauRule(enabled=True, min_window=10))
     model = StaticGaussians(cfg, scene, torch.device("cpu"))
     summary = model.fit(TrainContext(progress=False))
     ad = model.stats()["adaptive"]

@@ -236,7 +236,10 @@ def test_node_with_budget_auto_and_early_stop_records_its_choices(runs, tmp_path
     shutil.copy(src / "context.pt", tree / "context.pt")
     cfg = read_config(src / "node_config.json", NodeTrainConfig)
     rule = PlateauRule(enabled=True, rel_tol=0.5, patience=1, min_window=2)  # fires after two windows
-    cfg = dataclasses.replace(cfg, layer_steps=(40, 40), auto=AutoSplitConfig(), budget=BudgetConfig(enabled=True),
+    # No total cap and no deferral of the inherited Gaussians' pruning (both tested in test_budget_prune.py):
+    # every negligible Gaussian goes, so every kept one can be checked against the threshold.
+    budget = BudgetConfig(enabled=True, prune_total_frac=1e9, prune_min_epochs=0.0)
+    cfg = dataclasses.replace(cfg, layer_steps=(40, 40), auto=AutoSplitConfig(), budget=budget,
                               early_stop=rule)  # fmt: skip
     write_config(tree / "node_config.json", cfg)
     torch.manual_seed(6)
@@ -247,6 +250,7 @@ def test_node_with_budget_auto_and_early_stop_records_its_choices(runs, tmp_path
     ad = stats["adaptive"]
     assert stats["steps"] < 40 and ad["early_stop"]["stopped_at"] == stats["steps"]
     assert ad["prune"]["static_after"] == stats["num_static"] <= ad["prune"]["static_before"]
+    assert ad["prune"]["dynamic_due"] is True
     assert ad["inherit_prune"]["dynamic_after"] <= ad["inherit_prune"]["dynamic_before"]
     assert set(stats["auto_split"]) >= {"split", "reason", "excess", "dynamic_fraction"}
     # Every Gaussian the node kept contributes at least the threshold over its own frames.
