@@ -33,8 +33,17 @@ class ProofRow:
     seed: int = 0
 
 
-def prepare_scene(out: Path, size: tuple[int, int], steps: int, log=print) -> tuple[Path, Path]:
-    """Generate, build and write exact priors for the capture under ``out`` (each step skipped when done).
+def prepare_scene(
+    out: Path,
+    size: tuple[int, int],
+    steps: int,
+    log=print,
+    name: str = "SynthBalloon",
+    motion: str = "slow_fast",
+    seed: int = 0,
+) -> tuple[Path, Path]:
+    """Generate (``nvls synth`` with ``motion``, ``seed``), build and write exact priors for the capture
+    ``name`` under ``out``, each step skipped when done.
 
     Returns ``(scene folder, exact priors folder)``.
     """
@@ -42,13 +51,11 @@ def prepare_scene(out: Path, size: tuple[int, int], steps: int, log=print) -> tu
     from nvidia_ls.gt_priors import GtPriorsConfig, write_gt_priors
     from nvidia_ls.synth import SynthConfig, write_raw_scene
 
-    name = "SynthBalloon"
     raw = out / "raw" / name
     if not (raw / "gt" / "cameras.json").is_file():
-        log(f"generating {raw} ({size[0]}x{size[1]}, {steps} steps, slow_fast)")
-        write_raw_scene(
-            raw, SynthConfig(steps=steps, width=size[0], height=size[1], motion="slow_fast"), force=True
-        )
+        log(f"generating {raw} ({size[0]}x{size[1]}, {steps} steps, {motion}, seed {seed})")
+        cfg = SynthConfig(steps=steps, width=size[0], height=size[1], motion=motion, seed=seed)
+        write_raw_scene(raw, cfg, force=True)
     scene = out / "scenes" / name
     if not (scene / "manifest.json").is_file():
         log(f"nvls build {raw}")

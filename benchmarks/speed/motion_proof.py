@@ -45,25 +45,10 @@ AFTER_SETS = [
 
 def prepare(out: Path, name: str, size: tuple[int, int], steps: int, log=print) -> tuple[Path, Path]:
     """Generate, build and write exact priors for scene ``name`` (``demo`` or ``hard``) under ``out``."""
-    from nvidia_ls.build import BuildConfig, build_scene
-    from nvidia_ls.gt_priors import GtPriorsConfig, write_gt_priors
-    from nvidia_ls.synth import SynthConfig, write_raw_scene
+    from benchmarks.speed.base_proof import prepare_scene
 
     motion, seed = ("slow_fast", 0) if name == "demo" else ("constant", 1)
-    raw = out / "raw" / name
-    if not (raw / "gt" / "cameras.json").is_file():
-        log(f"generating {raw} ({size[0]}x{size[1]}, {steps} steps, {motion}, seed {seed})")
-        cfg = SynthConfig(steps=steps, width=size[0], height=size[1], motion=motion, seed=seed)
-        write_raw_scene(raw, cfg, force=True)
-    scene = out / "scenes" / name
-    if not (scene / "manifest.json").is_file():
-        log(f"nvls build {raw}")
-        build_scene(raw, out / "scenes", BuildConfig(force=True), log=lambda s: None)
-    gt = scene / "gt_priors"
-    if not (gt / "gt_priors.json").is_file():
-        log(f"nvls gt-priors {raw} {scene}")
-        write_gt_priors(raw, scene, gt, GtPriorsConfig(force=True))
-    return scene, gt
+    return prepare_scene(out, size, steps, log, name=name, motion=motion, seed=seed)
 
 
 def _resize_masks(masks: np.ndarray, H: int, W: int) -> np.ndarray:
