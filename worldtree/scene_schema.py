@@ -247,14 +247,20 @@ def _frames(raw: Any, key: str, path: Path, root: str | Path | None, ids: list[i
 def read_cameras(root: str | Path) -> CamerasDoc:
     """``root/cameras.json`` parsed and checked (files confined to ``root``); :class:`UserError` otherwise."""
     path = Path(root) / CAMERAS_JSON
+    meta = _read_scene_json(path, f"missing; is {root} a scene written by `nvls build`?")
+    return CamerasDoc.from_json(meta, path, root)
+
+
+def _read_scene_json(path: Path, missing: str) -> Any:
+    """The parsed JSON of a scene document; :class:`UserError` ``"{path}: {missing}"`` when absent, and one
+    naming the line when it is not JSON."""
     if not path.is_file():
-        raise UserError(f"{path}: missing; is {root} a scene written by `nvls build`?")
+        raise UserError(f"{path}: {missing}")
     try:
-        meta = json.loads(path.read_text())
+        return json.loads(path.read_text())
     except (json.JSONDecodeError, UnicodeDecodeError) as e:
         msg = f"{e.msg} at line {e.lineno}" if isinstance(e, json.JSONDecodeError) else str(e)
         raise UserError(f"{path}: not valid JSON ({msg}); rebuild the scene") from e
-    return CamerasDoc.from_json(meta, path, root)
 
 
 _HEX = frozenset("0123456789abcdef")
@@ -292,11 +298,5 @@ def read_manifest(root: str | Path) -> dict[str, Any]:
     nothing outside ``root`` is opened."""
     root = Path(root)
     path = root / MANIFEST_JSON
-    if not path.is_file():
-        raise UserError(f"{path}: missing (not a scene built by `nvls build`?)")
-    try:
-        man = json.loads(path.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as e:
-        msg = f"{e.msg} at line {e.lineno}" if isinstance(e, json.JSONDecodeError) else str(e)
-        raise UserError(f"{path}: not valid JSON ({msg}); rebuild the scene") from e
+    man = _read_scene_json(path, "missing (not a scene built by `nvls build`?)")
     return _checked_manifest(man, path, root)
