@@ -4,6 +4,10 @@ generate a raw 12-camera capture -> `nvls build` -> `wtbench run` (each register
 preset) -> `wtbench table` (CSV of the test-view scores). Every stage is skipped when its output already exists, so
 re-running the command resumes where it stopped. With ``--gt-priors`` the methods that use 2D priors get the
 scene's exact masks, tracks and depth (`nvls gt-priors`) instead of the classical ones.
+
+Methods that grow a tree (WorldTree) run with ``--depth auto`` by default: a node is split only where its frames
+need it (docs/worldtree_method.md, "Modelling only what a scene needs"); ``--depth 2`` gives the paper's fixed
+tree. After each such run the demo prints the depth the tree reached, its leaves and why each node was split.
 """
 
 from __future__ import annotations
@@ -32,8 +36,14 @@ def register(app: typer.Typer) -> None:
             help="Give methods the scene's exact masks, tracks and depth (`nvls gt-priors`; stand-in for "
             "network priors) instead of classical priors.",
         ),
+        depth: str = typer.Option(
+            "auto",
+            "--depth",
+            help="Tree depth of the methods that grow one (WorldTree): auto (split a node only where its "
+            "frames need it) or a fixed depth, e.g. 2 (the paper's).",
+        ),
     ) -> None:
-        run_demo(out, methods, steps, size, device, preset, gt_priors=gt_priors)
+        run_demo(out, methods, steps, size, device, preset, gt_priors=gt_priors, depth=depth)
 
 
 def run_demo(
@@ -44,11 +54,14 @@ def run_demo(
     device: str,
     preset: str = "quick",
     gt_priors: bool = False,
+    depth: str = "auto",
 ) -> Path:
     """Run the demo pipeline into ``out``; returns the path of the summary CSV.
 
     With ``gt_priors`` the exact priors are written to ``SCENE/gt_priors`` (once) and imported by every
-    method whose config has 2D priors; the others run as usual.
+    method whose config has 2D priors; the others run as usual. ``depth`` (``"auto"`` or an integer as text)
+    is given to every method whose config has a tree depth (the option ``--depth`` of `wtbench run`); the
+    others run without it.
     """
     from rich.console import Console
 
@@ -104,8 +117,10 @@ def run_demo(
         flags = "".join(f" --{k.replace('_', '-')} {v}" for k, v in given.items())
         if priors and not given:
             console.print(f"  {m} uses no 2D priors: --gt-priors does not apply to it")
+        options = {"depth": depth} if _config_has(m, preset, "depth") else {}
+        flags += f" --depth {depth}" if options else ""
         console.print(f"[bold]3/3[/] wtbench run --method {m} --scene {scene} --preset {preset}{flags}")
-        execute(
+        result = execute(
             RunRequest(
                 scene=scene,
                 method=m,
@@ -113,9 +128,14 @@ def run_demo(
                 preset=preset,
                 device=device,
                 priors=given,
-                command=f"wtbench demo --method {m} --preset {preset}" + (" --gt-priors" if given else ""),
+                options=options,
+                command=f"wtbench demo --method {m} --preset {preset}"
+                + (" --gt-priors" if given else "")
+                + (f" --depth {depth}" if options else ""),
             )
         )
+        if options:
+            console.print(f"  {m}: {tree_summary(result.folder.timing_json)}", highlight=False)
     csv = out / "table.csv"
     console.print(f"wtbench table {out / 'runs'} -o {csv}")
     export_tables([out / "runs"], csv)
@@ -124,9 +144,37 @@ def run_demo(
 
 def _uses_priors(method: str, preset: str) -> bool:
     """Whether ``method``'s config has 2D priors (imported priors are refused by the others)."""
+    return _config_has(method, preset, "priors")
+
+
+def _config_has(method: str, preset: str, name: str) -> bool:
+    """Whether ``method``'s config (``preset``) has a field ``name``."""
     import dataclasses
 
     from methods.registry import get_method
 
     cfg = get_method(method).config(preset)
-    return "priors" in {f.name for f in dataclasses.fields(cfg)}
+    return name in {f.name for f in dataclasses.fields(cfg)}
+
+
+def tree_summary(timing_json: Path) -> str:
+    """One line on the tree a run grew, from its ``timing.json``: the depth reached (its deepest node), the node
+    count, the leaves' frame intervals and, under ``--depth auto``, why each node was or was not split
+    (``method_stats.tree.auto``)."""
+    import json
+
+    from worldtree.tree.tpt import depth_of
+
+    tree = json.loads(timing_json.read_text()).get("method_stats", {}).get("tree") or {}
+    nodes = sorted(int(j) for j in tree.get("nodes") or [1])
+    intervals = tree.get("intervals") or {}
+    leaves = [j for j in nodes if 2 * j not in nodes]
+    line = f"tree depth {max(depth_of(j) for j in nodes)}, {len(nodes)} node{'s' if len(nodes) > 1 else ''}"
+    if len(nodes) > 1 and intervals:
+        line += ", leaves over frames " + ", ".join("-".join(map(str, intervals[str(j)])) for j in leaves)
+    auto = tree.get("auto") or {}
+    if not auto:
+        return line
+    why = "; ".join(f"node {j}: {'split' if d.get('applied', d.get('split')) else 'leaf'} ({d.get('reason')})"
+                    for j, d in sorted(auto.items(), key=lambda kv: int(kv[0])))  # fmt: skip
+    return f"--depth auto chose {line} ({why})"

@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
+import json
+
 import pandas as pd
 
-from benchmarks.commands.demo import run_demo
+from benchmarks.commands.demo import run_demo, tree_summary
 
 
-def test_demo_generates_builds_runs_and_tabulates(tmp_path):
+def test_demo_generates_builds_runs_and_tabulates(tmp_path, capsys):
     csv = run_demo(tmp_path, ["worldtree"], steps=26, size="128x72", device="cpu", preset="smoke")
     scene = tmp_path / "scenes" / "SynthBalloon"
     assert (scene / "manifest.json").is_file() and len(list((scene / "images").iterdir())) == 26
@@ -15,7 +17,11 @@ def test_demo_generates_builds_runs_and_tabulates(tmp_path):
     assert list(table["method"]) == ["worldtree"]
     psnr = [c for c in table.columns if c.startswith("psnr:")]
     assert psnr and table[psnr[0]].between(5, 60).all()
-    assert (tmp_path / "runs" / "SynthBalloon" / "worldtree" / "smoke" / "DONE").is_file()
+    # WorldTree runs with --depth auto by default, and the demo prints the tree it chose.
+    run = tmp_path / "runs" / "SynthBalloon" / "worldtree" / "smoke-depthauto"
+    assert (run / "DONE").is_file()
+    assert json.loads((run / "config.json").read_text())["config"]["auto_depth"] is True
+    assert "--depth auto chose tree depth" in capsys.readouterr().out
     # A second call finds every stage done and only re-tabulates.
     assert run_demo(tmp_path, ["worldtree"], steps=26, size="128x72", device="cpu", preset="smoke") == csv
     # --gt-priors: exact priors written once into the scene and imported by a method that uses priors.
@@ -23,5 +29,39 @@ def test_demo_generates_builds_runs_and_tabulates(tmp_path):
     assert (scene / "gt_priors" / "gt_priors.json").is_file()
     runs = [p for p in (tmp_path / "runs" / "SynthBalloon" / "base").iterdir() if not p.name.startswith(".")]
     assert len(runs) == 1 and "-set" in runs[0].name and (runs[0] / "DONE").is_file()
+    assert "depth" not in runs[0].name  # Base grows no tree: --depth is not given to it
     record = pd.read_json(runs[0] / "config.json", typ="series")
     assert set(record["imported_priors"]) == {"masks", "tracks", "depth_maps"}
+
+
+def _timing(tmp_path, tree):
+    path = tmp_path / "timing.json"
+    path.write_text(json.dumps({"method_stats": {"tree": tree}}))
+    return path
+
+
+def test_tree_summary_depth_nodes_leaves_and_reasons(tmp_path):
+    # Nodes 1, 2, 3, 6, 7 of a binary tree: 6 and 7 are the children of 3, so the deepest is at depth 2 and the
+    # leaves are 2, 6 and 7 (worked out by hand).
+    intervals = {"1": [0, 39], "2": [0, 18], "3": [19, 39], "6": [19, 28], "7": [29, 39]}
+    auto = {"1": {"split": True, "applied": True, "reason": "excess 0.07 >= 0.01"},
+            "2": {"split": False, "applied": False, "reason": "near-static"},
+            "3": {"split": True, "applied": True, "reason": "excess 0.07 >= 0.01"},
+            "6": {"split": True, "applied": False, "reason": "excess 0.05 >= 0.01"},
+            "7": {"split": False, "applied": False, "reason": "interval"}}  # fmt: skip
+    line = tree_summary(_timing(tmp_path, {"nodes": [1, 2, 3, 6, 7], "intervals": intervals, "auto": auto}))
+    assert line.startswith(
+        "--depth auto chose tree depth 2, 5 nodes, leaves over frames 0-18, 19-28, 29-39 ("
+    )
+    # Node 6 met the criterion but was not split (applied False): it is reported as the leaf it is.
+    assert "node 2: leaf (near-static)" in line and "node 6: leaf (excess 0.05" in line
+    assert "node 3: split (" in line
+    # A fixed depth records no decisions; the root alone is depth 0.
+    assert tree_summary(_timing(tmp_path, {"nodes": [1, 2, 3], "intervals": intervals})) == (
+        "tree depth 1, 3 nodes, leaves over frames 0-18, 19-39"
+    )
+    root = {"nodes": [1], "auto": {"1": {"split": False, "applied": False, "reason": "near-static"}}}
+    assert (
+        tree_summary(_timing(tmp_path, root))
+        == "--depth auto chose tree depth 0, 1 node (node 1: leaf (near-static))"
+    )
