@@ -36,7 +36,7 @@ from typing import Any, ClassVar
 import numpy as np
 import torch
 
-from methods.registry import CommonConfig, MethodSpec, register_method
+from methods.registry import CommonConfig, MethodSpec, register_method, settings_of
 from methods.stages import Ablation, Stage, run_stages, with_ablations
 from methods.static3dgs import scene_extent
 from worldtree.atomic import atomic_write_bytes, atomic_write_json
@@ -123,7 +123,8 @@ class BaseConfig(CommonConfig):
 
     def ignored_settings(self) -> dict[str, str]:
         """:meth:`CommonConfig.ignored_settings` plus the Base method's: ``photometric.steps`` (filled in from
-        ``steps``), ``sw.steps`` under ``ablate sw``, the density caps the Gaussian budget sets."""
+        ``steps``), ``sw.steps`` under ``ablate sw``, the density caps the Gaussian budget sets, the motion
+        discovery settings (and ``refine_masks``) while it is off, the migration settings while it is off."""
         out = super().ignored_settings()
         out["photometric.steps"] = "this method sets it from steps; --steps N or --set steps=N"
         if "sw" in self.ablate:
@@ -132,6 +133,15 @@ class BaseConfig(CommonConfig):
             why = "the Gaussian budget sets it; --set budget.enabled=false to cap by hand"
             for part in ("static_strategy", "dynamic_strategy"):
                 out[f"photometric.{part}.max_gaussians"] = why
+        if not self.priors.motion.enabled:
+            why = "motion discovery is off; --set priors.motion.enabled=true"
+            out.update(settings_of("priors.motion", self.priors.motion, why))
+            out["refine_masks"] = why
+        if self.photometric.migrate_every <= 0:
+            why = "static<->dynamic migration is off; --set photometric.migrate_every=N"
+            for k in ("migrate_start", "migrate_stop", "migrate_frames", "migrate_residual", "migrate_min_views",
+                      "static_move_frac"):  # fmt: skip
+                out[f"photometric.{k}"] = why
         return out
 
     def __post_init__(self) -> None:

@@ -33,7 +33,7 @@ from pathlib import Path
 import numpy as np
 
 BEFORE_SETS = [
-    "priors.motion.enabled=false", "refine_masks=false", "photometric.migrate_every=0",
+    "priors.motion.enabled=false", "photometric.migrate_every=0",
     "scaffold.complete_radius_units=0",
 ]  # fmt: skip
 AFTER_SETS = [

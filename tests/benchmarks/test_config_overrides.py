@@ -266,6 +266,11 @@ def _configs():
         base.config("smoke"), ablate=("sw",), budget=dataclasses.replace(base.config("smoke").budget, **on),
         early_stop=dataclasses.replace(base.config("smoke").early_stop, **on),
     )  # fmt: skip
+    off = base.config("quick")
+    yield "base, motion discovery and migration off", dataclasses.replace(
+        off, priors=dataclasses.replace(off.priors, motion=dataclasses.replace(off.priors.motion, enabled=False)),
+        photometric=dataclasses.replace(off.photometric, migrate_every=0),
+    )  # fmt: skip
     yield "worldtree quick", wt.config("quick")
     yield "worldtree depth auto", dataclasses.replace(wt.config("quick"), depth="auto")
     yield "worldtree -tpt", dataclasses.replace(wt.config("quick"), ablate=("tpt",))
@@ -297,6 +302,12 @@ def test_switching_a_feature_on_in_the_same_command_makes_its_settings_count():
     assert out.budget.prune_contribution == 2.0 and out.budget_on()
     with pytest.raises(UserError, match="no tree grows"):
         apply_overrides(get_method("worldtree").config("quick"), ["depth=0", "layer_steps=5"])
+    with pytest.raises(UserError, match="motion discovery is off"):
+        apply_overrides(cfg, ["priors.motion.enabled=false", "priors.motion.threshold=0.3"])
+    with pytest.raises(UserError, match="migration is off"):
+        apply_overrides(cfg, ["photometric.migrate_residual=0.1", "photometric.migrate_every=0"])
+    out = apply_overrides(cfg, ["photometric.migrate_residual=0.1"])
+    assert out.photometric.migrate_residual == 0.1
 
 
 def test_every_setting_is_read_somewhere():
