@@ -24,6 +24,7 @@ from nvidia_ls.preview import contact_sheet
 from nvidia_ls.sampling import pingpong, sample_times, training_cameras
 from nvidia_ls.sfm import CAMERA_MODELS, run_sfm, sfm_candidates
 from nvidia_ls.undistort import Undistorter
+from nvidia_ls.world_frame import apply_similarity, rig_similarity
 from nvidia_ls.writer import cameras_document, frame_file, mask_file, save_image, test_file
 from worldtree import __version__
 from worldtree.atomic import atomic_dir, atomic_write_bytes, atomic_write_json, remove_stale_partials
@@ -115,28 +116,6 @@ def scene_name(raw_dir: Path, cfg: BuildConfig) -> str:
         return cfg.name
     raw_dir = raw_dir.resolve()
     return raw_dir.parent.name if raw_dir.name in ("dense", "mv_images") else raw_dir.name
-
-
-def _rig_normalisation(w2cs: np.ndarray, depths: np.ndarray):
-    """Similarity ``world = s R sfm + t`` putting the mean camera at the origin with identity axes, median depth 1."""
-    M = np.mean(w2cs[:, :3, :3], axis=0)
-    U, _, Vt = np.linalg.svd(M)
-    R = U @ np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))]) @ Vt
-    centres = np.stack([-w[:3, :3].T @ w[:3, 3] for w in w2cs])
-    med = float(np.median(depths)) if depths.size else 1.0
-    s = 1.0 / med if np.isfinite(med) and med > 1e-12 else 1.0
-    t = -s * R @ centres.mean(axis=0)
-    return s, R, t
-
-
-def _apply_similarity(w2cs: np.ndarray, s: float, R: np.ndarray, t: np.ndarray) -> np.ndarray:
-    """World-to-camera poses after ``x' = s R x + t`` (camera frames scale with the world)."""
-    out = np.tile(np.eye(4), (len(w2cs), 1, 1))
-    for i, w in enumerate(w2cs):
-        Ri = w[:3, :3] @ R.T
-        out[i, :3, :3] = Ri
-        out[i, :3, 3] = s * w[:3, 3] - Ri @ t
-    return out
 
 
 def _point_depths(points: np.ndarray, obs_p: np.ndarray, obs_c: np.ndarray, w2cs: np.ndarray) -> np.ndarray:
@@ -318,8 +297,8 @@ def _normalise(poses: _Poses, cfg: BuildConfig) -> dict:
     """Move ``poses`` into the world frame of ``--normalize`` (in place); returns the transform's record."""
     mode = cfg.normalize if cfg.normalize != "auto" else ("none" if cfg.poses is not None else "rig")
     if mode == "rig":
-        s, R, t = _rig_normalisation(poses.w2cs, poses.depths[poses.depths > 0])
-        poses.w2cs = _apply_similarity(poses.w2cs, s, R, t)
+        s, R, t = rig_similarity(poses.w2cs, poses.depths[poses.depths > 0])
+        poses.w2cs = apply_similarity(poses.w2cs, s, R, t)
         poses.bounds = poses.bounds * s
     else:
         s, R, t = 1.0, np.eye(3), np.zeros(3)

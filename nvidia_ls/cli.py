@@ -179,6 +179,9 @@ def import_(
     no_poses: bool = typer.Option(
         False, "--no-poses", help="A clip without poses_bounds.npy: identity poses, for 2D priors only."
     ),
+    normalize: str = typer.Option(
+        "auto", help="World frame: auto | rig | none (rig: mean camera at the origin, median depth 1)."
+    ),
     force: bool = typer.Option(False, "--force", help="Replace an existing scene folder."),
 ) -> None:
     from nvidia_ls.build import parse_size
@@ -186,7 +189,7 @@ def import_(
 
     cfg = ImportConfig(
         layout=layout, size=parse_size(size), test_row=test_row, test_images=test_images,
-        test_masks=test_masks, name=name, no_poses=no_poses, force=force,
+        test_masks=test_masks, name=name, no_poses=no_poses, normalize=normalize, force=force,
     )  # fmt: skip
     console = _console()
     path = import_scene(source, out_dir, cfg, log=lambda m: console.print(f"[yellow]{m}[/yellow]"))

@@ -16,7 +16,11 @@ Two source layouts (docs/nvidia_ls.md, "Importing"):
 Written: ``images/``, ``gt_images/``, ``masks/`` (when test masks exist), ``cameras.json``, ``poses_bounds.npy``
 (one row per camera id), ``preview.png``, ``manifest.json``, and the network priors found, at the scene's
 size, under ``imported/`` (``disp/`` or ``depth/``, ``flow/<i>_<j>.npy``, ``masks/``) with ``imported.json``
-naming the ``wtbench run`` options that use them. The world frame is the file's (no normalisation).
+naming the ``wtbench run`` options that use them. The world frame (``--normalize``): by default the rig frame
+of ``nvidia_ls.world_frame`` (mean camera at the origin with its axes, median scene depth 1, the depth taken
+as each camera's ``sqrt(near * far)``), so the methods' absolute constants act as on the generated scenes;
+``none`` keeps the file's frame. Imported metric depth maps follow the world's scale; ``world_transform`` in
+``cameras.json`` and ``manifest.json`` records the similarity.
 """
 
 from __future__ import annotations
@@ -34,6 +38,7 @@ from nvidia_ls import llff
 from nvidia_ls.manifest import hash_files, write_manifest
 from nvidia_ls.preview import contact_sheet
 from nvidia_ls.sampling import pingpong
+from nvidia_ls.world_frame import apply_similarity, rig_similarity
 from nvidia_ls.writer import cameras_document, frame_file, mask_file, save_image, test_file
 from worldtree import __version__
 from worldtree.atomic import atomic_dir, atomic_write_bytes, atomic_write_json
@@ -42,6 +47,7 @@ from worldtree.imageio import read_image, read_mask
 from worldtree.priors.imported import _load_array, read_flo, resize_flow
 
 LAYOUTS = ("auto", "dynamicnerf", "nvidia-ls")
+NORMALIZE = ("auto", "rig", "none")
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
 IMPORTED = "imported"
 """Folder of the imported priors inside the written scene."""
@@ -71,6 +77,9 @@ class ImportConfig:
     length (1.2 x the larger image side), recorded as ``poses.method = "none"``. Enough for 2D priors (flow,
     tracks, masks from the epipolar error of flow with estimated fundamental matrices: ``wtbench prep
     --epi-from-flow``), not for training a 3D method."""
+    normalize: str = "auto"
+    """World frame: "rig" (mean camera at the origin with its axes, median depth ``sqrt(near * far)`` over the
+    cameras scaled to 1), "none" (the file's LLFF frame as is), "auto" (rig, none with ``no_poses``)."""
     force: bool = False
     """Replace an existing scene folder."""
 
@@ -140,6 +149,8 @@ def scan_source(root: Path, cfg: ImportConfig) -> _Source:
         raise UserError(f"{root}: no such folder; give a scene folder holding images/ and poses_bounds.npy")
     if cfg.layout not in LAYOUTS:
         raise UserError(f"--layout {cfg.layout!r}: choose one of {', '.join(LAYOUTS)}")
+    if cfg.normalize not in NORMALIZE:
+        raise UserError(f"--normalize {cfg.normalize!r}: choose one of {', '.join(NORMALIZE)}")
     layout = _detect_layout(root) if cfg.layout == "auto" else cfg.layout
     if not (root / "images").is_dir() or not _images(root / "images"):
         raise UserError(f"{root / 'images'}: missing or holds no .png/.jpg; the training frames go there")
@@ -263,6 +274,8 @@ class _Geometry:
     frame_cams: list[int]
     test_cam: int
     pose_note: object
+    world: dict
+    """``world_transform`` record: ``world = scale * R @ source + t`` (``w2cs`` and ``bounds`` are in world)."""
 
 
 def import_scene(
@@ -285,9 +298,8 @@ def import_scene(
     try:
         with atomic_dir(final, force=cfg.force) as tmp:
             thumbs, test_thumbs = _write_images(tmp, src, geo, times, has_tmasks)
-            record_priors = _write_priors(tmp, root, src, geo.size, depth_files)
-            world = {"scale": 1.0, "R": np.eye(3).tolist(), "t": [0.0, 0.0, 0.0], "mode": "none",
-                     "note": "world = scale * R @ source + t (the source's LLFF frame kept as is)"}  # fmt: skip
+            record_priors = _write_priors(tmp, root, src, geo.size, depth_files, geo.world["scale"])
+            world = geo.world
             _write_cameras(tmp, geo, len(src.images), has_tmasks, bool(times), world)
             save_image(tmp / "preview.png", contact_sheet(thumbs, test_thumbs))
             files = hash_files(tmp)
@@ -331,7 +343,15 @@ def _geometry(root: Path, src: _Source, cfg: ImportConfig) -> _Geometry:
         R = w2cs[k, :3, :3]
         if np.abs(R @ R.T - np.eye(3)).max() > 1e-3 or np.linalg.det(R) < 0:
             raise UserError(f"{pb_path}: row {rows[c]} is not a rotation; check the file")
-    return _Geometry((W0, H0), (W, H), ids, Ks, w2cs, bounds, frame_cams, test_cam, pose_note)
+    mode = cfg.normalize if cfg.normalize != "auto" else ("none" if cfg.no_poses else "rig")
+    if mode == "rig":
+        s, R, t = rig_similarity(w2cs, np.sqrt(bounds[:, 0] * bounds[:, 1]))
+        w2cs, bounds = apply_similarity(w2cs, s, R, t), bounds * s
+    else:
+        s, R, t = 1.0, np.eye(3), np.zeros(3)
+    world = {"scale": s, "R": R.tolist(), "t": t.tolist(), "mode": mode,
+             "note": "world = scale * R @ source + t (source: the LLFF frame of poses_bounds.npy)"}  # fmt: skip
+    return _Geometry((W0, H0), (W, H), ids, Ks, w2cs, bounds, frame_cams, test_cam, pose_note, world)
 
 
 def _check_inputs(root: Path, src: _Source) -> tuple[list[int], bool, list[Path], list[str]]:
@@ -401,9 +421,12 @@ def _write_images(tmp: Path, src: _Source, geo: _Geometry, times: list[int], has
     return thumbs, test_thumbs
 
 
-def _write_priors(tmp: Path, root: Path, src: _Source, size: tuple[int, int], depth_files: list[Path]) -> dict:
+def _write_priors(
+    tmp: Path, root: Path, src: _Source, size: tuple[int, int], depth_files: list[Path], world_scale: float
+) -> dict:
     """The network priors at the scene's size under ``imported/``, and ``imported.json`` naming them (with
-    the ``wtbench run`` options that use them). Returns the manifest's record of them."""
+    the ``wtbench run`` options that use them). Metric depth maps are multiplied by ``world_scale`` (the
+    world's scale against the source frame); disparity is relative and kept. Returns the manifest's record."""
     W, H = size
     record_priors: dict = {}
     args: list[str] = []
@@ -415,9 +438,12 @@ def _write_priors(tmp: Path, root: Path, src: _Source, size: tuple[int, int], de
             if a.ndim != 2 or not np.isfinite(a).all():
                 raise UserError(f"{p}: map of shape {a.shape} (or non-finite); expected finite [H, W]")
             _check_aspect(a.shape, W, H, p, "the map")
+            if src.depth_kind == "depth":
+                a = a * np.float32(world_scale)
             np.save(ddir / f"{t:05d}.npy", _resize_map(a, W, H))
         record_priors["depth"] = {"path": f"{IMPORTED}/{sub}", "kind": src.depth_kind,
-                                  "source": str(src.depth_dir.resolve())}  # fmt: skip
+                                  "source": str(src.depth_dir.resolve()),
+                                  "scaled_by": world_scale if src.depth_kind == "depth" else 1.0}  # fmt: skip
         args += ["--depth-maps", f"{IMPORTED}/{sub}"]
         args += ["--set", f"priors.depth_import.kind={src.depth_kind}"]
         if src.depth_kind == "disparity":  # relative (MiDaS-like): scale and shift are unknown

@@ -4,6 +4,7 @@ cameras, test views and imported priors equal the generator's exact values; prio
 from __future__ import annotations
 
 import json
+import shutil
 import subprocess
 import sys
 
@@ -33,7 +34,9 @@ def exported(tmp_path_factory):
 @pytest.fixture(scope="module")
 def imported(exported, tmp_path_factory):
     root, _ = exported
-    return import_scene(root, tmp_path_factory.mktemp("scenes"), ImportConfig(), log=lambda m: None)
+    # The source's own frame, so the cameras compare with the generator's as they are.
+    cfg = ImportConfig(normalize="none")
+    return import_scene(root, tmp_path_factory.mktemp("scenes"), cfg, log=lambda m: None)
 
 
 def test_frames_cameras_and_test_views_round_trip(exported, imported):
@@ -47,6 +50,44 @@ def test_frames_cameras_and_test_views_round_trip(exported, imported):
     np.testing.assert_array_equal(np.round(sc.test_images.numpy() * 255).astype(np.uint8), gt["test"])
     assert sc.test_times.tolist() == list(range(T))
     assert verify_scene(imported) == []
+
+
+def test_rig_frame_keeps_every_pixel_and_scales_metric_depth(exported, tmp_path):
+    """The default world frame (rig): a source point seen at pixel p with depth z is, after the recorded
+    similarity, seen at p with depth s * z by the imported camera; the camera centres average to the origin,
+    the median sqrt(near * far) is 1, and metric depth maps are scaled by s (disparity is kept)."""
+    root, gt = exported
+    src = tmp_path / "src"
+    shutil.copytree(root, src)
+    shutil.rmtree(src / "disp")
+    (src / "depth").mkdir()
+    for t in range(T):
+        np.save(src / "depth" / f"{t:03d}.npy", gt["depth"][t].astype(np.float32))
+    out = import_scene(src, tmp_path / "o", ImportConfig(), log=lambda m: None)
+    wt = json.loads((out / "cameras.json").read_text())["world_transform"]
+    assert wt["mode"] == "rig" and json.loads((out / "manifest.json").read_text())["world_transform"] == wt
+    s, R, t_w = wt["scale"], np.asarray(wt["R"]), np.asarray(wt["t"])
+    sc = load_scene(out)
+    H, W = CFG.height, CFG.width
+    ys, xs = np.mgrid[4:H:9, 3:W:11]
+    pix = np.stack([xs.ravel(), ys.ravel(), np.ones(xs.size)], 0).astype(np.float64)
+    for f in range(T):
+        K, w2c = gt["Ks"][f], gt["w2cs"][f]
+        z = gt["depth"][f][ys.ravel(), xs.ravel()]
+        cam = np.linalg.inv(K) @ pix * z  # source camera coordinates
+        X = w2c[:3, :3].T @ (cam - w2c[:3, 3:])  # source world
+        Xn = s * R @ X + t_w[:, None]
+        Kn, wn = sc.Ks[f].double().numpy(), sc.w2cs[f].double().numpy()
+        cn = wn[:3, :3] @ Xn + wn[:3, 3:]
+        np.testing.assert_allclose(cn[2], s * z, rtol=1e-5)
+        np.testing.assert_allclose((Kn @ (cn / cn[2]))[:2], pix[:2], atol=1e-3)
+    cams = json.loads((out / "cameras.json").read_text())["cameras"]  # every camera id, the test one too
+    centres = np.stack([-np.asarray(c["w2c"])[:3, :3].T @ np.asarray(c["w2c"])[:3, 3] for c in cams])
+    np.testing.assert_allclose(centres.mean(0), 0.0, atol=1e-6)
+    np.testing.assert_allclose(np.median([np.sqrt(c["near"] * c["far"]) for c in cams]), 1.0, rtol=1e-6)
+    d = read_depth(out / "imported" / "depth", T, H, W, DepthImportConfig(kind="depth"))
+    np.testing.assert_allclose(d, s * gt["depth"], rtol=1e-5)
+    assert json.loads((out / "imported.json").read_text())["priors"]["depth"]["scaled_by"] == s
 
 
 def test_imported_priors_equal_the_exact_ones(exported, imported):
