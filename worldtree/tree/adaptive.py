@@ -41,6 +41,8 @@ quantity is recorded with the decision (``SplitDecision.to_dict``) for ``timing.
 
 from __future__ import annotations
 
+import dataclasses
+import time
 from dataclasses import asdict, dataclass
 
 import torch
@@ -96,6 +98,9 @@ class SplitDecision:
     """Scaffold motion over the interval in pixels (:func:`scaffold_motion_px`); None when not measured."""
     motion_min_px: float | None = None
     """The motion threshold applied (``min_motion_frac * max(H, W)``); None when not measured."""
+    test_cpu_s: float | None = None
+    """CPU seconds (this process, all threads) the test itself took on a trained fit (its renders of the node's
+    frames and the motion measure; :func:`decide_fit_split`); None when the residual was given."""
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -211,6 +216,8 @@ def decide_split(
 def decide_fit_split(fit, dynamic: torch.Tensor, min_len: int, cfg: AutoSplitConfig) -> SplitDecision:
     """:func:`decide_split` for a trained photometric fit (``worldtree.stages.photometric.PhotometricFit`` or a
     tree node's fit): its residuals on its own frames, ``dynamic`` ``[T, H, W]`` masks of those frames, and
-    the motion of its own scaffold seen by its own cameras."""
+    the motion of its own scaffold seen by its own cameras. Records the test's own CPU time (``test_cpu_s``)."""
+    cpu0 = time.process_time()
     motion = scaffold_motion_px(fit.scaffold.pos, fit.Ks, fit.cameras())
-    return decide_split(fit.residuals(), dynamic, min_len, cfg, motion_px=motion)
+    decision = decide_split(fit.residuals(), dynamic, min_len, cfg, motion_px=motion)
+    return dataclasses.replace(decision, test_cpu_s=time.process_time() - cpu0)

@@ -10,7 +10,13 @@ from __future__ import annotations
 
 import torch
 
-from worldtree.tree.adaptive import AutoSplitConfig, decide_split, residual_stats, scaffold_motion_px
+from worldtree.tree.adaptive import (
+    AutoSplitConfig,
+    decide_fit_split,
+    decide_split,
+    residual_stats,
+    scaffold_motion_px,
+)
 
 T, H, W = 16, 24, 48
 
@@ -160,3 +166,39 @@ def test_residual_stats_by_hand():
     assert abs(st["dynamic_fraction"] - 0.25) < 1e-6  # float32 inputs
     r[0, 0, 1] = float("nan")  # ignored, not propagated
     assert all(torch.isfinite(torch.tensor(list(residual_stats(r, m).values()))))
+
+
+class _StubFit:
+    """A trained fit as :func:`decide_fit_split` reads it: residuals on its own frames, its scaffold's
+    trajectories ``[T, 1, 3]`` (one node, image-plane coordinates at depth 1) and its cameras."""
+
+    def __init__(self, residual: torch.Tensor, pos: torch.Tensor):
+        self._residual, self.scaffold, self.Ks = residual, type("S", (), {"pos": pos})(), K1
+        self.rendered = 0
+
+    def residuals(self) -> torch.Tensor:
+        self.rendered += 1
+        return self._residual
+
+    def cameras(self) -> torch.Tensor:
+        return POSE
+
+
+def test_decide_fit_split_uses_the_fits_residual_and_scaffold_and_records_its_cost():
+    # Two incompatible motions leave a large excess; whether the node splits then depends on how far its
+    # scaffold moves on screen: a still scaffold keeps it a leaf, one crossing the image splits it.
+    video = _video([(4, 4, 1), (14, 30, -1)])
+    residual, mask = _one_motion_fit(video), _dynamic_mask(video)
+    t = torch.arange(T, dtype=torch.float32)
+    still = torch.stack([torch.full_like(t, 20.0), torch.full_like(t, 5.0), torch.ones_like(t)], -1)[:, None]
+    moving = torch.stack([2.0 + 2.5 * t, torch.full_like(t, 5.0), torch.ones_like(t)], -1)[:, None]
+    fit = _StubFit(residual, still)
+    d = decide_fit_split(fit, mask, min_len=12, cfg=AutoSplitConfig())
+    assert fit.rendered == 1 and not d.split and d.motion_px == 0.0
+    assert d.reason.startswith("near-static: scaffold motion")
+    d = decide_fit_split(_StubFit(residual, moving), mask, min_len=12, cfg=AutoSplitConfig())
+    # 2.5 px per frame; the 5-frame averages are centred on frames 2..13, the middle one on frame 8, so the
+    # farthest is 6 frames away: 15 px against a threshold of 10 % of W = 4.8 px.
+    assert d.split and abs(d.motion_px - 2.5 * 6) < 1e-4 and abs(d.motion_min_px - 0.10 * W) < 1e-9
+    assert d.test_cpu_s is not None and 0.0 <= d.test_cpu_s < float("inf")
+    assert decide_split(residual, mask, min_len=12).test_cpu_s is None  # a residual given: nothing measured
