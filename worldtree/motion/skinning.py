@@ -109,8 +109,15 @@ def gather_frames(traj: torch.Tensor, frame: torch.Tensor, knn_idx: torch.Tensor
     ``traj`` [T, M, C] (node positions or rotations over time), ``frame`` [...] int frame per item (e.g. each
     Gaussian's reference frame), ``knn_idx`` [..., K]. Use it to build the inputs of
     :func:`deform_neighbours` when Gaussians have different reference times.
+
+    Equals ``traj[frame[..., None], knn_idx]``; computed as one ``index_select`` of rows of the flattened
+    ``[T * M, C]`` table, whose backward (``index_add``) a CPU runs several times faster than the accumulating
+    ``index_put`` of advanced indexing.
     """
-    return traj[frame[..., None], knn_idx]
+    T, M = traj.shape[:2]
+    lin = frame[..., None] * M + knn_idx  # [..., K] row of (frame, node) in the flattened table
+    flat = traj.reshape(T * M, *traj.shape[2:]).index_select(0, lin.reshape(-1))
+    return flat.view(*lin.shape, *traj.shape[2:])
 
 
 def deform_neighbours(

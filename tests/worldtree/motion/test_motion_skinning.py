@@ -294,3 +294,25 @@ def test_deform_gradients_finite_at_edges(dtype):
     (p.square().sum() + q.sum()).backward()
     for a in (*args, corr):
         assert a.grad is not None and torch.isfinite(a.grad).all()
+
+
+def test_gather_frames_equals_indexing_values_and_gradient():
+    # One index_select over the flattened table: same values as traj[frame, idx] and the same gradient
+    # (repeated (frame, node) entries accumulate), checked against a loop over items.
+    g = torch.Generator().manual_seed(5)
+    T, M, N, K = 4, 6, 9, 3
+    traj = torch.randn(T, M, 4, generator=g, dtype=f64, requires_grad=True)
+    frame = torch.randint(0, T, (N,), generator=g)
+    idx = torch.randint(0, M, (N, K), generator=g)
+    idx[1] = idx[0]
+    frame[1] = frame[0]  # a repeated row: its gradient must add up
+    out = skinning.gather_frames(traj, frame, idx)
+    loop = torch.stack([torch.stack([traj[frame[n], idx[n, k]] for k in range(K)]) for n in range(N)])
+    assert torch.equal(out, loop)
+    w = torch.randn(N, K, 4, generator=g, dtype=f64)
+    (grad,) = torch.autograd.grad((out * w).sum(), traj)
+    want = torch.zeros(T, M, 4, dtype=f64)
+    for n in range(N):
+        for k in range(K):
+            want[frame[n], idx[n, k]] += w[n, k]
+    torch.testing.assert_close(grad, want, rtol=0, atol=1e-14)
