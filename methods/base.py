@@ -618,6 +618,7 @@ class BaseMethod:
             "backend": fit.backend if fit is not None else "none",
             "stages": [st.name for st in self.stages()],
             "stages_s": dict(self.clock.stages_s),
+            "stages_cpu_s": dict(self.clock.stages_cpu_s),
             "ablate": list(self.cfg.ablate),
             "migration": dict(fit.migration) if fit is not None else {},
             **{k: v for k, v in s.info.items() if k not in ("scaffold_fit",)},

@@ -194,6 +194,9 @@ def main(argv: list[str] | None = None) -> None:
     print(f"run: {res.folder.root} | {total:.1f} s wall with the profiler | Gaussians at the end: "
           f"{stats.get('num_gaussians')} | training image {pixels}")  # fmt: skip
     print(f"run stages (timing.json): {', '.join(f'{k} {v:.1f}s' for k, v in timing['stages_s'].items())}")
+    cpu = stats.get("stages_cpu_s", {})
+    if cpu:
+        print(f"method stages, CPU s of this process (timing.json): {', '.join(f'{k} {v:.1f}' for k, v in cpu.items())}")
     qual = _qualnames()
     cols = list(dict.fromkeys(k for k, _, _ in KINDS))
     head = f"{'stage':>12} {'wall s':>7} {'plain s':>7} " + " ".join(f"{c[:10]:>10}" for c in cols) + f" {'python':>7}"

@@ -99,3 +99,36 @@ def test_a_damaged_ledger_only_loses_the_earlier_sessions(tmp_path):
     assert clock.stages_s == {"ba": 0.0, "sw": 0.0, "tree": 4.0} and clock.sessions_s == [1.0, 0.0, 0.0, 0.0]
     ledger.write_text("{not json")
     assert StageClock(ledger, clock=fake).sessions_s == [0.0]
+
+
+def test_cpu_seconds_per_stage_add_up_across_sessions(tmp_path):
+    # A stage's CPU seconds (own clock, e.g. several threads: more CPU than wall) are recorded beside its wall
+    # time and carried by the ledger into the next session.
+    ledger = tmp_path / "timing_sessions.json"
+    wall, cpu = FakeClock(), FakeClock()
+    first = StageClock(ledger, clock=wall, cpu_clock=cpu)
+    with first.stage("photometric"):
+        wall.now += 10.0
+        cpu.now += 19.0
+    with first.stage("tree"):
+        wall.now += 5.0
+        cpu.now += 1.0
+    second = StageClock(ledger, clock=wall, cpu_clock=cpu)
+    with second.stage("tree"):
+        wall.now += 3.0
+        cpu.now += 2.5
+    rec = second.record()
+    assert rec["stages_cpu_s"] == {"photometric": 19.0, "tree": 3.5}
+    assert rec["stages_s"] == {"photometric": 10.0, "tree": 8.0}
+    assert json.loads(ledger.read_text())["stages_cpu_s"] == {"photometric": 19.0, "tree": 3.5}
+
+
+def test_the_default_cpu_clock_counts_this_process_work():
+    clock = StageClock()
+    with clock.stage("busy"):
+        x = 0
+        for i in range(300_000):
+            x += i * i
+    with clock.stage("idle"):
+        pass
+    assert clock.stages_cpu_s["busy"] > clock.stages_cpu_s["idle"] >= 0.0

@@ -242,6 +242,9 @@ def _run_node(
 
 def _warm(fn_ref: str | NodeFn) -> int:
     _resolve(fn_ref)  # import the node function's module (and torch) ahead of the first node
+    # The first torch optimizer of a process imports torch._dynamo (about 2-3 s of CPU); pay it here, while
+    # the root trains, rather than inside the first node's training.
+    torch.optim.Adam([torch.zeros(1, requires_grad=True)])
     return os.getpid()
 
 

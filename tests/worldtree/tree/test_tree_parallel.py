@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import json
+import subprocess
+import sys
 
 import pytest
 import torch
@@ -91,3 +93,17 @@ def test_tree_parallel_dead_worker_is_reported_with_its_node(tmp_path):
             r.run_layer(1, folder, [2, 3])
         assert 3 in [n.node for n in info.value.failed]
         assert r._pool is None  # the broken pool was dropped
+
+
+def test_warm_up_pays_the_first_optimizer_import_in_the_worker():
+    # A fresh process (as a spawned worker is): torch._dynamo, which the first torch optimizer imports, is loaded
+    # by the warm-up, not left for the first node's training.
+    code = (
+        "import sys\n"
+        "from worldtree.tree import parallel\n"
+        "before = 'torch._dynamo' in sys.modules\n"
+        "parallel._warm('json:dumps')\n"
+        "print(before, 'torch._dynamo' in sys.modules)\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.split() == ["False", "True"]
