@@ -107,6 +107,10 @@ class BaseConfig(CommonConfig):
     """At most this many initial dynamic Gaussians (the root of the authors' tree starts from 30000)."""
     dynamic_init_opacity: float = 0.1
     """Opacity of the initial dynamic Gaussians."""
+    dynamic_time_std: float = 0.0
+    """Temporal opacity of the dynamic Gaussians (``worldtree.dynamic``): each starts visible with a Gaussian
+    falloff of this standard deviation (frames) around its own frame, learned in the photometric fit; 0 = off
+    (the paper's model: visible at every frame)."""
     refine_masks: bool = True
     """After the static warm-up, refine the dynamic masks with the warm-up model's residual on every training
     frame (``worldtree.priors.dynamic_masks.refine_with_residual``) and re-chain the dynamic tracks inside
@@ -419,7 +423,9 @@ def stage_scaffold(s: BaseState) -> None:
         if pts.shape[0] == 0:
             dyn = DynamicGaussians.empty(s.device, skin_k=scf.K)
         else:
-            dyn = DynamicGaussians.from_points_at(pts, cols, frames, c.dynamic_init_opacity, skin_k=scf.K)
+            dyn = DynamicGaussians.from_points_at(
+                pts, cols, frames, c.dynamic_init_opacity, skin_k=scf.K, time_std=c.dynamic_time_std
+            )
     s.info["scaffold_nodes"] = scf.M
     s.info["dynamic_tracks"] = int(dyn_ids.numel())
     s.scaffold, s.dynamic, s.tracks, s.track_vis = scf, dyn, tracks, vis

@@ -5,19 +5,29 @@ Extra per-Gaussian entries in ``params`` (so density control grows and shrinks t
 
     t_ref     [N]    long, frozen (requires_grad False): the reference frame of each Gaussian
     skin_corr [N, K] optional learned additive correction of the K skinning weights (MoSca)
+    t_logstd  [N]    optional learned log of a temporal standard deviation (frames): the opacity at frame t
+                     is ``opacity * exp(-(t - t_ref)^2 / (2 std^2))`` (:meth:`DynamicGaussians.opacities_at`)
 
 The mean and rotation stored are those at ``t_ref``; :meth:`DynamicGaussians.at` returns them at frame ``t``
 by dual-quaternion blending of the scaffold nodes' motion ``T_k(t) T_k(t_ref)^-1``
-(:meth:`worldtree.motion.scaffold.Scaffold.deform`). Scale, opacity and colour do not change with time.
+(:meth:`worldtree.motion.scaffold.Scaffold.deform`). Scale and colour do not change with time; the opacity
+does only with ``t_logstd`` (off by default, the paper's model). With it, a Gaussian lifted at one frame fades
+out at frames its carried position does not fit (where the scaffold's motion is wrong, e.g. a surface that
+turns away between frames), instead of leaving a blur there; its neighbours in time still see it.
 """
 
 from __future__ import annotations
+
+import math
 
 import torch
 from torch import nn
 
 from worldtree.gaussians import GaussianSet
 from worldtree.motion.scaffold import Scaffold, SkinCache
+
+TIME_STD = "t_logstd"
+"""Name of the optional per-Gaussian log temporal standard deviation (frames) in ``params``."""
 
 
 class DynamicGaussians(GaussianSet):
@@ -43,14 +53,18 @@ class DynamicGaussians(GaussianSet):
         t_ref: torch.Tensor,
         init_opacity: float = 0.1,
         skin_k: int = 0,
+        time_std: float = 0.0,
     ) -> DynamicGaussians:
         """Isotropic Gaussians at ``points`` [N, 3] (their positions at frames ``t_ref`` [N] long) with RGB
-        ``colors`` [N, 3]; ``skin_k > 0`` adds a zero skinning correction [N, skin_k]."""
+        ``colors`` [N, 3]; ``skin_k > 0`` adds a zero skinning correction [N, skin_k]; ``time_std > 0`` (frames)
+        adds the temporal opacity ``t_logstd`` starting at ``log(time_std)``."""
         base = GaussianSet.from_points(points, colors, init_opacity=init_opacity)
         params: dict[str, torch.Tensor] = dict(base.params.items())
         params["t_ref"] = nn.Parameter(t_ref.to(points.device).long().clone(), requires_grad=False)
         if skin_k > 0:
             params["skin_corr"] = torch.zeros(points.shape[0], skin_k, device=points.device)
+        if time_std > 0:
+            params[TIME_STD] = torch.full((points.shape[0],), math.log(time_std), device=points.device)
         return cls(params)
 
     @classmethod
@@ -78,6 +92,16 @@ class DynamicGaussians(GaussianSet):
     def skin_correction(self) -> torch.Tensor | None:
         """[N, K] skinning-weight correction, or None."""
         return self.params["skin_corr"] if "skin_corr" in self.params else None
+
+    def opacities_at(self, t: float) -> torch.Tensor:
+        """``[N]`` opacities at (possibly fractional) frame ``t``: the stored ones, times the temporal falloff
+        ``exp(-(t - t_ref)^2 / (2 std^2))`` when the set has ``t_logstd`` (std clamped to [0.05, 1e4] frames
+        so the exponent stays finite)."""
+        if TIME_STD not in self.params:
+            return self.opacities
+        std = self.params[TIME_STD].clamp(math.log(0.05), math.log(1e4)).exp()
+        dt = float(t) - self.t_ref.to(std.dtype)
+        return self.opacities * torch.exp(-0.5 * (dt / std) ** 2)
 
     def attach(self, scaffold: Scaffold) -> SkinCache:
         """Skinning neighbourhoods of the current means at their reference frames (no gradient)."""
@@ -126,7 +150,7 @@ def gaussians_at(
     dm, dq = dynamic.at(scaffold, t, cache)
     parts = [
         (static.means, static.quats, static.log_scales, static.opacities, static.colors),
-        (dm, dq, dynamic.log_scales, dynamic.opacities, dynamic.colors),
+        (dm, dq, dynamic.log_scales, dynamic.opacities_at(t), dynamic.colors),
     ]
     if extra is not None:
         parts.append(extra)

@@ -112,12 +112,16 @@ def render_between(
     method, K: torch.Tensor, w2c: torch.Tensor, width: int, height: int, a: int
 ) -> torch.Tensor:
     """``[H, W, 3]`` of a Base-family model halfway between its frames ``a`` and ``a + 1``: every Gaussian at
-    the midpoint of its two positions, rotations nlerped (static Gaussians are the same at both)."""
+    the midpoint of its two positions, rotations nlerped, dynamic opacities at time ``a + 0.5`` (static
+    Gaussians are the same at both)."""
     from worldtree.render import rasterize
 
     fit = method.state.fit
     ma, qa, ls, o, c = fit.gaussians_at(a)
     mb, qb, _, _, _ = fit.gaussians_at(a + 1)
+    n_s, n_d = len(fit.static), len(fit.dynamic)
+    if o.shape[0] == n_s + n_d:  # the dynamic opacities halfway too (they change only with temporal opacity)
+        o = torch.cat([o[:n_s], fit.dynamic.opacities_at(a + 0.5)])
     qb = torch.where((qa * qb).sum(-1, keepdim=True) < 0, -qb, qb)  # same hemisphere before blending
     q = qa + qb
     q = q / q.norm(dim=-1, keepdim=True).clamp_min(1e-12)

@@ -33,7 +33,7 @@ from typing import Any
 import torch
 
 from worldtree.budget import growth_cap, negligible, render_contributions
-from worldtree.dynamic import DynamicGaussians, gaussians_at
+from worldtree.dynamic import TIME_STD, DynamicGaussians, gaussians_at
 from worldtree.gaussians import GaussianSet
 from worldtree.losses import SsimTargets, ssim
 from worldtree.motion.regularizers import MotionLossConfig, motion_losses
@@ -90,6 +90,8 @@ class PhotometricConfig:
     """Gaussian rotation learning rate."""
     lr_skin_corr: float = 1e-3
     """Skinning-correction learning rate."""
+    lr_time_std: float = 1e-2
+    """Learning rate of the dynamic Gaussians' log temporal std (when they have one, ``worldtree.dynamic``)."""
     lr_node_pos: float = 1.6e-4
     """Scaffold node position learning rate, times the extent."""
     lr_node_quat: float = 1e-3
@@ -258,6 +260,8 @@ class PhotometricFit:
         )
         if "skin_corr" in gs.params:
             s["skin_corr"] = ConstantLR(c.lr_skin_corr)
+        if TIME_STD in gs.params:
+            s[TIME_STD] = ConstantLR(c.lr_time_std)
         return s
 
     def _build_optimizers(self) -> None:

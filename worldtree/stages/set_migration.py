@@ -19,14 +19,19 @@ Moved Gaussians keep their parameters and start with zero Adam moments; the coun
 
 from __future__ import annotations
 
+import math
+
 import torch
 import torch.nn.functional as F
 from torch import nn
 
-from worldtree.dynamic import DynamicGaussians
+from worldtree.dynamic import TIME_STD, DynamicGaussians
 from worldtree.gaussians import GaussianSet
 from worldtree.optim import GroupedAdam
 from worldtree.strategy import STATE_KEYS, remove
+
+MIGRATED_TIME_STD = 1e3
+"""Temporal std (frames) a static Gaussian gets when it becomes dynamic in a set with temporal opacity."""
 
 
 class ResidualAccumulator:
@@ -117,7 +122,7 @@ def append(gaussians: GaussianSet, optimizer: GroupedAdam | None, state: dict, r
 
 def compatible(static: GaussianSet, dynamic: DynamicGaussians) -> bool:
     """Whether Gaussians can move between the two sets (same appearance parameters)."""
-    extra = {"t_ref", "skin_corr"}
+    extra = {"t_ref", "skin_corr", TIME_STD}
     return set(static.params.keys()) == set(dynamic.params.keys()) - extra
 
 
@@ -140,6 +145,8 @@ def static_to_dynamic(
     rows["t_ref"] = t_ref[mask].long()
     if "skin_corr" in dynamic.params:
         rows["skin_corr"] = torch.zeros(k, dynamic.params["skin_corr"].shape[1], device=mask.device)
+    if TIME_STD in dynamic.params:  # a static Gaussian was seen at every frame: start with no falloff
+        rows[TIME_STD] = torch.full((k,), math.log(MIGRATED_TIME_STD), device=mask.device)
     append(dynamic, dyn_opt, dyn_state, rows)
     remove(static, static_opt, static_state, mask)
     return k

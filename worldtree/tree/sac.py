@@ -246,7 +246,7 @@ def chain_gaussians_at(
     for anc in used:
         m, q = anc.at(t_global)
         d = anc.dynamic
-        parts.append((m, q, d.log_scales, d.opacities, d.colors))
+        parts.append((m, q, d.log_scales, d.opacities_at(anc.local_time(t_global)), d.colors))
     return tuple(torch.cat(xs) for xs in zip(*parts, strict=True))  # type: ignore[return-value]
 
 
