@@ -14,7 +14,7 @@ from worldtree.atomic import atomic_write_json
 from worldtree.errors import UserError
 from worldtree.hashing import sha256_file
 from worldtree.priors import depth as depth_mod
-from worldtree.priors import dynamic_masks, dynamic_tracks, epipolar, flow, imported, tracks
+from worldtree.priors import depth_scale, dynamic_masks, dynamic_tracks, epipolar, flow, imported, tracks
 from worldtree.priors.cache import CacheEntry, PriorCache, hash_key, inputs_fingerprint
 from worldtree.priors.config import PriorsConfig, config_dict
 from worldtree.priors.flow import FlowPair
@@ -218,6 +218,21 @@ def _depth(imgs, Ks, w2cs, scene, cfg: PriorsConfig, cache, fp, progress, notes=
     return d, np.ones_like(d), src, key, None
 
 
+def _scale_to_cameras(depth, source: str, flows, Ks, w2cs, cfg: PriorsConfig, flow_key: str):
+    """Imported depth times the factor that makes it agree with the cameras (``fit_global_scale``):
+    ``(depth [T,H,W], source, key)``; the key marks the depth as metric, None when the scale was not
+    observable (no parallax), which leaves the depth as it was."""
+    di = cfg.depth_import
+    fit = depth_scale.fit_depth_scale(
+        depth, flows, Ks, w2cs, di.scale_max_residual_px, di.scale_min_parallax_px
+    )
+    if not fit.observable:
+        return depth, f"{source}, scale not observable ({fit.matches} flow matches with parallax)", None
+    key = hash_key("depth-imported-scaled", _path_digest(cfg.depth_source), di, flow_key)
+    note = f"{source}, x{fit.scale:.4g} to the cameras ({fit.matches} flow matches, spread {fit.spread:.3f})"
+    return (depth * fit.scale).astype(np.float32), note, key
+
+
 def _tracks(
     imgs, cfg: PriorsConfig, cache: PriorCache, fp: str, progress, init=None
 ) -> tuple[np.ndarray, np.ndarray, str]:
@@ -348,6 +363,9 @@ def compute_priors(
     init = (depth, Ks, w2cs, depth_key) if depth_key is not None else None
     flows, flow_key, flow_src = _flows(imgs, cfg, cache, fp, progress, init, fields)
     flow_src = _with_notes(flow_src, resized["flow"])
+    if depth_key is None and cfg.depth_source != "classical" and cfg.depth_import.fit_global_scale:
+        depth, depth_src, depth_key = _scale_to_cameras(depth, depth_src, flows, Ks, w2cs, cfg, flow_key)
+        init = (depth, Ks, w2cs, depth_key) if depth_key is not None else None
     depth_src = _with_notes(depth_src, resized["depth"])
     if imported_tracks is not None:
         xy, vis = imported_tracks

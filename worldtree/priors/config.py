@@ -175,6 +175,17 @@ class DepthImportConfig:
     """16-bit PNG values are divided by this (1000 = millimetres to metres)."""
     fit_scale_shift: bool = False
     """Fit a per-frame scale and shift to the classical depth (in the file's own space: depth or disparity)."""
+    fit_global_scale: bool = True
+    """Without ``fit_scale_shift``: multiply the imported depth by the one factor that makes it agree with the
+    scene's cameras (``worldtree.priors.depth_scale``: two-view triangulation of the flow's static matches).
+    The cameras fix the world's scale and bundle adjustment frees only relative per-frame scales, so depth in
+    other units (a network's metres, a generator's world) would otherwise stay wrong. The depth then counts
+    as metric: it guides the tracks and feeds the depth-consistency motion cue."""
+    scale_max_residual_px: float = 1.0
+    """Global-scale fit: flow matches whose triangulated point reprojects farther than this are dropped."""
+    scale_min_parallax_px: float = 2.0
+    """Global-scale fit: matches whose projection moves less than this many pixels per unit of log depth
+    are dropped (too little baseline to measure their depth)."""
     fit_trim: float | None = 2.5
     """Robust fit: after the weighted least squares, pixels whose residual exceeds this many robust standard
     deviations (1.4826 MAD) are dropped and the fit repeated (3 rounds); None keeps the plain fit. Multi-view

@@ -170,7 +170,8 @@ def test_imported_sources(scene, computed, tmp_path):
     cfg = dataclasses.replace(
         FAST,
         depth_source=str(ddir),
-        depth_import=dataclasses.replace(FAST.depth_import, kind="disparity"),
+        # Values as in the files (the fit to the cameras' scale has its own tests in test_depth_scale.py).
+        depth_import=dataclasses.replace(FAST.depth_import, kind="disparity", fit_global_scale=False),
         tracks_source=str(tmp_path / "tracks.npz"),
         flow_source=str(fdir),
         masks_source=str(mdir),
