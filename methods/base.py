@@ -44,9 +44,10 @@ from worldtree.budget import node_budget
 from worldtree.dynamic import DynamicGaussians
 from worldtree.errors import UserError
 from worldtree.gaussians import GaussianSet
-from worldtree.motion.lift import lift_tracks
+from worldtree.motion.lift import lift_tracks, sample_depth
 from worldtree.motion.scaffold import Scaffold, ScaffoldConfig, build_scaffold
 from worldtree.motion.track_completion import complete_trajectories
+from worldtree.motion.track_depth import ratio_map, smooth_trajectory_depths
 from worldtree.plateau import PlateauDetector
 from worldtree.priors import Priors, PriorsConfig, compute_priors
 from worldtree.priors.api import add_chained_tracks
@@ -396,6 +397,34 @@ def stage_motion(s: BaseState) -> None:
     }
 
 
+def _trajectory_depth(s: BaseState, tracks: torch.Tensor, vis: torch.Tensor, scale: float) -> torch.Tensor:
+    """The depth prior ``[T, H, W]`` with the dynamic pixels' depth re-estimated from the dynamic tracks'
+    smooth trajectories (each mask pixel scaled like its nearest tracks); ``info["trajectory_depth"]``."""
+    depth = s.depth
+    z, solved = smooth_trajectory_depths(
+        tracks, vis, depth, s.scene.Ks, s.w2cs, scale, s.cfg.scaffold.trajectory_depth_prior
+    )
+    zhat, ok = sample_depth(depth, tracks)
+    has = vis.bool() & ok & solved[None] & (zhat > 0)
+    ratio = torch.where(has, z / zhat.clamp_min(1e-12), torch.ones_like(zhat))
+    # Tracks may sit a few pixels off the mask (chaining tolerates it): their own pixels are scaled too.
+    mask = s.P["epi_mask"].bool().clone()
+    T, H, W = mask.shape
+    col = tracks[..., 0].round().long().clamp(0, W - 1)
+    row = tracks[..., 1].round().long().clamp(0, H - 1)
+    frame = torch.arange(T, device=mask.device)[:, None].expand_as(col)
+    mask[frame[has], row[has], col[has]] = True
+    out = depth * ratio_map(mask, tracks, ratio, has).to(depth.dtype)
+    r = ratio[has]
+    s.info["trajectory_depth"] = {
+        "tracks_solved": int(solved.sum()),
+        "tracks": int(solved.numel()),
+        "ratio_median": float(r.median()) if r.numel() else 1.0,
+        "ratio_p10_p90": [float(r.quantile(0.1)), float(r.quantile(0.9))] if r.numel() else [1.0, 1.0],
+    }
+    return out
+
+
 def stage_scaffold(s: BaseState) -> None:
     """Dynamic tracks lifted with the adjusted depth and cameras, gaps filled, scaffold built and fitted;
     dynamic Gaussians lifted from the dynamic-mask pixels, each at its own frame."""
@@ -405,6 +434,9 @@ def stage_scaffold(s: BaseState) -> None:
     scale = float(valid_depth.median()) if valid_depth.numel() else 1.0
     tracks = P["tracks"].float()[:, dyn_ids]
     vis = P["track_vis"][:, dyn_ids]
+    # Only the classical prior is a static-world estimate on moving objects; imported depth measures them.
+    if dyn_ids.numel() and c.scaffold.trajectory_depth and s.priors.sources.get("depth") == "classical":
+        depth = s.depth = _trajectory_depth(s, tracks, vis, scale)
     if dyn_ids.numel() == 0:
         scf = Scaffold.empty(sc.num_frames, c.scaffold.unit_ratio * scale, c.scaffold, device=s.device)
     else:

@@ -45,5 +45,6 @@ def test_base_model_has_a_scaffold_and_records_its_priors(proof_runs):
     assert stats["scaffold_nodes"] > 0 and stats["num_dynamic"] > 0
     assert stats["scaffold_nodes_final"] >= stats["scaffold_nodes"]
     assert all(v.startswith("imported:") for k, v in stats["priors"].items() if k != "flow")
+    assert "trajectory_depth" not in stats  # imported depth measures the moving objects: kept as it is
     record = json.loads(base.folder.config_json.read_text())
     assert set(record["imported_priors"]) == {"masks", "tracks", "depth_maps"}

@@ -48,6 +48,10 @@ def test_dynamic_content_gets_a_scaffold_and_moving_gaussians(moving_scene, tmp_
     method.fit(TrainContext(checkpoint_dir=tmp_path / "ckpt", progress=False))
     st = method.stats()
     assert st["dynamic_tracks"] > 0 and st["scaffold_nodes"] > 0 and st["num_dynamic"] > 0
+    # Classical depth: the dynamic tracks' depth is re-estimated from their trajectories before lifting.
+    td = st["trajectory_depth"]
+    assert 0 < td["tracks_solved"] <= td["tracks"] == st["dynamic_tracks"]
+    assert 0 < td["ratio_p10_p90"][0] <= td["ratio_median"] <= td["ratio_p10_p90"][1]
     fit = method.state.fit
     with torch.no_grad():
         m0, _ = fit.dynamic.at(fit.scaffold, 0, fit.cache)
