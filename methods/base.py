@@ -129,7 +129,8 @@ class BaseConfig(CommonConfig):
     def ignored_settings(self) -> dict[str, str]:
         """:meth:`CommonConfig.ignored_settings` plus the Base method's: ``photometric.steps`` (filled in from
         ``steps``), ``sw.steps`` under ``ablate sw``, the density caps the Gaussian budget sets, the motion
-        discovery settings (and ``refine_masks``) while it is off, the migration settings while it is off."""
+        discovery settings (and ``refine_masks``) while it is off, the migration settings while it is off, the
+        trajectory-depth settings with imported depth (its prior weight while it is off)."""
         out = super().ignored_settings()
         out["photometric.steps"] = "this method sets it from steps; --steps N or --set steps=N"
         if "sw" in self.ablate:
@@ -142,6 +143,12 @@ class BaseConfig(CommonConfig):
             why = "motion discovery is off; --set priors.motion.enabled=true"
             out.update(settings_of("priors.motion", self.priors.motion, why))
             out["refine_masks"] = why
+        if self.priors.depth_source != "classical":
+            why = "trajectory depth re-estimates classical depth only; imported depth is kept on moving objects"
+            out["scaffold.trajectory_depth"] = why
+            out["scaffold.trajectory_depth_prior"] = why
+        elif not self.scaffold.trajectory_depth:
+            out["scaffold.trajectory_depth_prior"] = "trajectory depth is off; --set scaffold.trajectory_depth=true"
         if self.photometric.migrate_every <= 0:
             why = "static<->dynamic migration is off; --set photometric.migrate_every=N"
             for k in ("migrate_start", "migrate_stop", "migrate_frames", "migrate_residual", "migrate_min_views",

@@ -12,16 +12,18 @@ different rig cameras (the NVIDIA ping-pong order), so every flow and track step
 For each scene it prints, against the exact masks and tracks of ``nvls gt-priors``:
 
 - **before**: the plain EPI masks and Lucas-Kanade dynamic tracks (``priors.motion.enabled=false``), Base
-  without mask refinement, without Gaussian migration and with held track ends (no trajectory completion);
+  without mask refinement, without Gaussian migration, with held track ends (no trajectory completion) and the
+  prior's depth on moving objects (no trajectory depth);
 - **after (priors)**: the epipolar + depth-consistency cues fused, dynamic tracks chained through flow;
 - **after (Base)**: the masks refined with the static warm-up's residual inside the Base run (read from its
-  ``checkpoints/motion.npz``), with migration and trajectory completion on;
+  ``checkpoints/motion.npz``), with migration, trajectory completion and trajectory depth on;
 - with ``--methods base,worldtree``: the WorldTree method before and after as well (its root is the Base
   stages, so its masks and tracks are Base's; only its mPSNR is added);
 
 mask IoU / precision / recall over all frames, the median visible frames of the dynamic tracks against the
 median number of frames an object is visible, and the mPSNR of static and of both Base runs (gain over
-static). Finished runs are reused, so an interrupted script resumes. Figures are printed, never asserted.
+static), with its means over the first and second half of the test frames (the demo's slow and fast halves).
+Finished runs are reused, so an interrupted script resumes. Figures are printed, never asserted.
 """
 
 from __future__ import annotations
@@ -34,11 +36,11 @@ import numpy as np
 
 BEFORE_SETS = [
     "priors.motion.enabled=false", "photometric.migrate_every=0",
-    "scaffold.complete_radius_units=0",
+    "scaffold.complete_radius_units=0", "scaffold.trajectory_depth=false",
 ]  # fmt: skip
 AFTER_SETS = [
     "priors.motion.enabled=true", "refine_masks=true", "photometric.migrate_every=100",
-    "scaffold.complete_radius_units=12",
+    "scaffold.complete_radius_units=12", "scaffold.trajectory_depth=true",
 ]  # fmt: skip
 """The defaults of the quick preset, written out so the 'after' rows do not depend on a default changing."""
 
@@ -111,6 +113,19 @@ def priors_rows(scene_dir: Path, gt: Path, downscale: int) -> dict[str, dict]:
     return out, truth
 
 
+def half_means(metrics_csv: Path) -> tuple[float, float]:
+    """Mean per-frame mPSNR over the first and the second half of the test frames (the demo's slow and fast
+    halves), from a run's ``metrics.csv``."""
+    import csv
+
+    with open(metrics_csv, newline="") as f:
+        vals = [float(r["mpsnr"]) for r in csv.DictReader(f) if r.get("mpsnr")]
+    n = len(vals) // 2
+    if n == 0:
+        return float("nan"), float("nan")
+    return float(np.mean(vals[:n])), float(np.mean(vals[n:]))
+
+
 def run(scene: Path, runs: Path, method: str, sets: list[str], preset: str, device: str, seed: int, tag: str):
     from benchmarks.runner.runs import RunRequest, execute
 
@@ -155,22 +170,25 @@ def main(argv: list[str] | None = None) -> None:
         scene, gt = prepare(a.out, name, size, a.steps)
         rows, truth = priors_rows(scene, gt, downscale)
         visible = object_frames(gt)
-        psnr = {}
+        psnr, halves = {}, {}
         if not a.no_runs:
             runs = a.out / "runs"
             print(f"[{name}] static", flush=True)
             res, _ = run(scene, runs, "static", [], a.preset, a.device, a.seed, f"{a.preset}-s{a.seed}")
             psnr["static"] = res.mean.get("mpsnr")
+            halves["static"] = half_means(res.folder.metrics_csv)
             print(f"[{name}] base before", flush=True)
             res, _ = run(
                 scene, runs, "base", BEFORE_SETS, a.preset, a.device, a.seed, f"{a.preset}-before-s{a.seed}"
             )
             psnr["before"] = res.mean.get("mpsnr")
+            halves["before"] = half_means(res.folder.metrics_csv)
             print(f"[{name}] base after", flush=True)
             res, st = run(
                 scene, runs, "base", AFTER_SETS, a.preset, a.device, a.seed, f"{a.preset}-after-s{a.seed}"
             )
             psnr["after (Base)"] = res.mean.get("mpsnr")
+            halves["after (Base)"] = half_means(res.folder.metrics_csv)
             mot = res.folder.checkpoints / "motion.npz"
             if mot.is_file():
                 z = np.load(mot)
@@ -183,24 +201,26 @@ def main(argv: list[str] | None = None) -> None:
                     res, _ = run(scene, runs, "worldtree", sets, a.preset, a.device, a.seed,
                                  f"{a.preset}-{k}-s{a.seed}")  # fmt: skip
                     psnr[f"{k} (WorldTree)"] = res.mean.get("mpsnr")
+                    halves[f"{k} (WorldTree)"] = half_means(res.folder.metrics_csv)
                     if src in rows:  # the tree's root is the Base stages: same masks and tracks
                         rows[f"{k} (WorldTree)"] = {x: v for x, v in rows[src].items() if x != "migration"}
         for k, r in rows.items():
             p = psnr.get(k) if k != "after (priors)" else None
             gain = p - psnr["static"] if p is not None and psnr.get("static") is not None else None
-            table.append((name, k, r, visible, psnr.get("static"), p, gain))
+            table.append((name, k, r, visible, psnr.get("static"), p, gain, halves.get(k)))
     print()
     print("| scene | masks / tracks | mask IoU | P | R | dyn. tracks | median life | object frames | "
-          "static mPSNR | method mPSNR | gain |")  # fmt: skip
-    print("|---|---|--:|--:|--:|--:|--:|--:|--:|--:|--:|")
+          "static mPSNR | method mPSNR | gain | 1st / 2nd half |")  # fmt: skip
+    print("|---|---|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|")
 
     def f(v, d=2):
         return "-" if v is None else f"{v:.{d}f}"
 
-    for name, k, r, vis, st, p, g in table:
+    for name, k, r, vis, st, p, g, hv in table:
+        hs = "-" if hv is None else f"{f(hv[0])} / {f(hv[1])}"
         print(
             f"| {name} | {k} | {f(r['iou'])} | {f(r['precision'])} | {f(r['recall'])} | {r['tracks']} | "
-            f"{f(r['life'], 1)} | {f(vis, 0)} | {f(st)} | {f(p)} | {'-' if g is None else f'{g:+.2f}'} |"
+            f"{f(r['life'], 1)} | {f(vis, 0)} | {f(st)} | {f(p)} | {'-' if g is None else f'{g:+.2f}'} | {hs} |"
         )
         if "migration" in r:
             m = r["migration"]

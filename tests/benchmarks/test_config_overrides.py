@@ -308,6 +308,12 @@ def test_switching_a_feature_on_in_the_same_command_makes_its_settings_count():
         apply_overrides(cfg, ["photometric.migrate_residual=0.1", "photometric.migrate_every=0"])
     out = apply_overrides(cfg, ["photometric.migrate_residual=0.1"])
     assert out.photometric.migrate_residual == 0.1
+    with pytest.raises(UserError, match="trajectory depth is off"):
+        apply_overrides(cfg, ["scaffold.trajectory_depth=false", "scaffold.trajectory_depth_prior=0.01"])
+    with pytest.raises(UserError, match="classical depth only"):
+        apply_overrides(cfg, ["priors.depth_source=/somewhere", "scaffold.trajectory_depth=false"])
+    out = apply_overrides(cfg, ["scaffold.trajectory_depth_prior=0.01"])
+    assert out.scaffold.trajectory_depth_prior == 0.01
 
 
 def test_every_setting_is_read_somewhere():
