@@ -136,16 +136,38 @@ def _axis_label(metric: str) -> str:
     return f"{_LABELS.get(metric, metric)} ({'higher' if higher_is_better(metric) else 'lower'} is better)"
 
 
+def short_labels(labels: Sequence[str]) -> list[str]:
+    """The words (space-separated) of each label that not every label shares, in their order: what tells the
+    points apart (``"worldtree quick depth=2 split=binary"`` and ``"worldtree quick depth=auto split=binary"``
+    give ``"depth=2"`` and ``"depth=auto"``). A single label, or one with nothing of its own, is kept whole."""
+    words = [str(lab).split() for lab in labels]
+    if len(words) < 2:
+        return [str(lab) for lab in labels]
+    common = set(words[0]).intersection(*words[1:])
+    out = [" ".join(w for w in ws if w not in common) for ws in words]
+    return [o if o else str(lab) for o, lab in zip(out, labels, strict=True)]
+
+
 def draw(panels: Sequence[Panel], path: str | Path, dpi: int = 150) -> None:
     """Draw ``panels`` side by side into ``path`` (.png, .pdf or .svg), atomically."""
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
-
     from worldtree.atomic import atomic_write_bytes
 
     path = Path(path)
     if path.suffix.lower() not in PLOT_SUFFIXES:
         raise UserError(f"-o {path}: give a file name ending in {', '.join(PLOT_SUFFIXES)}")
+    fig = figure(panels)
+    buf = io.BytesIO()
+    fig.savefig(buf, format=path.suffix.lower().lstrip("."), dpi=dpi)
+    atomic_write_bytes(path, buf.getvalue())
+
+
+def figure(panels: Sequence[Panel]):
+    """The matplotlib ``Figure`` of :func:`draw`: one axes per panel, points labelled by what differs between
+    them (:func:`short_labels`; the full labels are in the legend's method colours and the command's listing).
+    Labels are left out of the layout, so long ones run past the axes instead of shrinking them."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
     fig = Figure(figsize=(6.4 * len(panels), 5.0), layout="constrained")
     FigureCanvasAgg(fig)
     for k, p in enumerate(panels):
@@ -169,8 +191,9 @@ def draw(panels: Sequence[Panel], path: str | Path, dpi: int = 150) -> None:
             zorder=4,
             label="Pareto front",
         )
-        for _, r in p.points.iterrows():
-            ax.annotate(r["label"], (r["x"], r["y"]), xytext=(4, 4), textcoords="offset points", fontsize=7)
+        for (_, r), text in zip(p.points.iterrows(), short_labels(list(p.points["label"])), strict=True):
+            note = ax.annotate(text, (r["x"], r["y"]), xytext=(4, 4), textcoords="offset points", fontsize=7)
+            note.set_in_layout(False)
         xs = p.points["x"].to_numpy()
         if (xs > 0).all() and xs.max() / xs.min() > 30:
             ax.set_xscale("log")
@@ -179,6 +202,4 @@ def draw(panels: Sequence[Panel], path: str | Path, dpi: int = 150) -> None:
         ax.set_title(f"mean over {', '.join(p.scenes)}", fontsize=9)
         ax.grid(True, alpha=0.3)
         ax.legend(fontsize=7)
-    buf = io.BytesIO()
-    fig.savefig(buf, format=path.suffix.lower().lstrip("."), dpi=dpi)
-    atomic_write_bytes(path, buf.getvalue())
+    return fig

@@ -8,11 +8,21 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+import pandas as pd
 import pytest
 from typer.testing import CliRunner
 
 from benchmarks.cli import app
-from benchmarks.reporting.plots import draw, make_panel, pareto_front, resolve_y, with_derived
+from benchmarks.reporting.plots import (
+    Panel,
+    draw,
+    figure,
+    make_panel,
+    pareto_front,
+    resolve_y,
+    short_labels,
+    with_derived,
+)
 from benchmarks.reporting.results import collect_runs
 from worldtree.errors import UserError
 
@@ -124,6 +134,34 @@ def test_draw_png(runs, tmp_path):
     assert img.std() > 0  # something was drawn
     with pytest.raises(UserError, match="-o"):
         draw([make_panel(long, "wall_time_s", "mse")], tmp_path / "p.jpg2")
+
+
+def test_short_labels_keep_what_differs():
+    labels = ["worldtree quick depth=0 split=binary masks=m", "worldtree quick depth=auto split=binary masks=m",
+              "worldtree quick depth=2 split=flow masks=m"]  # fmt: skip
+    assert short_labels(labels) == ["depth=0 split=binary", "depth=auto split=binary", "depth=2 split=flow"]
+    assert short_labels(["static quick", "worldtree quick"]) == ["static", "worldtree"]
+    # One label, or labels with nothing of their own, stay whole.
+    assert short_labels(["worldtree quick"]) == ["worldtree quick"]
+    assert short_labels(["a b", "b a"]) == ["a b", "b a"]
+
+
+def test_long_labels_do_not_shrink_the_axes():
+    # Session 5's sweep labels ran to ~90 characters and squeezed each axes into a sliver of its panel.
+    tail = " split=binary depth_maps=depth masks=masks tracks=tracks.npz" * 3
+    points = pd.DataFrame(
+        {"method": ["worldtree"] * 3, "configuration": [f"quick depth={d}{tail}" for d in ("0", "1", "auto")],
+         "x": [278.0, 477.0, 253.0], "y": [17.11, 16.89, 17.29], "pareto": [False, False, True]}
+    )  # fmt: skip
+    points["label"] = points["method"] + " " + points["configuration"]
+    fig = figure(
+        [Panel(points, "wall_time_s", "mpsnr", ("s",)), Panel(points, "n_gaussians", "mpsnr", ("s",))]
+    )
+    fig.canvas.draw()
+    for ax in fig.axes:
+        assert ax.get_position().width > 0.3  # of the figure: each axes keeps most of its half
+    texts = [t.get_text() for t in fig.axes[0].texts]
+    assert sorted(texts) == ["depth=0", "depth=1", "depth=auto"]
 
 
 def test_cli_plot(runs, tmp_path):
