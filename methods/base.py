@@ -108,10 +108,11 @@ class BaseConfig(CommonConfig):
     """At most this many initial dynamic Gaussians (the root of the authors' tree starts from 30000)."""
     dynamic_init_opacity: float = 0.1
     """Opacity of the initial dynamic Gaussians."""
-    dynamic_time_std: float = 0.0
+    dynamic_time_std: float = 1.0
     """Temporal opacity of the dynamic Gaussians (``worldtree.dynamic``): each starts visible with a Gaussian
     falloff of this standard deviation (frames) around its own frame, learned in the photometric fit; 0 = off
-    (the paper's model: visible at every frame)."""
+    (the paper's model: visible at every frame). On by default in every preset: it keeps wrongly carried
+    copies from blurring every frame (docs/base_method.md, "Temporal opacity")."""
     refine_masks: bool = True
     """After the static warm-up, refine the dynamic masks with the warm-up model's residual on every training
     frame (``worldtree.priors.dynamic_masks.refine_with_residual``) and re-chain the dynamic tracks inside
@@ -130,7 +131,8 @@ class BaseConfig(CommonConfig):
         """:meth:`CommonConfig.ignored_settings` plus the Base method's: ``photometric.steps`` (filled in from
         ``steps``), ``sw.steps`` under ``ablate sw``, the density caps the Gaussian budget sets, the motion
         discovery settings (and ``refine_masks``) while it is off, the migration settings while it is off, the
-        trajectory-depth settings with imported depth (its prior weight while it is off)."""
+        trajectory-depth settings with imported depth (its prior weight while it is off), the temporal-std
+        learning rate while temporal opacity is off."""
         out = super().ignored_settings()
         out["photometric.steps"] = "this method sets it from steps; --steps N or --set steps=N"
         if "sw" in self.ablate:
@@ -154,6 +156,8 @@ class BaseConfig(CommonConfig):
             for k in ("migrate_start", "migrate_stop", "migrate_frames", "migrate_residual", "migrate_min_views",
                       "static_move_frac"):  # fmt: skip
                 out[f"photometric.{k}"] = why
+        if self.dynamic_time_std <= 0:
+            out["photometric.lr_time_std"] = "temporal opacity is off; --set dynamic_time_std=S (frames)"
         return out
 
     def __post_init__(self) -> None:

@@ -271,6 +271,7 @@ def _configs():
         off, priors=dataclasses.replace(off.priors, motion=dataclasses.replace(off.priors.motion, enabled=False)),
         photometric=dataclasses.replace(off.photometric, migrate_every=0),
     )  # fmt: skip
+    yield "base, temporal opacity off", dataclasses.replace(off, dynamic_time_std=0.0)
     yield "worldtree quick", wt.config("quick")
     yield "worldtree depth auto", dataclasses.replace(wt.config("quick"), depth="auto")
     yield "worldtree -tpt", dataclasses.replace(wt.config("quick"), ablate=("tpt",))
@@ -314,6 +315,9 @@ def test_switching_a_feature_on_in_the_same_command_makes_its_settings_count():
         apply_overrides(cfg, ["priors.depth_source=/somewhere", "scaffold.trajectory_depth=false"])
     out = apply_overrides(cfg, ["scaffold.trajectory_depth_prior=0.01"])
     assert out.scaffold.trajectory_depth_prior == 0.01
+    with pytest.raises(UserError, match="temporal opacity is off"):
+        apply_overrides(cfg, ["dynamic_time_std=0", "photometric.lr_time_std=0.02"])
+    assert apply_overrides(cfg, ["photometric.lr_time_std=0.02"]).photometric.lr_time_std == 0.02
 
 
 def test_every_setting_is_read_somewhere():
