@@ -540,26 +540,27 @@ class Scaffold(nn.Module):
         if cache is None:
             cache = self.attach(points, t_ref)
         idx = cache.idx
-        p_ref = skinning.gather_frames(self.pos, t_ref, idx)
         if torch.as_tensor(t).dim() == 0 and self.T * self.M < idx.numel():
             # One target frame and many Gaussians: build the [T, M] table of every node's motion from each
             # frame to t once, as dual quaternions, then gather, instead of composing and converting a
             # transform per (Gaussian, neighbour). The same per-entry arithmetic as the per-pair path.
+            # Neighbour values are gathered component-major ([C, N, K]) for the per-pair arithmetic.
             ti = int(t)
             q_tab, t_tab = se3.relative(self.quat[ti][None], self.pos[ti][None], self.quat, self.pos)
             real, dual = dualquat.from_quat_trans(q_tab, t_tab)  # [T, M, 4] each
-            return skinning.deform_dual_neighbours(
+            return skinning.deform_dual_planes(
                 points,
                 quats,
-                p_ref,
+                skinning.gather_planes(self.pos, t_ref, idx),
                 self.sigma.index_select(0, idx.reshape(-1)).view(idx.shape),
-                skinning.gather_frames(real, t_ref, idx),
-                skinning.gather_frames(dual, t_ref, idx),
+                skinning.gather_planes(real, t_ref, idx),
+                skinning.gather_planes(dual, t_ref, idx),
                 cache.valid,
                 correction,
                 self.cfg.mix_identity,
             )
         else:
+            p_ref = skinning.gather_frames(self.pos, t_ref, idx)
             q_ref = skinning.gather_frames(self.quat, t_ref, idx)
             p_t = skinning.gather_frames(self.pos, t_vec, idx)
             q_t = skinning.gather_frames(self.quat, t_vec, idx)

@@ -17,7 +17,17 @@ import torch
 
 from worldtree.motion import dualquat, se3
 
-__all__ = ["deform", "deform_dual_neighbours", "deform_neighbours", "gather_frames", "knn", "normalize_weights", "skinning_weights"]
+__all__ = [
+    "deform",
+    "deform_dual_neighbours",
+    "deform_dual_planes",
+    "deform_neighbours",
+    "gather_frames",
+    "gather_planes",
+    "knn",
+    "normalize_weights",
+    "skinning_weights",
+]
 
 WEIGHT_FLOOR = 1e-6
 """Added to every unmasked Gaussian kernel value (MoSca), so a point never has all-zero raw weights."""
@@ -118,6 +128,74 @@ def gather_frames(traj: torch.Tensor, frame: torch.Tensor, knn_idx: torch.Tensor
     lin = frame[..., None] * M + knn_idx  # [..., K] row of (frame, node) in the flattened table
     flat = traj.reshape(T * M, *traj.shape[2:]).index_select(0, lin.reshape(-1))
     return flat.view(*lin.shape, *traj.shape[2:])
+
+
+def gather_planes(traj: torch.Tensor, frame: torch.Tensor, knn_idx: torch.Tensor) -> torch.Tensor:
+    """:func:`gather_frames` laid out component-major: ``[C, N, K]`` with ``out[c, n, k] = traj[frame[n],
+    knn_idx[n, k], c]`` (``traj`` [T, M, C], ``frame`` [N], ``knn_idx`` [N, K])."""
+    T, M, C = traj.shape
+    lin = (frame[:, None] * M + knn_idx).reshape(-1)
+    planes = traj.reshape(T * M, C).t().contiguous()  # [C, T * M]
+    return planes.index_select(1, lin).view(C, *knn_idx.shape)
+
+
+def deform_dual_planes(
+    points: torch.Tensor,
+    quats: torch.Tensor,
+    nb_pos_ref: torch.Tensor,
+    nb_sigma: torch.Tensor,
+    nb_real: torch.Tensor,
+    nb_dual: torch.Tensor,
+    valid: torch.Tensor | None = None,
+    correction: torch.Tensor | None = None,
+    mix_identity: bool = True,
+    eps: float = 1e-12,
+    degenerate_tol: float = 1e-6,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """:func:`deform_dual_neighbours` with the neighbour inputs component-major: ``nb_pos_ref`` [3, N, K],
+    ``nb_real, nb_dual`` [4, N, K] (:func:`gather_planes`); ``points`` [N, 3], ``quats`` [N, 4], ``nb_sigma``,
+    ``valid``, ``correction`` [N, K] as there. Same formulas, guards and results (the per-neighbour products
+    and sums round as there): every per-(Gaussian, neighbour) operation is then between contiguous ``[N, K]``
+    planes, which a CPU runs several times faster than the ``[N, K, 4]`` broadcasts of the other layout."""
+    # Skinning weights (:func:`skinning_weights`).
+    diff = points.t()[:, :, None] - nb_pos_ref  # [3, N, K]
+    d2 = diff[0] * diff[0] + diff[1] * diff[1] + diff[2] * diff[2]
+    var2 = 2.0 * nb_sigma.clamp(min=1e-8) ** 2
+    w = torch.exp(-d2 / var2) + WEIGHT_FLOOR
+    if correction is not None:
+        w = (w + correction).clamp(min=0.0)
+    if valid is not None:
+        w = torch.where(valid, w, torch.zeros_like(w))
+    # Dual-quaternion blend (:func:`worldtree.motion.dualquat.blend_dual`), transforms aligned with the pivot.
+    n = points.shape[0]
+    pivot = w.argmax(dim=-1)[None, :, None]  # [1, N, 1]
+    piv_real = torch.gather(nb_real, 2, pivot.expand(4, n, 1))[..., 0]  # [4, N]
+    piv_dual = torch.gather(nb_dual, 2, pivot.expand(4, n, 1))[..., 0]
+    piv_sign = torch.where(piv_real[0] < 0, -1.0, 1.0).to(nb_real.dtype)  # [N]
+    piv_real, piv_dual = piv_real * piv_sign, piv_dual * piv_sign
+    dot = (
+        nb_real[0] * piv_real[0, :, None]
+        + nb_real[1] * piv_real[1, :, None]
+        + nb_real[2] * piv_real[2, :, None]
+        + nb_real[3] * piv_real[3, :, None]
+    )
+    sign = torch.where(dot < 0, -1.0, 1.0).to(nb_real.dtype)  # [N, K]
+    w_sum = w.sum(dim=-1)  # [N]
+    coef = w / w_sum.clamp(min=eps)[:, None]
+    b_real = ((nb_real * sign) * coef).sum(dim=-1)  # [4, N]
+    b_dual = ((nb_dual * sign) * coef).sum(dim=-1)
+    if mix_identity:
+        alpha = w_sum.clamp(0.0, 1.0)
+        b_real = alpha * b_real + (1.0 - alpha) * torch.tensor(
+            [1.0, 0.0, 0.0, 0.0], dtype=b_real.dtype, device=b_real.device
+        )[:, None]
+        b_dual = alpha * b_dual
+    b_real, b_dual = b_real.t(), b_dual.t()  # [N, 4]: per Gaussian from here on
+    degenerate = (b_real * b_real).sum(-1, keepdim=True) < degenerate_tol**2
+    b_real = torch.where(degenerate, piv_real.t(), b_real)
+    b_dual = torch.where(degenerate, piv_dual.t(), b_dual)
+    q_b, t_b = dualquat.to_quat_trans(b_real, b_dual, eps)
+    return dualquat.apply_points(q_b, t_b, points), dualquat.apply_rotations(q_b, quats)
 
 
 def deform_neighbours(

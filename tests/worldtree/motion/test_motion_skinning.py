@@ -9,8 +9,8 @@ import pytest
 import torch
 from scipy.spatial.transform import Rotation
 
+from worldtree.motion import dualquat, se3, skinning
 from worldtree.motion import quaternion as Q
-from worldtree.motion import se3, skinning
 
 f64 = torch.float64
 
@@ -316,3 +316,50 @@ def test_gather_frames_equals_indexing_values_and_gradient():
         for k in range(K):
             want[frame[n], idx[n, k]] += w[n, k]
     torch.testing.assert_close(grad, want, rtol=0, atol=1e-14)
+
+
+@pytest.mark.parametrize("mix_identity", [True, False])
+def test_component_major_deform_equals_the_gathered_layout(mix_identity):
+    # deform_dual_planes (inputs [C, N, K]) against deform_dual_neighbours (inputs [N, K, C]) on the same
+    # transforms: values and every gradient. Includes masked neighbours, a negative weight correction (clamped
+    # to 0), transforms of both signs (the alignment) and a row with no valid neighbour (without the identity
+    # mix its blend is degenerate and falls back to the pivot).
+    g = torch.Generator().manual_seed(21)
+    N, K = 12, 5
+    pts = torch.randn(N, 3, generator=g, dtype=f64)
+    quats = torch.randn(N, 4, generator=g, dtype=f64)
+    nb_pos = pts[:, None] + 0.5 * torch.randn(N, K, 3, generator=g, dtype=f64)
+    sigma = 0.3 + torch.rand(N, K, generator=g, dtype=f64)
+    q_rel = torch.randn(N, K, 4, generator=g, dtype=f64)
+    t_rel = torch.randn(N, K, 3, generator=g, dtype=f64)
+    real, dual = dualquat.from_quat_trans(q_rel, t_rel)
+    flip = torch.rand(N, K, 1, generator=g) < 0.5
+    real, dual = torch.where(flip, -real, real), torch.where(flip, -dual, dual)
+    valid = torch.rand(N, K, generator=g) > 0.2
+    valid[3] = False
+    corr = 0.3 * torch.randn(N, K, generator=g, dtype=f64)
+    corr[5, 0] = -5.0
+    leaves = [pts, quats, nb_pos, sigma, real, dual, corr]
+    wp, wq = torch.randn(N, 3, generator=g, dtype=f64), torch.randn(N, 4, generator=g, dtype=f64)
+    results = []
+    for planes in (True, False):
+        xs = [x.clone().requires_grad_(True) for x in leaves]
+        p, q, npos, sig, re, du, co = xs
+        if planes:
+            args = (npos.permute(2, 0, 1), sig, re.permute(2, 0, 1), du.permute(2, 0, 1))
+            out = skinning.deform_dual_planes(p, q, *args, valid, co, mix_identity)
+        else:
+            out = skinning.deform_dual_neighbours(p, q, npos, sig, re, du, valid, co, mix_identity)
+        grads = torch.autograd.grad((out[0] * wp).sum() + (out[1] * wq).sum(), xs)
+        results.append([out[0].detach(), out[1].detach(), *grads])
+    for a, b in zip(*results, strict=True):
+        torch.testing.assert_close(a, b, rtol=1e-12, atol=1e-13)
+    assert torch.isfinite(results[0][0]).all() and results[1][2].abs().sum() > 0
+
+
+def test_gather_planes_is_gather_frames_component_major():
+    g = torch.Generator().manual_seed(4)
+    traj = torch.randn(5, 7, 4, generator=g, dtype=f64)
+    frame = torch.randint(0, 5, (6,), generator=g)
+    idx = torch.randint(0, 7, (6, 3), generator=g)
+    assert torch.equal(skinning.gather_planes(traj, frame, idx), traj[frame[:, None], idx].permute(2, 0, 1))
