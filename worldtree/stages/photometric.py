@@ -306,8 +306,10 @@ class PhotometricFit:
             self.static, self.dynamic, self.scaffold, t, cache if cache is not None else self.cache
         )
 
-    def render(self, K, w2c, width, height, t: int, colors=None, cache=None):
-        m, q, ls, o, c = self.gaussians_at(t, cache)
+    def render(self, K, w2c, width, height, t: int, colors=None, cache=None, gaussians=None):
+        """Render frame ``t``'s Gaussians (``gaussians``: this frame's :meth:`gaussians_at` result when the
+        caller already has it) from camera ``K``/``w2c``, with their own colours or ``colors`` [N, 3]."""
+        m, q, ls, o, c = self.gaussians_at(t, cache) if gaussians is None else gaussians
         out = rasterize(
             m, q, ls, o, c if colors is None else colors, K, w2c, width, height, backend=self.cfg.backend
         )
@@ -320,8 +322,12 @@ class PhotometricFit:
         mj, _ = self.dynamic.at(self.scaffold, j, self.cache)
         return torch.cat([self.static.means, mj])
 
-    def track_loss(self, i: int) -> torch.Tensor | None:
-        """Clamped pixel error of the rendered correspondence map from frame ``i`` to a random frame."""
+    def track_loss(self, i: int, gaussians=None) -> torch.Tensor | None:
+        """Clamped pixel error of the rendered correspondence map from frame ``i`` to a random frame.
+
+        ``gaussians``: frame ``i``'s :meth:`gaussians_at` result, when the step already computed it for its
+        RGB render (the correspondence map is the same Gaussians at frame ``i`` with other colours); None
+        evaluates the motion model again (same values)."""
         if self.tracks is None or self.T < 2 or self.tracks.shape[1] == 0:
             return None
         j = int(torch.randint(0, self.T - 1, (1,), generator=self.pairs))
@@ -332,7 +338,7 @@ class PhotometricFit:
         H, W = self.images.shape[1:3]
         uv_j = project(self.track_means_at(j), self.Ks[j], self.camera(j))
         col = torch.cat([uv_j, torch.ones_like(uv_j[:, :1])], 1)
-        out = self.render(self.Ks[i], self.camera(i), W, H, i, colors=col)
+        out = self.render(self.Ks[i], self.camera(i), W, H, i, colors=col, gaussians=gaussians)
         flow = out.rgb[..., :2] / out.alpha.clamp_min(1e-6)[..., None]  # [H, W, 2] predicted pixel in j
         p_i = self.tracks[i, both]
         col_i = p_i[:, 0].round().long().clamp(0, W - 1)
@@ -346,7 +352,8 @@ class PhotometricFit:
     def frame_losses(self, i: int, step: int) -> tuple[torch.Tensor, dict[str, float], Any]:
         c = self.cfg
         H, W = self.images.shape[1:3]
-        out = self.render(self.Ks[i], self.camera(i), W, H, i)
+        frame = self.gaussians_at(i)  # shared by the RGB render and the track loss's render of frame i
+        out = self.render(self.Ks[i], self.camera(i), W, H, i, gaussians=frame)
         l1 = (out.rgb - self.images[i]).abs().mean()
         loss = l1
         parts = {"l1": float(l1.detach())}
@@ -360,7 +367,7 @@ class PhotometricFit:
             loss = loss + c.lambda_depth * ld
             parts["depth"] = float(ld.detach())
         if c.lambda_track > 0 and c.track_every > 0 and step % c.track_every == 0:
-            lt = self.track_loss(i)
+            lt = self.track_loss(i, frame)
             if lt is not None:
                 loss = loss + c.lambda_track * lt
                 parts["track_px"] = float(lt.detach())

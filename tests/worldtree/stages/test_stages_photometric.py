@@ -359,3 +359,32 @@ def test_prune_total_cap_bounds_what_one_pruning_removes():
     smallest = torch.sort(contrib[:n]).values
     expect = int((torch.cumsum(smallest.double(), 0) <= total).sum())
     assert removed == expect and 0 < removed < n
+
+
+def test_track_loss_on_the_steps_frame_equals_a_second_motion_evaluation():
+    # frame_losses hands its frame's Gaussians to the track loss instead of evaluating the motion model again:
+    # the same loss and the same gradient in every parameter as the track loss evaluating them itself.
+    imgs, depth, Ks, w2cs, static, dyn, scf = scene()
+    pts = dyn.means.detach()[:20] - 2 * VEL
+    tracks = []
+    for t in range(T):  # the object points' projections, 3 px off
+        cam = (pts + t * VEL) @ w2cs[t][:3, :3].T + w2cs[t][:3, 3]
+        tracks.append(cam[:, :2] / cam[:, 2:] * 40.0 + torch.tensor([(W - 1) / 2 + 3.0, (H - 1) / 2]))
+    tracks = torch.stack(tracks)
+    vis = torch.ones(T, 20, dtype=torch.bool)
+    fit = PhotometricFit(PhotometricConfig(steps=1), imgs, depth, Ks, w2cs, static, dyn, scf, tracks, vis, 1.0)
+    params = [*fit.static.params.values(), fit.dynamic.params["means"], fit.dynamic.params["sh0"], fit.scaffold.pos]
+    params = [p for p in params if p.requires_grad]
+    state = fit.pairs.get_state()
+    results = []
+    for shared in (True, False):
+        fit.pairs.set_state(state)  # the same random partner frame j
+        loss = fit.track_loss(1, fit.gaussians_at(1) if shared else None)
+        assert loss is not None
+        results.append([loss.detach(), *torch.autograd.grad(loss, params, allow_unused=True)])
+    for a, b in zip(*results, strict=True):
+        if b is None:
+            assert a is None
+        else:
+            torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-7)
+    assert results[0][0] > 0 and any(g is not None and g.abs().sum() > 0 for g in results[0][1:])
