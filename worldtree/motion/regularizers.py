@@ -10,6 +10,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import torch
+from torch.autograd.function import once_differentiable
 
 from worldtree.motion import quaternion as Q
 from worldtree.motion._safe import safe_norm
@@ -229,6 +230,7 @@ class _ArapTerms(torch.autograd.Function):
         return coord, length
 
     @staticmethod
+    @once_differentiable  # first derivatives only (nothing here needs second ones): an error, not a wrong value
     def backward(ctx, g_coord, g_len):
         idx, w, nb_R, d, c, c_len, c_ok = ctx.saved_tensors
         M, K, T = d.shape[1:]
