@@ -197,6 +197,7 @@ def figure(panels: Sequence[Panel]):
         xs = p.points["x"].to_numpy()
         if (xs > 0).all() and xs.max() / xs.min() > 30:
             ax.set_xscale("log")
+        ax.margins(x=0.15, y=0.08)  # room for the rightmost point's label inside the figure
         ax.set_xlabel(_axis_label(p.x))
         ax.set_ylabel(_axis_label(p.y))
         ax.set_title(f"mean over {', '.join(p.scenes)}", fontsize=9)

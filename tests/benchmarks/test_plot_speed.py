@@ -162,6 +162,16 @@ def test_long_labels_do_not_shrink_the_axes():
         assert ax.get_position().width > 0.3  # of the figure: each axes keeps most of its half
     texts = [t.get_text() for t in fig.axes[0].texts]
     assert sorted(texts) == ["depth=0", "depth=1", "depth=auto"]
+    renderer = fig.canvas.get_renderer()
+    for ax in fig.axes:  # every label, the rightmost point's included, lies inside the figure
+        for t in ax.texts:
+            box = t.get_window_extent(renderer)
+            assert (
+                fig.bbox.x0 <= box.x0
+                and box.x1 <= fig.bbox.x1
+                and fig.bbox.y0 <= box.y0
+                and box.y1 <= fig.bbox.y1
+            )
 
 
 def test_cli_plot(runs, tmp_path):
