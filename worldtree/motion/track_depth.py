@@ -37,6 +37,51 @@ def _rays(tracks: torch.Tensor, Ks: torch.Tensor, w2cs: torch.Tensor) -> tuple[t
     return cam @ R, centres  # row-vector form of R^T cam
 
 
+_CHUNK = 256
+"""Tracks solved together (one batched least squares; bounds the memory at ~10 MB)."""
+
+
+def _solve_chunk(cols, vis, zhat, rays, centres, sw: float, inv_len: float):
+    """The least squares of tracks ``cols`` [B] in one batch. Each track's visible frames come first, in
+    time order, padded to the longest (padded unknowns get a unit row and no other). Returns ``(good [B],
+    frames [K, B], inside [K, B], depths [B, K])``."""
+    T = vis.shape[0]
+    dev, dt = vis.device, torch.float64
+    v = vis[:, cols]  # [T, B]
+    k = v.sum(0)
+    K = int(k.max())
+    frames = torch.arange(T, device=dev)[:, None]
+    ts = torch.where(v, frames, frames + T).sort(0).values[:K]  # visible frames first, ascending
+    inside = torch.arange(K, device=dev)[:, None] < k[None]
+    ts = torch.where(inside, ts, torch.zeros_like(ts))
+    B = cols.numel()
+    tf = ts.to(dt)
+    a, b, c = tf[:-2], tf[1:-1], tf[2:]  # [K-2, B]
+    tri = (torch.arange(K - 2, device=dev)[:, None] + 2) < k[None]
+    one = torch.ones_like(a)
+    ba, cb, ca = (torch.where(tri, x, one) for x in (b - a, c - b, c - a))
+    # Second divided difference at (a, b, c): 2 [X_a / ((b-a)(c-a)) - X_b / ((b-a)(c-b)) + X_c / ((c-b)(c-a))]
+    coef = torch.stack([2 / (ba * ca), -2 / (ba * cb), 2 / (cb * ca)], -1) * tri[..., None]  # [K-2, B, 3]
+    r = rays[ts, cols[None].expand(K, B)]  # [K, B, 3]
+    cen = centres[ts]  # [K, B, 3]
+    A = torch.zeros(B, K - 2, 3, K, dtype=dt, device=dev)
+    rhs = torch.zeros(K - 2, B, 3, dtype=dt, device=dev)
+    m = torch.arange(K - 2, device=dev)
+    for j in range(3):
+        A[:, m, :, m + j] = coef[..., j : j + 1] * r[m + j]
+        rhs -= coef[..., j : j + 1] * cen[m + j]
+    zh = zhat[ts, cols[None].expand(K, B)]  # [K, B]
+    P = torch.diag_embed(torch.where(inside, sw / zh.clamp_min(1e-12), torch.ones_like(zh)).T)  # [B, K, K]
+    full_A = torch.cat([A.reshape(B, 3 * (K - 2), K) * inv_len, P], 1)
+    full_b = torch.cat(
+        [rhs.permute(1, 0, 2).reshape(B, 3 * (K - 2)) * inv_len, torch.where(inside, sw, 0.0).T.to(dt)], 1
+    )
+    sol = torch.linalg.lstsq(full_A, full_b[..., None]).solution[..., 0]  # [B, K]
+    ok = torch.isfinite(sol) & (sol > 0)
+    good = (ok | ~inside.T).all(1)
+    return good, ts, inside, sol
+
+
 def smooth_trajectory_depths(
     tracks: torch.Tensor,
     visible: torch.Tensor,
@@ -74,31 +119,13 @@ def smooth_trajectory_depths(
     rays, centres = _rays(tracks, Ks, w2cs)
     sw = float(prior_weight) ** 0.5
     inv_len = 1.0 / max(float(length), 1e-12)
-    for n in torch.nonzero(vis.sum(0) >= max(min_frames, 3)).flatten().tolist():
-        ts = torch.nonzero(vis[:, n]).flatten()
-        k = int(ts.numel())
-        tf = ts.to(torch.float64)
-        a, b, c = tf[:-2], tf[1:-1], tf[2:]
-        # Second divided difference of X at (a, b, c): 2 [X_a / ((b-a)(c-a)) - X_b / ((b-a)(c-b)) + X_c / ((c-b)(c-a))]
-        coef = torch.stack([2 / ((b - a) * (c - a)), -2 / ((b - a) * (c - b)), 2 / ((c - b) * (c - a))], 1)
-        r, cen = rays[ts, n], centres[ts]  # [k, 3]
-        rows = k - 2
-        A = torch.zeros(rows, 3, k, dtype=torch.float64, device=tracks.device)
-        rhs = torch.zeros(rows, 3, dtype=torch.float64, device=tracks.device)
-        m = torch.arange(rows, device=tracks.device)
-        for j in range(3):
-            A[m, :, m + j] = coef[:, j : j + 1] * r[m + j]
-            rhs -= coef[:, j : j + 1] * cen[m + j]
-        A = A.reshape(3 * rows, k) * inv_len
-        rhs = rhs.reshape(3 * rows) * inv_len
-        zh = zhat[ts, n]
-        P = torch.diag(sw / zh)
-        full_A = torch.cat([A, P], 0)
-        full_b = torch.cat([rhs, torch.full((k,), sw, dtype=torch.float64, device=tracks.device)])
-        sol = torch.linalg.lstsq(full_A, full_b[:, None]).solution[:, 0]
-        if bool(torch.isfinite(sol).all()) and bool((sol > 0).all()):
-            z[ts, n] = sol
-            solved[n] = True
+    todo = torch.nonzero(vis.sum(0) >= max(min_frames, 3)).flatten()
+    for chunk in todo.split(_CHUNK) if todo.numel() else ():
+        good, ts, inside, sol = _solve_chunk(chunk, vis, zhat, rays, centres, sw, inv_len)
+        sel = inside & good[None]
+        col = chunk[None].expand_as(ts)
+        z[ts[sel], col[sel]] = sol.T[sel]
+        solved[chunk[good]] = True
     return z.to(depths.dtype), solved
 
 
