@@ -95,7 +95,11 @@ def skinning_weights(
         :func:`normalize_weights`, or pass to :func:`worldtree.motion.dualquat.blend` which does it.
     """
     diff = points[..., None, :] - nb_pos
-    d2 = (diff * diff).sum(-1)
+    return _weights_of_sq_dist((diff * diff).sum(-1), nb_sigma, valid, correction, min_sigma)
+
+
+def _weights_of_sq_dist(d2, nb_sigma, valid, correction, min_sigma: float = 1e-8) -> torch.Tensor:
+    """:func:`skinning_weights` from the squared distances ``d2`` [..., K] (shared by both neighbour layouts)."""
     var2 = 2.0 * nb_sigma.clamp(min=min_sigma) ** 2
     w = torch.exp(-d2 / var2) + WEIGHT_FLOOR  # exponent <= 0: underflows to 0, never overflows
     if correction is not None:
@@ -160,12 +164,7 @@ def deform_dual_planes(
     # Skinning weights (:func:`skinning_weights`).
     diff = points.t()[:, :, None] - nb_pos_ref  # [3, N, K]
     d2 = diff[0] * diff[0] + diff[1] * diff[1] + diff[2] * diff[2]
-    var2 = 2.0 * nb_sigma.clamp(min=1e-8) ** 2
-    w = torch.exp(-d2 / var2) + WEIGHT_FLOOR
-    if correction is not None:
-        w = (w + correction).clamp(min=0.0)
-    if valid is not None:
-        w = torch.where(valid, w, torch.zeros_like(w))
+    w = _weights_of_sq_dist(d2, nb_sigma, valid, correction)
     # Dual-quaternion blend (:func:`worldtree.motion.dualquat.blend_dual`), transforms aligned with the pivot.
     n = points.shape[0]
     pivot = w.argmax(dim=-1)[None, :, None]  # [1, N, 1]
