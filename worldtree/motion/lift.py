@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import torch
 
-__all__ = ["fill_gaps", "lift_tracks", "sample_depth"]
+__all__ = ["camera_rays", "fill_gaps", "lift_tracks", "sample_depth"]
 
 
 def sample_depth(
@@ -77,6 +77,14 @@ def sample_depth(
     return torch.where(ok, z, torch.zeros_like(z)), ok
 
 
+def camera_rays(uv: torch.Tensor, Ks: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
+    """Camera-frame rays with unit depth ``K^-1 (u, v, 1)`` [T, N, 3] through pixels ``uv`` [T, N, 2] of the
+    cameras ``Ks`` [T, 3, 3], in ``dtype``."""
+    pix = torch.cat((uv, torch.ones_like(uv[..., :1])), dim=-1).to(dtype)  # [T, N, 3]
+    # solve instead of inv: K is upper triangular and well conditioned, either is fine, solve is cleaner.
+    return torch.linalg.solve(Ks.to(dtype), pix.transpose(1, 2)).transpose(1, 2)
+
+
 def lift_tracks(
     tracks: torch.Tensor,
     visible: torch.Tensor,
@@ -109,10 +117,7 @@ def lift_tracks(
     valid = ok & visible.bool()
     uv = torch.where(valid[..., None], tracks, torch.zeros_like(tracks))
     dtype = torch.promote_types(tracks.dtype, Ks.dtype)
-    ones = torch.ones_like(uv[..., :1])
-    pix = torch.cat((uv, ones), dim=-1).to(dtype)  # [T, N, 3]
-    # solve instead of inv: K is upper triangular and well conditioned, either is fine, solve is cleaner.
-    rays = torch.linalg.solve(Ks.to(dtype), pix.transpose(1, 2)).transpose(1, 2)  # [T, N, 3], z = 1
+    rays = camera_rays(uv, Ks, dtype)
     x_cam = rays * z.to(dtype)[..., None]
     R = w2cs[:, :3, :3].to(dtype)
     t = w2cs[:, :3, 3].to(dtype)

@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import torch
 
-from worldtree.motion.lift import sample_depth
+from worldtree.motion.lift import camera_rays, sample_depth
 
 __all__ = ["ratio_map", "smooth_trajectory_depths"]
 
@@ -28,9 +28,7 @@ __all__ = ["ratio_map", "smooth_trajectory_depths"]
 def _rays(tracks: torch.Tensor, Ks: torch.Tensor, w2cs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """World rays with unit camera depth ``[T, N, 3]`` through ``tracks`` [T, N, 2] and centres ``[T, 3]``."""
     dt = torch.float64
-    ones = torch.ones_like(tracks[..., :1])
-    pix = torch.cat([tracks, ones], -1).to(dt)
-    cam = torch.linalg.solve(Ks.to(dt), pix.transpose(1, 2)).transpose(1, 2)  # [T, N, 3], z = 1
+    cam = camera_rays(tracks, Ks, dt)  # [T, N, 3], z = 1
     R = w2cs[:, :3, :3].to(dt)
     t = w2cs[:, :3, 3].to(dt)
     centres = -(R.transpose(1, 2) @ t[..., None])[..., 0]
