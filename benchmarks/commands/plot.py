@@ -24,7 +24,7 @@ def register(app: typer.Typer) -> None:
         x: str = typer.Option(
             "wall_time_s",
             "--x",
-            help="Cost metrics on the x axis, comma-separated: one panel per (x, y) pair, e.g. wall_time_s,n_gaussians.",
+            help="Cost metrics on the x axis, comma-separated: one panel per (x, y) pair, e.g. wall_time_s,n_gaussians (cpu_time_s: CPU seconds, steadier than wall time on a busy machine).",
         ),
         y: str | None = typer.Option(
             None,

@@ -28,8 +28,8 @@ from worldtree.errors import UserError
 
 #: Columns of the evaluation harness (benchmarks.evaluation.evaluate.COLUMNS without ``frame``).
 HARNESS_METRICS = ("psnr", "ssim", "lpips", "avge", "mpsnr", "mssim", "mlpips", "mavge")
-#: Cost of a run: wall seconds, peak memory (MiB), model size.
-COST_METRICS = ("wall_time_s", "peak_memory_mb", "n_gaussians", "n_scaffold_nodes", "n_tree_nodes")
+#: Cost of a run: wall seconds, CPU seconds (every process of the run), peak memory (MiB), model size.
+COST_METRICS = ("wall_time_s", "cpu_time_s", "peak_memory_mb", "n_gaussians", "n_scaffold_nodes", "n_tree_nodes")
 METRICS = HARNESS_METRICS + COST_METRICS
 #: Long-table metric name prefix of a stage's seconds, e.g. ``stage_s:train``, ``stage_s:method.tree``.
 STAGE_PREFIX = "stage_s:"
@@ -202,7 +202,11 @@ def cost_metrics(timing: Mapping[str, Any] | None, model_info: Mapping[str, Any]
     before sessions were recorded (no ``sessions_s``) keep the older estimate: the sum of ``stages_s`` except
     those two, with ``train`` replaced by ``train.wall_s_all_sessions``; ``total_s`` when ``stages_s`` is
     missing. ``peak_memory_mb``: ``cuda_peak_allocated_mib`` when the run was on CUDA, else ``peak_rss_mib``
-    (MiB). Sizes: the first of ``num_*``/``n_*`` keys found in timing.json, its ``method_stats``, then
+    (MiB). ``cpu_time_s``: CPU seconds (user + system, every thread) of the run's process over all its
+    sessions (``stages_cpu_s`` less ``eval`` and ``kernel_build``) plus those of the tree's worker processes
+    (``method_stats.tree.layers[].nodes_cpu_s``); unlike wall time it hardly changes when other jobs share the
+    machine, so fronts measured on a busy machine compare. NaN for run folders without ``stages_cpu_s``.
+    Sizes: the first of ``num_*``/``n_*`` keys found in timing.json, its ``method_stats``, then
     model.json.
     """
     timing = timing or {}
@@ -228,10 +232,27 @@ def cost_metrics(timing: Mapping[str, Any] | None, model_info: Mapping[str, Any]
         mem = _number(timing.get("peak_rss_mib"))
     stats = timing.get("method_stats")
     places = [timing, stats if isinstance(stats, Mapping) else None, model_info]
-    out = {"wall_time_s": wall, "peak_memory_mb": mem}
+    out = {"wall_time_s": wall, "cpu_time_s": _cpu_seconds(timing), "peak_memory_mb": mem}
     for metric, keys in _SIZE_KEYS.items():
         out[metric] = _first(places, keys)
     return out
+
+
+def _cpu_seconds(timing: Mapping[str, Any]) -> float:
+    """``cpu_time_s`` of :func:`cost_metrics` (NaN when the run recorded no CPU seconds)."""
+    cpu = timing.get("stages_cpu_s")
+    if not isinstance(cpu, Mapping) or not cpu:
+        return math.nan
+    vals = [_number(v) for k, v in cpu.items() if k not in ("eval", "kernel_build")]
+    total = float(sum(v for v in vals if math.isfinite(v)))
+    stats = timing.get("method_stats")
+    tree = stats.get("tree") if isinstance(stats, Mapping) else None
+    layers = tree.get("layers") if isinstance(tree, Mapping) else None
+    for layer in layers if isinstance(layers, list) else ():
+        nodes = layer.get("nodes_cpu_s") if isinstance(layer, Mapping) else None
+        if isinstance(nodes, Mapping):
+            total += sum(v for v in map(_number, nodes.values()) if math.isfinite(v))
+    return total
 
 
 def stage_times(timing: Mapping[str, Any] | None) -> dict[str, float]:

@@ -164,3 +164,17 @@ def test_real_harness_table_is_read(tmp_path):
     for k in ("psnr", "ssim", "mpsnr", "mssim"):
         assert got[k] == pytest.approx(float(want[k]), rel=1e-9)
     assert math.isnan(got["lpips"]) and math.isnan(got["mavge"])
+
+
+def test_cpu_time_counts_the_tree_workers_and_leaves_out_scoring():
+    # The run's process: 30 s of fit + 2 s render; eval and the kernel build are not the method's cost.
+    t = {
+        "stages_cpu_s": {"train": 30.0, "render": 2.0, "eval": 7.0, "kernel_build": 40.0},
+        "method_stats": {"tree": {"layers": [{"nodes_cpu_s": {"2": 5.0, "3": 6.0}}, {"nodes_cpu_s": {"4": 1.5}}]}},
+    }
+    assert cost_metrics(t, None)["cpu_time_s"] == pytest.approx(30.0 + 2.0 + 5.0 + 6.0 + 1.5)
+    # A damaged entry counts as nothing rather than poisoning the sum.
+    t["method_stats"]["tree"]["layers"].append({"nodes_cpu_s": {"5": "nan?"}})
+    assert cost_metrics(t, None)["cpu_time_s"] == pytest.approx(44.5)
+    # No CPU record (an older run folder): empty, not zero.
+    assert math.isnan(cost_metrics({"total_s": 3.0}, None)["cpu_time_s"])
