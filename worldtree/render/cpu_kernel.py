@@ -1,7 +1,7 @@
 """Compiled CPU backend: C++/OpenMP projection and tile compositing, backward by hand (csrc/rasterize_cpu.cpp).
 
 The extension is built on first use (or ahead of time by :func:`prepare`) and cached; see
-:mod:`worldtree.render.kernel_build` for the targets (``native``, ``portable``), the cache key and the lock that
+:mod:`worldtree.render.kernel_build` for the targets (``native``, ``avx2``, ``portable``), the cache key and the lock that
 makes concurrent processes share one build. If no target builds (no compiler, no ninja), :func:`available`
 returns False and the caller falls back to the PyTorch reference with one logged warning.
 """
@@ -37,7 +37,7 @@ def _load():
         if _module is not None or _error is not None:
             return _module
         requested = kernel_build.requested_target()
-        order = ("native", "portable") if requested == "auto" else (requested,)
+        order = kernel_build.auto_order() if requested == "auto" else (requested,)
         errors = []
         for target in order:
             try:
@@ -67,7 +67,7 @@ def build_error() -> str:
 
 
 def loaded_target() -> str | None:
-    """The target in use (``native`` or ``portable``), building it if needed; None when none builds."""
+    """The target in use (one of ``kernel_build.TARGETS``), building it if needed; None when none builds."""
     _load()
     return _target
 

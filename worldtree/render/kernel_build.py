@@ -1,14 +1,18 @@
 """Building and caching the C++ rasterizer (csrc/rasterize_cpu.cpp): one build per target, shared by processes.
 
-Two targets are compiled from the same source:
+Three targets are compiled from the same source:
 
 - ``native``: ``-march=native``, the instruction set of this CPU (AVX-512, AVX2, ...); the fastest.
+- ``avx2``: x86-64 with AVX2 and FMA and nothing newer (the x86-64-v3 level's vector instructions, no
+  AVX-512), what every x86-64 CPU since about 2013-2015 runs; only on x86-64 CPUs that report both flags.
 - ``portable``: the architecture's baseline (``-march=x86-64`` on x86-64: SSE2 only), runs on any CPU of the
-  architecture; used when the native build fails, or when asked for.
+  architecture.
 
-``WORLDTREE_RASTER_TARGET`` (``auto``, ``native`` or ``portable``) chooses; ``auto`` (the default) takes
-``native`` and falls back to ``portable``. The kernel sizes its SIMD vectors from the target's instruction set,
-so both targets compute the same image formation; their float results differ only by summation order.
+``WORLDTREE_RASTER_TARGET`` (``auto``, ``native``, ``avx2`` or ``portable``) chooses; ``auto`` (the default)
+takes ``native``, falls back to ``avx2`` where this CPU has it and then to ``portable`` (:func:`auto_order`).
+The kernel sizes its SIMD vectors from the target's instruction set, so every target computes the same image
+formation; their float results differ only by summation order. ``-ffp-contract=off`` keeps ``-mfma`` from
+fusing any multiply-add, so the AVX2 build rounds like the others.
 
 Cache: ``$TORCH_EXTENSIONS_DIR/worldtree/<name>`` (default root ``~/.cache/torch_extensions``), where the name
 carries a hash of everything that changes the built library: the source, the compile flags, the target, the
@@ -36,7 +40,7 @@ import torch
 log = logging.getLogger("worldtree.render")
 
 SOURCE = Path(__file__).parent / "csrc" / "rasterize_cpu.cpp"
-TARGETS = ("native", "portable")
+TARGETS = ("native", "avx2", "portable")
 ENV_TARGET = "WORLDTREE_RASTER_TARGET"
 
 # -ffp-contract=off: no fused multiply-adds, so the compositing rounds exactly like the PyTorch reference.
@@ -45,13 +49,22 @@ COMMON_CFLAGS = ("-O3", "-fopenmp", "-ffp-contract=off", "-std=c++17")
 LDFLAGS = ("-fopenmp",)
 
 
+_X86_64 = ("x86_64", "amd64")
+# CPU flags (as /proc/cpuinfo names them) a target's code needs beyond the architecture's baseline.
+_NEEDS = {"avx2": ("avx", "avx2", "fma")}
+
+
 def target_cflags(target: str) -> tuple[str, ...]:
     """The instruction-set flags of ``target`` on this machine's architecture."""
     if target == "native":
         return ("-march=native",)
+    machine = platform.machine().lower()
+    if target == "avx2":
+        if machine not in _X86_64:
+            raise ValueError(f"the avx2 rasterizer target is for x86-64 CPUs; this machine is {machine}")
+        return ("-march=x86-64", "-mavx2", "-mfma", "-mtune=generic")
     if target == "portable":
-        machine = platform.machine().lower()
-        if machine in ("x86_64", "amd64"):
+        if machine in _X86_64:
             return ("-march=x86-64", "-mtune=generic")
         if machine in ("aarch64", "arm64"):
             return ("-march=armv8-a",)
@@ -59,8 +72,8 @@ def target_cflags(target: str) -> tuple[str, ...]:
     raise ValueError(f"unknown rasterizer target {target!r}; use one of {', '.join(TARGETS)}")
 
 
-def cpu_signature() -> str:
-    """This CPU's model name and instruction-set flags (what ``-march=native`` compiles for)."""
+def _cpuinfo() -> tuple[str, str]:
+    """(model name, instruction-set flags) of this CPU from /proc/cpuinfo; empty strings where unknown."""
     model, flags = "", ""
     try:
         for line in Path("/proc/cpuinfo").read_text().splitlines():
@@ -71,7 +84,30 @@ def cpu_signature() -> str:
                 flags = line.split(":", 1)[1].strip()
     except OSError:
         pass
+    return model, flags
+
+
+def cpu_signature() -> str:
+    """This CPU's model name and instruction-set flags (what ``-march=native`` compiles for)."""
+    model, flags = _cpuinfo()
     return f"{model}|{flags}" if (model or flags) else platform.processor() or platform.machine()
+
+
+def cpu_flags() -> set[str]:
+    """This CPU's instruction-set flags as /proc/cpuinfo names them (empty where it cannot be read)."""
+    return set(_cpuinfo()[1].split())
+
+
+def runs_here(target: str) -> bool:
+    """Whether code built for ``target`` can run on this CPU (``native`` and ``portable`` always can)."""
+    if target not in _NEEDS:
+        return target in TARGETS
+    return platform.machine().lower() in _X86_64 and set(_NEEDS[target]) <= cpu_flags()
+
+
+def auto_order() -> tuple[str, ...]:
+    """The targets ``auto`` tries, in order: ``native``, then ``avx2`` where this CPU runs it, then ``portable``."""
+    return tuple(t for t in TARGETS if runs_here(t))
 
 
 def compiler_identity() -> str:
@@ -124,7 +160,7 @@ class Built:
     module: object
     """The extension module (project_forward, project_backward, forward, backward)."""
     target: str
-    """``native`` or ``portable``."""
+    """One of :data:`TARGETS`."""
     name: str
     """Module name, also the name of its build folder."""
     seconds: float
@@ -140,6 +176,12 @@ def build(target: str, *, verbose: bool = False) -> Built:
     from filelock import FileLock
     from torch.utils.cpp_extension import load, verify_ninja_availability
 
+    target_cflags(target)  # unknown target or wrong architecture: ValueError before anything is built
+    if not runs_here(target):
+        # Building would succeed, but the first call would die of an illegal instruction.
+        raise RuntimeError(
+            f"this CPU lacks the instruction sets of the {target} target ({', '.join(_NEEDS[target])})"
+        )
     verify_ninja_availability()
     t0 = time.perf_counter()
     name = module_name(target)
@@ -169,10 +211,10 @@ def build(target: str, *, verbose: bool = False) -> Built:
 
 
 def requested_target() -> str:
-    """The target asked for by ``WORLDTREE_RASTER_TARGET``: ``auto`` (default), ``native`` or ``portable``."""
+    """The target asked for by ``WORLDTREE_RASTER_TARGET``: ``auto`` (default) or one of :data:`TARGETS`."""
     value = os.environ.get(ENV_TARGET, "auto").strip().lower() or "auto"
     if value not in ("auto", *TARGETS):
         from worldtree.errors import UserError
 
-        raise UserError(f"{ENV_TARGET}={value!r} is unknown; use auto, native or portable")
+        raise UserError(f"{ENV_TARGET}={value!r} is unknown; use auto, {', '.join(TARGETS)}")
     return value

@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from worldtree.render import cpu_kernel, rasterize
+from worldtree.render import cpu_kernel, kernel_build, rasterize
 
 pytestmark = pytest.mark.skipif(not cpu_kernel.available(), reason="C++ rasterizer did not build here")
 
@@ -29,9 +29,11 @@ def _render_and_grads(p, w, h, backend, seed=7):
     return out, grads
 
 
-@pytest.fixture(params=["native", "portable"])
+@pytest.fixture(params=["native", "avx2", "portable"])
 def kernel_target(request):
-    """Each build target in turn (the portable one sizes its SIMD vectors for SSE2, the native one for this CPU)."""
+    """Each build target in turn (SIMD vectors sized for this CPU, for AVX2 (8 floats), for SSE2 (4 floats))."""
+    if not kernel_build.runs_here(request.param):
+        pytest.skip(f"this CPU cannot run the {request.param} build")
     try:
         previous = cpu_kernel.use_target(request.param)
     except Exception as e:  # a target this compiler cannot build: the other one still runs

@@ -21,8 +21,9 @@ def test_key_covers_source_flags_target_and_cpu(monkeypatch, tmp_path):
     src = tmp_path / "k.cpp"
     src.write_text("int a;\n")
     monkeypatch.setattr(kernel_build, "SOURCE", src)
+    monkeypatch.setattr(kernel_build.platform, "machine", lambda: "x86_64")  # every target has flags there
     base = {t: kernel_build.build_key(t) for t in kernel_build.TARGETS}
-    assert base["native"] != base["portable"]  # different targets never share a build
+    assert len(set(base.values())) == len(kernel_build.TARGETS)  # different targets never share a build
 
     src.write_text("int b;\n")
     assert all(kernel_build.build_key(t) != base[t] for t in kernel_build.TARGETS)  # any source edit
@@ -33,11 +34,13 @@ def test_key_covers_source_flags_target_and_cpu(monkeypatch, tmp_path):
     assert all(kernel_build.build_key(t) != base[t] for t in kernel_build.TARGETS)  # any flag
     monkeypatch.undo()
     monkeypatch.setattr(kernel_build, "SOURCE", src)
+    monkeypatch.setattr(kernel_build.platform, "machine", lambda: "x86_64")
 
     # -march=native compiles for this CPU: another CPU needs another native build, not another portable one.
     monkeypatch.setattr(kernel_build, "cpu_signature", lambda: "Other CPU|sse2 avx2")
     assert kernel_build.build_key("native") != base["native"]
     assert kernel_build.build_key("portable") == base["portable"]
+    assert kernel_build.build_key("avx2") == base["avx2"]  # a fixed instruction set, like portable
     # Another compiler, or another torch, changes every build.
     monkeypatch.setattr(kernel_build, "compiler_identity", lambda: "c++ (Other) 99.1")
     assert kernel_build.build_key("portable") != base["portable"]
@@ -49,8 +52,12 @@ def test_target_flags_and_choice(monkeypatch):
     assert kernel_build.target_cflags("native") == ("-march=native",)
     monkeypatch.setattr(kernel_build.platform, "machine", lambda: "x86_64")
     assert "-march=x86-64" in kernel_build.target_cflags("portable")
+    avx2 = kernel_build.target_cflags("avx2")
+    assert {"-mavx2", "-mfma"} <= set(avx2) and not any("512" in f or "native" in f for f in avx2)
     with pytest.raises(ValueError, match="unknown rasterizer target"):
         kernel_build.target_cflags("fastest")
+    monkeypatch.setenv(kernel_build.ENV_TARGET, "AVX2")
+    assert kernel_build.requested_target() == "avx2"
     monkeypatch.setenv(kernel_build.ENV_TARGET, "Portable")
     assert kernel_build.requested_target() == "portable"
     monkeypatch.delenv(kernel_build.ENV_TARGET)
@@ -58,6 +65,39 @@ def test_target_flags_and_choice(monkeypatch):
     monkeypatch.setenv(kernel_build.ENV_TARGET, "avx9")
     with pytest.raises(UserError, match="WORLDTREE_RASTER_TARGET"):
         kernel_build.requested_target()
+
+
+def test_auto_order_follows_the_cpu_flags(monkeypatch):
+    """auto: native, then avx2 only where the CPU reports avx, avx2 and fma (on x86-64), then portable."""
+    monkeypatch.setattr(kernel_build.platform, "machine", lambda: "x86_64")
+    flags = {
+        "sse2 avx avx2 fma": True,
+        "sse2 avx avx2 fma avx512f": True,
+        "sse2 avx": False,
+        "sse2 avx avx2": False,
+    }
+    for line, has in flags.items():
+        monkeypatch.setattr(kernel_build, "_cpuinfo", lambda line=line: ("Some CPU", line))
+        assert kernel_build.runs_here("avx2") is has
+        want = ("native", "avx2", "portable") if has else ("native", "portable")
+        assert kernel_build.auto_order() == want
+        assert kernel_build.runs_here("native") and kernel_build.runs_here("portable")
+    # Another architecture never gets the x86 build, whatever its flags say.
+    monkeypatch.setattr(kernel_build, "_cpuinfo", lambda: ("Some CPU", "avx avx2 fma"))
+    monkeypatch.setattr(kernel_build.platform, "machine", lambda: "aarch64")
+    assert kernel_build.auto_order() == ("native", "portable")
+    with pytest.raises(ValueError, match="x86-64"):
+        kernel_build.target_cflags("avx2")
+
+
+def test_build_refuses_a_target_this_cpu_cannot_run(monkeypatch, tmp_path):
+    """Building avx2 on a CPU without it would load fine and then die of an illegal instruction: refused first."""
+    monkeypatch.setattr(kernel_build.platform, "machine", lambda: "x86_64")
+    monkeypatch.setattr(kernel_build, "_cpuinfo", lambda: ("Old CPU", "sse2 sse4_2 avx"))
+    monkeypatch.setenv("TORCH_EXTENSIONS_DIR", str(tmp_path / "ext"))
+    with pytest.raises(RuntimeError, match="lacks .*avx2"):
+        kernel_build.build("avx2")
+    assert not (tmp_path / "ext").exists()  # nothing was compiled or even prepared
 
 
 _BUILD_ONE = textwrap.dedent(
@@ -78,7 +118,7 @@ def test_concurrent_processes_share_one_build(tmp_path):
     src = tmp_path / "tiny.cpp"
     src.write_text(
         "#include <pybind11/pybind11.h>\n"
-        "PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) { m.def(\"value\", [] { return 42; }); }\n"
+        'PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) { m.def("value", [] { return 42; }); }\n'
     )
     env = {**os.environ, "TORCH_EXTENSIONS_DIR": str(tmp_path / "ext"), "PYTHONPATH": str(REPO)}
     procs = [
