@@ -20,12 +20,15 @@ method); ``sac`` grows the tree but every node trains and renders without ancest
 
 The method is :data:`WORLDTREE_STAGES` over a :class:`WorldTreeState`: the Base method's stages with ``tree``
 before ``test_pose`` (:mod:`methods.stages`). ``--depth auto`` decides the root's split inside ``tree`` (after
-the root's fit) and each child's in :func:`train_node`.
+the root's fit) and each child's in :func:`train_node`; each would-be child is then trained only when its
+parent's fit does not already hold its frames (one-sided split, :func:`worldtree.tree.adaptive.decide_child`):
+the parent renders the frames of a child left out.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import math
 import tempfile
 import time
 from dataclasses import dataclass, field
@@ -59,7 +62,7 @@ from worldtree.stages.photometric import PhotometricConfig, PhotometricFit
 from worldtree.strategy import DensifyStrategy, remove
 from worldtree.torchfile import save_torch
 from worldtree.trainer import TrainContext, Trainer, TrainerConfig, TrainSummary
-from worldtree.tree.adaptive import AutoSplitConfig, decide_fit_split
+from worldtree.tree.adaptive import AutoSplitConfig, assess_fit
 from worldtree.tree.build import TreeConfig, TreeResult, grow_tree, node_output, read_node_input
 from worldtree.tree.inherit import InheritConfig
 from worldtree.tree.node import NodeState
@@ -107,6 +110,11 @@ class WorldTreeConfig(BaseConfig):
     layer_steps: tuple[int, ...] = (2000, 2000)
     """Photometric steps of a child node by its depth 1, 2, ... (deeper layers: the last value). The root's
     are ``steps`` (paper NVIDIA-LS: 4000 / 2000 / 2000)."""
+    node_steps_per_frame: bool | None = None
+    """Cap a child node's steps at the root's steps per frame times its own frames, ``ceil(steps * T_node /
+    T)``, so every node gets at most the root's epochs over its frames (quick preset, 40 frames: a 20-frame
+    node keeps its 300 steps, a 10-frame one trains 150); ``layer_steps`` stays the upper bound and the
+    plateau stop still applies. None: on with ``--depth auto``, off for fixed depths (the paper's steps)."""
     min_len: int = TreeConfig.min_len
     """Nodes with fewer frames are leaves (12)."""
     inherit_caps: tuple[int, ...] = InheritConfig.caps
@@ -160,6 +168,10 @@ class WorldTreeConfig(BaseConfig):
         """Photometric steps of a node at ``depth`` (>= 1)."""
         return self.layer_steps[min(depth, len(self.layer_steps)) - 1]
 
+    def node_steps_per_frame_on(self) -> bool:
+        """Whether children's steps follow their frame count (``node_steps_per_frame``)."""
+        return self.auto_depth if self.node_steps_per_frame is None else bool(self.node_steps_per_frame)
+
     def ignored_settings(self) -> dict[str, str]:
         """The Base method's plus the tree's: every tree setting when no tree grows (depth 0 or ``ablate
         tpt``), ``auto_split`` without ``--depth auto``, ``inherit_caps`` under the Gaussian budget (children
@@ -172,7 +184,7 @@ class WorldTreeConfig(BaseConfig):
         if self.tree_depth == 0:
             why = "no tree grows (depth 0 or --ablate tpt)"
             tree = ("chain_length", "split", "layer_steps", "min_len", "inherit_caps", "inherit_opacity",
-                    "ancestors_optimised", "max_workers", "sequential")  # fmt: skip
+                    "ancestors_optimised", "max_workers", "sequential", "node_steps_per_frame")  # fmt: skip
             out.update({k: why for k in tree})
         return out
 
@@ -219,9 +231,21 @@ class NodeTrainConfig:
     """Opacity cap applied to the inherited dynamic Gaussians after the contribution pruning (budget on)."""
     early_stop: PlateauRule | None = None
     """Stop the node at a loss plateau (None: run ``steps_at(depth)``)."""
+    steps_per_frame: float | None = None
+    """The root's steps per training frame: a node of ``n`` frames trains at most ``ceil(steps_per_frame *
+    n)`` steps (None: ``steps_at(depth)`` whatever its length)."""
 
     def steps_at(self, depth: int) -> int:
         return self.layer_steps[min(depth, len(self.layer_steps)) - 1]
+
+    def node_steps(self, depth: int, frames: int) -> int:
+        """Steps of a node at ``depth`` over ``frames`` frames: ``steps_at(depth)``, capped by
+        ``steps_per_frame`` (at least 1)."""
+        steps = self.steps_at(depth)
+        if self.steps_per_frame is not None:
+            # A hair below the product before rounding up, so that e.g. 15.0 * 10 stays 150 in floating point.
+            steps = min(steps, max(1, math.ceil(self.steps_per_frame * int(frames) - 1e-9)))
+        return steps
 
 
 class NodeFit(PhotometricFit):
@@ -394,7 +418,7 @@ def train_node(payload: dict, ctx: NodeContext) -> dict:
     iv = state.interval
     if cfg.no_ancestors:
         state.chain = []
-    steps = cfg.steps_at(depth)
+    steps = cfg.node_steps(depth, iv.length)
     pcfg = _node_photometric(cfg, steps)
     t0 = time.perf_counter()
     adaptive: dict[str, Any] = {}
@@ -434,12 +458,17 @@ def train_node(payload: dict, ctx: NodeContext) -> dict:
         "num_ancestor_gaussians": sum(len(a.dynamic) for a in state.chain),
         "ancestors": [a.node for a in state.chain],
         "steps_max": steps,
+        "steps_layer": cfg.steps_at(depth),
+        "steps_per_frame": cfg.steps_per_frame,
         "adaptive": adaptive,
     }
+    measured = None
     if cfg.auto is not None:
         sl = slice(iv.start, iv.end + 1)
-        stats["auto_split"] = decide_fit_split(fit, data["masks"][sl], cfg.min_len, cfg.auto).to_dict()
-    return node_output(state, fit.profile.profile(), stats)
+        assessment = assess_fit(fit, data["masks"][sl], cfg.min_len, cfg.auto)
+        stats["auto_split"] = assessment.decision.to_dict()
+        measured = assessment.to_payload()
+    return node_output(state, fit.profile.profile(), stats, measured)
 
 
 # ------------------------------------------------------------------------------------------------ method
@@ -517,10 +546,10 @@ def _root_only(s: WorldTreeState, root_decision: dict[str, Any] | None = None) -
 def _grow(s: WorldTreeState, no_ancestors: bool) -> None:
     c = s.cfg
     tcfg = c.tree_config()
-    root_decision = None
+    root_decision = root_measured = None
     if tcfg.auto is not None:  # --depth auto: does the trained root need children?
-        masks = s.P["epi_mask"].bool()
-        root_decision = decide_fit_split(s.fit, masks, tcfg.min_len, tcfg.auto).to_dict()
+        assessment = assess_fit(s.fit, s.P["epi_mask"].bool(), tcfg.min_len, tcfg.auto)
+        root_decision, root_measured = assessment.decision.to_dict(), assessment.to_payload()
     if (
         tcfg.max_depth == 0
         or s.scene.num_frames < tcfg.min_len
@@ -537,7 +566,7 @@ def _grow(s: WorldTreeState, no_ancestors: bool) -> None:
     flow = flow_profile(s.priors.flow, s.priors.epi_mask) if c.split == "flow" else None
     prof = _root_profile(s.fit) if c.split == "gradient" else None
     res = grow_tree(root_cpu, tcfg, s.runner, tree_dir, seed=c.seed, root_profile=prof, flow=flow,
-                    root_decision=root_decision)  # fmt: skip
+                    root_decision=root_decision, root_measured=root_measured)  # fmt: skip
     s.result, s.tree = res, res.tree
     s.states = {1: root}
     for j, st in res.states.items():
@@ -554,6 +583,7 @@ def _tree_info(s: WorldTreeState, res: TreeResult) -> dict[str, Any]:
     return {
         "nodes": sorted(s.states),
         "intervals": {str(j): [tree.interval(j).start, tree.interval(j).end] for j in s.states},
+        "renders": {str(j): [[iv.start, iv.end] for iv in tree.own_frames(j)] for j in tree.rendering_nodes()},
         "splits": {str(j): {"point": ch.point, "fallback": ch.fallback} for j, ch in res.splits.items()},
         "layers": [
             {
@@ -597,6 +627,7 @@ def _write_context(s: WorldTreeState, tree_dir: Path, no_ancestors: bool) -> Non
         budget=c.budget if c.budget_on() else None,
         inherit_opacity=c.inherit_opacity,
         early_stop=c.early_stop if c.early_stop_on() else None,
+        steps_per_frame=c.steps / sc.num_frames if c.node_steps_per_frame_on() else None,
     )
     write_config(tree_dir / "node_config.json", ncfg)
 
@@ -691,11 +722,12 @@ class WorldTreeMethod(BaseMethod):
     def stats(self) -> dict[str, Any]:
         s = self.state
         out = super().stats()
-        leaves = s.tree.leaves() if s.tree is not None else [1]
-        leaves = [j for j in leaves if j in s.states] or [1]
-        # Model size: what the rendering nodes hold (each its static copy, own dynamic Gaussians and ancestors).
+        rendering = s.tree.rendering_nodes() if s.tree is not None else [1]
+        rendering = [j for j in rendering if j in s.states] or [1]
+        # Model size: what the rendering nodes hold (each its static copy, own dynamic Gaussians and ancestors):
+        # the leaves, and the parent of a one-sided split, which renders the frames of the child left out.
         n_g = 0
-        for j in leaves:
+        for j in rendering:
             st = s.states.get(j)
             if st is not None:
                 n_g += len(st.static) + len(st.dynamic) + sum(len(a.dynamic) for a in st.chain)

@@ -159,8 +159,9 @@ def _config_has(method: str, preset: str, name: str) -> bool:
 
 def tree_summary(timing_json: Path) -> str:
     """One line on the tree a run grew, from its ``timing.json``: the depth reached (its deepest node), the node
-    count, the leaves' frame intervals and, under ``--depth auto``, why each node was or was not split
-    (``method_stats.tree.auto``)."""
+    count, which frames each rendering node renders (the leaves' intervals; with a one-sided split the parent
+    renders the half of the child left out) and, under ``--depth auto``, why each node was or was not split
+    and why a child was not trained (``method_stats.tree.auto``)."""
     import json
 
     from worldtree.tree.tpt import depth_of
@@ -168,13 +169,23 @@ def tree_summary(timing_json: Path) -> str:
     tree = json.loads(timing_json.read_text()).get("method_stats", {}).get("tree") or {}
     nodes = sorted(int(j) for j in tree.get("nodes") or [1])
     intervals = tree.get("intervals") or {}
-    leaves = [j for j in nodes if 2 * j not in nodes]
+    renders = tree.get("renders")
     line = f"tree depth {max(depth_of(j) for j in nodes)}, {len(nodes)} node{'s' if len(nodes) > 1 else ''}"
-    if len(nodes) > 1 and intervals:
+    if len(nodes) > 1 and renders:
+        line += ", frames rendered by " + ", ".join(
+            f"node {j}: " + " and ".join(f"{a}-{b}" for a, b in runs)
+            for j, runs in sorted(renders.items(), key=lambda kv: int(kv[0]))
+        )
+    elif len(nodes) > 1 and intervals:  # a record without "renders" (before one-sided splits): the leaves
+        leaves = [j for j in nodes if 2 * j not in nodes and 2 * j + 1 not in nodes]
         line += ", leaves over frames " + ", ".join("-".join(map(str, intervals[str(j)])) for j in leaves)
     auto = tree.get("auto") or {}
     if not auto:
         return line
-    why = "; ".join(f"node {j}: {'split' if d.get('applied', d.get('split')) else 'leaf'} ({d.get('reason')})"
-                    for j, d in sorted(auto.items(), key=lambda kv: int(kv[0])))  # fmt: skip
-    return f"--depth auto chose {line} ({why})"
+    why = []
+    for j, d in sorted(auto.items(), key=lambda kv: int(kv[0])):
+        why.append(f"node {j}: {'split' if d.get('applied', d.get('split')) else 'leaf'} ({d.get('reason')})")
+        for c, cd in sorted((d.get("children") or {}).items(), key=lambda kv: int(kv[0])):
+            if not cd.get("train", True):
+                why.append(f"node {c}: {cd.get('reason')}")
+    return f"--depth auto chose {line} ({'; '.join(why)})"

@@ -105,3 +105,26 @@ def test_cli_option_error_is_one_line(tmp_path, write_tiny_scene):
     assert out.returncode == 2
     lines = out.stderr.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("error: --chain-length -1"), out.stderr
+
+
+def test_node_steps_follow_the_roots_steps_per_frame_under_depth_auto():
+    from methods.worldtree import NodeTrainConfig
+    from worldtree.stages.photometric import PhotometricConfig
+    from worldtree.tree.sac import AncestorPolicy
+
+    ncfg = NodeTrainConfig(PhotometricConfig(), (300, 300), AncestorPolicy(), False, 1.0, 100, 50,
+                           steps_per_frame=600 / 40)  # fmt: skip
+    # The quick preset's root: 600 steps over 40 frames = 15 per frame; worked out by hand.
+    assert [ncfg.node_steps(1, 20), ncfg.node_steps(1, 21), ncfg.node_steps(2, 10), ncfg.node_steps(2, 11)] == [
+        300, 300, 150, 165,
+    ]  # fmt: skip
+    assert ncfg.node_steps(2, 7) == 105 and ncfg.node_steps(2, 0) == 1
+    free = dataclasses.replace(ncfg, steps_per_frame=None)
+    assert free.node_steps(2, 10) == 300 and free.node_steps(1, 3) == 300
+    # On with --depth auto, off for fixed depths, overridable either way.
+    quick = get_method("worldtree").config("quick")
+    assert not quick.node_steps_per_frame_on()
+    assert dataclasses.replace(quick, depth="auto").node_steps_per_frame_on()
+    assert not dataclasses.replace(quick, depth="auto", node_steps_per_frame=False).node_steps_per_frame_on()
+    assert dataclasses.replace(quick, node_steps_per_frame=True).node_steps_per_frame_on()
+    assert "node_steps_per_frame" in dataclasses.replace(quick, depth=0).ignored_settings()

@@ -4,6 +4,7 @@ the default tree, ``--ablate sac`` and ``--ablate tpt`` (against the Base method
 from __future__ import annotations
 
 import json
+import math
 import shutil
 from pathlib import Path
 
@@ -206,11 +207,27 @@ def test_depth_auto_grows_the_tree_its_decisions_say(runs):
     assert 1 in auto and nodes == set(auto)  # every node has a recorded decision
     for j, d in auto.items():
         assert isinstance(d["reason"], str) and d["reason"]
-        assert d["applied"] == (2 * j in nodes), j  # children exactly where the decision applied
+        # Children exactly where the decision applied (a one-sided split trains one of them).
+        assert d["applied"] == (2 * j in nodes or 2 * j + 1 in nodes), j
         moves = d["motion_px"] >= d["motion_min_px"]  # the scaffold's motion was measured for every node
         assert d["split"] == (
             d["excess"] >= 0.01 and d["dynamic_fraction"] >= 0.002 and d["frames"] >= 12 and moves
         )
+        # Each would-be child was tested on this node's fit over its frames; exactly those that passed exist.
+        for c, cd in (d.get("children") or {}).items():
+            assert (int(c) in nodes) == cd["train"], (j, c)
+            moves = cd["motion_px"] >= cd["motion_min_px"]
+            assert cd["train"] == (cd["excess"] >= 0.01 and cd["dynamic_fraction"] >= 0.002 and moves)
+        if d["applied"]:
+            assert set(d["children"]) == {str(2 * j), str(2 * j + 1)}
+    # Every frame is rendered by exactly one node (the parent of a one-sided split renders the other half).
+    renders = st["tree"].get("renders") or {"1": [[0, FRAMES - 1]]}
+    frames = sorted(t for runs_ in renders.values() for a, b in runs_ for t in range(a, b + 1))
+    assert frames == list(range(FRAMES))
+    # Steps follow the frames: the smoke root's 20 steps over 26 frames, capped by layer_steps (10).
+    for ns in st["tree"].get("node_stats", {}).values():
+        n = ns["frames"][1] - ns["frames"][0] + 1
+        assert ns["steps_max"] == min(10, math.ceil(20 * n / FRAMES)) and ns["steps"] <= ns["steps_max"]
     # Budget and early stop come with --depth auto: recorded for the root (the Base stages).
     ad = st["adaptive"]
     assert ad["budget_on"] and ad["early_stop_on"] and ad["steps_taken"] <= ad["steps_max"]

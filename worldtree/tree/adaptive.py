@@ -37,6 +37,16 @@ The node is split when all of these hold (otherwise ``reason`` names the first t
 
 Intervals where the model already follows the motion stay leaves, so branches of one tree differ. Every
 quantity is recorded with the decision (``SplitDecision.to_dict``) for ``timing.json``.
+
+Which children a split trains (one-sided split, :func:`decide_child`). Before a child is trained, tests 2-4
+are applied to the *parent's* fit restricted to the child's frames: the parent's residual on those frames
+(from its per-frame sums, :func:`residual_sums`) and the motion of the parent's scaffold over those frames
+(same measure and threshold as above). A child whose frames the parent already holds (near-static, or moving
+less than the threshold, or fit as well as the static pixels) is not trained: the parent goes on rendering its
+frames (:meth:`worldtree.tree.tpt.TemporalPartitionTree.own_frames`). When neither child needs training, the
+node stays a leaf. The test on a child has no minimum length (that test is about whether a node may have
+children). On the demo (``slow_fast``, 160x90) the root's scaffold moves 15.5 px over the calm half (under
+16 px: that child is not trained) and 29.9 px over the fast half.
 """
 
 from __future__ import annotations
@@ -49,8 +59,9 @@ import torch
 
 from worldtree.tree.tpt import can_split
 
-__all__ = ["AutoSplitConfig", "SplitDecision", "decide_fit_split", "decide_split", "residual_stats",
-           "scaffold_motion_px"]  # fmt: skip
+__all__ = ["AutoSplitConfig", "ChildDecision", "FitAssessment", "SplitDecision", "assess_fit", "decide_child",
+           "decide_fit_split", "decide_split", "residual_stats", "residual_sums", "scaffold_motion_px",
+           "stats_of_sums"]  # fmt: skip
 
 
 @dataclass(frozen=True)
@@ -106,6 +117,64 @@ class SplitDecision:
         return asdict(self)
 
 
+@dataclass(frozen=True)
+class ChildDecision:
+    """Whether a would-be child of a split is trained, measured on its parent's fit over the child's frames
+    (:func:`decide_child`)."""
+
+    train: bool
+    reason: str
+    """Why (e.g. ``"not trained: near-static: scaffold motion 15.5 px < 16 px on the parent's fit"``)."""
+    frames: list[int]
+    """The child's global frames ``[start, end]``."""
+    dynamic_error: float
+    static_error: float
+    excess: float
+    dynamic_fraction: float
+    motion_px: float
+    """The parent's scaffold motion over the child's frames (pixels)."""
+    motion_min_px: float
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+@torch.no_grad()
+def residual_sums(residual: torch.Tensor, dynamic: torch.Tensor) -> torch.Tensor:
+    """Per-frame sums of the residual over the dynamic and the static pixels and their counts.
+
+    Args:
+        residual: ``[T, H, W]`` per-pixel L1 residual (colour units); non-finite entries are ignored.
+        dynamic: ``[T, H, W]`` bool dynamic mask.
+
+    Returns ``[T, 4]`` float64: ``(dynamic sum, dynamic pixels, static sum, static pixels)`` per frame; the
+    statistics of any run of frames follow from its rows (:func:`stats_of_sums`).
+    """
+    if residual.shape != dynamic.shape or residual.dim() != 3:
+        raise ValueError(
+            f"residual {tuple(residual.shape)} and mask {tuple(dynamic.shape)} must both be [T, H, W]"
+        )
+    ok = torch.isfinite(residual)
+    r = torch.where(ok, residual, torch.zeros_like(residual)).double()
+    dyn, sta = dynamic.bool() & ok, ~dynamic.bool() & ok
+    return torch.stack(
+        [(r * dyn).sum((1, 2)), dyn.sum((1, 2)).double(), (r * sta).sum((1, 2)), sta.sum((1, 2)).double()], -1
+    )
+
+
+def stats_of_sums(sums: torch.Tensor) -> dict[str, float]:
+    """:func:`residual_stats` from the per-frame rows ``[T, 4]`` of :func:`residual_sums` (all rows pooled)."""
+    d_sum, n_dyn, s_sum, n_sta = (float(x) for x in sums.double().reshape(-1, 4).sum(0))
+    d_err = d_sum / n_dyn if n_dyn > 0 else 0.0
+    s_err = s_sum / n_sta if n_sta > 0 else 0.0
+    return {
+        "dynamic_error": d_err,
+        "static_error": s_err,
+        "excess": d_err - s_err if n_dyn > 0 else 0.0,
+        "dynamic_fraction": n_dyn / max(n_dyn + n_sta, 1.0),
+    }
+
+
 @torch.no_grad()
 def residual_stats(residual: torch.Tensor, dynamic: torch.Tensor) -> dict[str, float]:
     """Mean residual over dynamic / static pixels and the dynamic share.
@@ -117,23 +186,7 @@ def residual_stats(residual: torch.Tensor, dynamic: torch.Tensor) -> dict[str, f
     Returns ``{"dynamic_error", "static_error", "excess", "dynamic_fraction"}`` (errors are 0 over an empty
     region, so an all-static node has ``excess = 0``).
     """
-    if residual.shape != dynamic.shape or residual.dim() != 3:
-        raise ValueError(
-            f"residual {tuple(residual.shape)} and mask {tuple(dynamic.shape)} must both be [T, H, W]"
-        )
-    ok = torch.isfinite(residual)
-    r = torch.where(ok, residual, torch.zeros_like(residual)).double()
-    dyn, sta = dynamic.bool() & ok, ~dynamic.bool() & ok
-    n_dyn, n_sta = int(dyn.sum()), int(sta.sum())
-    d_err = float(r[dyn].mean()) if n_dyn else 0.0
-    s_err = float(r[sta].mean()) if n_sta else 0.0
-    total = max(n_dyn + n_sta, 1)
-    return {
-        "dynamic_error": d_err,
-        "static_error": s_err,
-        "excess": d_err - s_err if n_dyn else 0.0,
-        "dynamic_fraction": n_dyn / total,
-    }
+    return stats_of_sums(residual_sums(residual, dynamic))
 
 
 @torch.no_grad()
@@ -186,6 +239,21 @@ def scaffold_motion_px(
     return float(torch.quantile(per_node, float(quantile)))
 
 
+def _needs_model(st: dict[str, float], motion_px: float | None, min_motion: float,
+                 cfg: AutoSplitConfig) -> tuple[bool, str]:  # fmt: skip
+    """Tests 2-4 of the criterion (module docstring) on pooled residual statistics and a motion."""
+    if st["dynamic_fraction"] < cfg.min_dynamic_fraction:
+        return (
+            False,
+            f"near-static: dynamic fraction {st['dynamic_fraction']:.4g} < {cfg.min_dynamic_fraction:g}",
+        )
+    if motion_px is not None and not motion_px >= min_motion:
+        return False, f"near-static: scaffold motion {motion_px:.3g} px < {min_motion:.3g} px"
+    if st["excess"] < cfg.min_excess:
+        return False, f"motion fit: excess {st['excess']:.4g} < {cfg.min_excess:g}"
+    return True, f"excess {st['excess']:.4g} >= {cfg.min_excess:g}"
+
+
 def decide_split(
     residual: torch.Tensor,
     dynamic: torch.Tensor,
@@ -200,24 +268,80 @@ def decide_split(
     min_motion = cfg.min_motion_frac * max(int(residual.shape[1]), int(residual.shape[2]))
     if not can_split(frames, min_len):
         split, reason = False, f"interval: {frames} frames < min_len {min_len}"
-    elif st["dynamic_fraction"] < cfg.min_dynamic_fraction:
-        split = False
-        reason = f"near-static: dynamic fraction {st['dynamic_fraction']:.4g} < {cfg.min_dynamic_fraction:g}"
-    elif motion_px is not None and not motion_px >= min_motion:
-        split, reason = False, f"near-static: scaffold motion {motion_px:.3g} px < {min_motion:.3g} px"
-    elif st["excess"] < cfg.min_excess:
-        split, reason = False, f"motion fit: excess {st['excess']:.4g} < {cfg.min_excess:g}"
     else:
-        split, reason = True, f"excess {st['excess']:.4g} >= {cfg.min_excess:g}"
+        split, reason = _needs_model(st, motion_px, min_motion, cfg)
     return SplitDecision(split, reason, frames, st["dynamic_error"], st["static_error"], st["excess"],
                          st["dynamic_fraction"], motion_px, None if motion_px is None else min_motion)  # fmt: skip
+
+
+@dataclass
+class FitAssessment:
+    """A trained fit measured once on its own frames: its split decision and what its children's decisions
+    need (:func:`decide_child`)."""
+
+    decision: SplitDecision
+    sums: torch.Tensor
+    """``[T, 4]`` per-frame residual sums (:func:`residual_sums`) of the fit's frames."""
+    Ks: torch.Tensor
+    """``[T, 3, 3]`` the fit's intrinsics (the motion of a run of frames is measured through them)."""
+    image_size: tuple[int, int]
+    """``(H, W)`` of the residual (the motion threshold is a fraction of the larger side)."""
+
+    def to_payload(self) -> dict:
+        """Plain tensors and numbers (a tree node's output file)."""
+        return {"sums": self.sums.detach().cpu().double(), "Ks": self.Ks.detach().cpu().float(),
+                "image_size": [int(self.image_size[0]), int(self.image_size[1])]}  # fmt: skip
+
+
+def assess_fit(fit, dynamic: torch.Tensor, min_len: int, cfg: AutoSplitConfig) -> FitAssessment:
+    """:func:`decide_fit_split` plus the per-frame residual sums its children's decisions use (one render of
+    each of the fit's frames serves both)."""
+    cpu0 = time.process_time()
+    motion = scaffold_motion_px(fit.scaffold.pos, fit.Ks, fit.cameras())
+    residual = fit.residuals()
+    decision = decide_split(residual, dynamic, min_len, cfg, motion_px=motion)
+    sums = residual_sums(residual, dynamic)
+    decision = dataclasses.replace(decision, test_cpu_s=time.process_time() - cpu0)
+    return FitAssessment(decision, sums, fit.Ks, (int(residual.shape[1]), int(residual.shape[2])))
 
 
 def decide_fit_split(fit, dynamic: torch.Tensor, min_len: int, cfg: AutoSplitConfig) -> SplitDecision:
     """:func:`decide_split` for a trained photometric fit (``worldtree.stages.photometric.PhotometricFit`` or a
     tree node's fit): its residuals on its own frames, ``dynamic`` ``[T, H, W]`` masks of those frames, and
     the motion of its own scaffold seen by its own cameras. Records the test's own CPU time (``test_cpu_s``)."""
-    cpu0 = time.process_time()
-    motion = scaffold_motion_px(fit.scaffold.pos, fit.Ks, fit.cameras())
-    decision = decide_split(fit.residuals(), dynamic, min_len, cfg, motion_px=motion)
-    return dataclasses.replace(decision, test_cpu_s=time.process_time() - cpu0)
+    return assess_fit(fit, dynamic, min_len, cfg).decision
+
+
+def decide_child(
+    parent_pos: torch.Tensor,
+    parent_w2cs: torch.Tensor,
+    parent_start: int,
+    measured: dict,
+    child: tuple[int, int],
+    cfg: AutoSplitConfig,
+) -> ChildDecision:
+    """Whether a would-be child needs its own training, from its parent's fit on the child's frames.
+
+    Args:
+        parent_pos: ``[T_p, M, 3]`` the trained parent's scaffold positions over its frames (node-local).
+        parent_w2cs: ``[T_p, 4, 4]`` the parent's cameras.
+        parent_start: the parent's first global frame.
+        measured: the parent's :meth:`FitAssessment.to_payload` (``sums`` ``[T_p, 4]``, ``Ks`` ``[T_p, 3, 3]``,
+            ``image_size``).
+        child: the child's global frames ``(start, end)`` inclusive, inside the parent's.
+
+    Tests 2-4 of the criterion on those frames (module docstring): the parent's residual sums pooled over them
+    and its scaffold's motion over them (:func:`scaffold_motion_px`, the same threshold).
+    """
+    a, b = int(child[0]) - int(parent_start), int(child[1]) - int(parent_start)
+    T = int(parent_pos.shape[0])
+    if not 0 <= a <= b < T or measured["sums"].shape[0] != T:
+        raise ValueError(f"child frames {child} are not inside the parent's {T} frames from {parent_start}")
+    sl = slice(a, b + 1)
+    motion = scaffold_motion_px(parent_pos[sl], measured["Ks"][sl], parent_w2cs[sl])
+    st = stats_of_sums(measured["sums"][sl])
+    min_motion = cfg.min_motion_frac * max(int(x) for x in measured["image_size"])
+    train, why = _needs_model(st, motion, min_motion, cfg)
+    reason = ("trained: " if train else "not trained: ") + why + " on the parent's fit"
+    return ChildDecision(train, reason, [int(child[0]), int(child[1])], st["dynamic_error"], st["static_error"],
+                         st["excess"], st["dynamic_fraction"], motion, min_motion)  # fmt: skip

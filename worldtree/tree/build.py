@@ -7,7 +7,13 @@ them with the :class:`~worldtree.tree.parallel.LayerRunner` and reads the traine
 
 Node-function contract (the method's part): ``fn(payload, ctx)`` receives :func:`node_input` (``{"state":
 NodeState payload, "depth": d}``) and returns :func:`node_output` (the trained state, optionally the node's
-per-frame ``profile`` for the ``gradient`` split of its own children, and JSON-able ``stats``).
+per-frame ``profile`` for the ``gradient`` split of its own children, JSON-able ``stats`` and, under
+``--depth auto``, the node's measured fit for its children's decisions).
+
+``--depth auto``: a node is split when its own decision says so (``stats["auto_split"]``, the root's given);
+then each child is trained only when :func:`worldtree.tree.adaptive.decide_child` finds that the parent's fit
+does not already hold the child's frames (one-sided split; a node that reports no measured fit gets both
+children). Every decision is recorded: ``TreeResult.decisions[j]`` with ``"applied"`` and ``"children"``.
 """
 
 from __future__ import annotations
@@ -20,8 +26,8 @@ import numpy as np
 import torch
 
 from worldtree.atomic import atomic_write_json
-from worldtree.tree.adaptive import AutoSplitConfig
-from worldtree.tree.inherit import InheritConfig, split_state
+from worldtree.tree.adaptive import AutoSplitConfig, decide_child
+from worldtree.tree.inherit import InheritConfig, child_state, split_state
 from worldtree.tree.node import NodeState
 from worldtree.tree.parallel import LayerReport, LayerRunner, write_input
 from worldtree.tree.split import SplitChoice, choose_split
@@ -75,7 +81,8 @@ class TreeResult:
     """Each trained node's ``stats`` from its function."""
     decisions: dict[int, dict] = field(default_factory=dict)
     """Auto mode: every node's split decision (``SplitDecision.to_dict()`` plus ``"applied"``: whether it got
-    children, False e.g. at the depth bound)."""
+    children, False e.g. at the depth bound or when neither child needs training, and, for a node whose
+    split was tested child by child, ``"children"``: ``{child index: ChildDecision.to_dict()}``)."""
 
 
 def node_input(state: NodeState, depth: int) -> dict:
@@ -89,16 +96,34 @@ def read_node_input(payload: dict, device: torch.device | str = "cpu") -> tuple[
 
 
 def node_output(
-    state: NodeState, profile: np.ndarray | torch.Tensor | None = None, stats: dict | None = None
+    state: NodeState,
+    profile: np.ndarray | torch.Tensor | None = None,
+    stats: dict | None = None,
+    measured: dict | None = None,
 ) -> dict:
     """The payload a node-training function returns: the trained state, its per-frame ``profile``
-    ``[T_node]`` (for the gradient split, or None) and JSON-able ``stats``."""
+    ``[T_node]`` (for the gradient split, or None), JSON-able ``stats`` and, under ``--depth auto``, its
+    measured fit (:meth:`worldtree.tree.adaptive.FitAssessment.to_payload`) for its children's decisions."""
     prof = None
     if profile is not None:
         prof = torch.as_tensor(np.asarray(profile, dtype=np.float64))
         if prof.shape != (state.interval.length,):
             raise ValueError(f"node {state.index}: profile {tuple(prof.shape)} != [{state.interval.length}]")
-    return {"state": state.to_payload(), "profile": prof, "stats": dict(stats or {})}
+    return {"state": state.to_payload(), "profile": prof, "stats": dict(stats or {}), "measured": measured}
+
+
+def _children_to_train(state: NodeState, measured: dict | None, point: int, cfg: AutoSplitConfig,
+                       first: int) -> tuple[tuple[bool, bool], dict[str, dict] | None]:  # fmt: skip
+    """Auto mode: which of the two children of ``state`` split at ``point`` need training (``first``: the left
+    child's index), with each child's decision; both, unrecorded, when the parent reported no measured fit."""
+    if measured is None:
+        return (True, True), None
+    iv = state.interval
+    halves = ((iv.start, point - 1), (point, iv.end))
+    pos, w2cs = state.scaffold.pos.detach(), state.w2cs.detach()
+    decided = [decide_child(pos, w2cs, iv.start, measured, h, cfg) for h in halves]
+    keep = (decided[0].train, decided[1].train)
+    return keep, {str(first + k): d.to_dict() for k, d in enumerate(decided)}
 
 
 def grow_tree(
@@ -110,6 +135,7 @@ def grow_tree(
     root_profile: np.ndarray | torch.Tensor | None = None,
     flow: np.ndarray | torch.Tensor | None = None,
     root_decision: dict | None = None,
+    root_measured: dict | None = None,
 ) -> TreeResult:
     """Build and train the tree below ``root`` (already trained; its chain is empty).
 
@@ -123,6 +149,8 @@ def grow_tree(
         flow: global per-frame profile ``[T]`` for the ``flow`` split (:func:`worldtree.tree.split.flow_profile`).
         root_decision: auto mode: the root's ``SplitDecision.to_dict()``; the children's come from their node
             function's ``stats["auto_split"]`` (a node without one is a leaf, recorded as such).
+        root_measured: auto mode: the trained root's measured fit (``FitAssessment.to_payload()``) for its
+            children's decisions; the other nodes' come from their node function's output (``"measured"``).
     """
     if root.index != 1 or root.chain:
         raise ValueError("grow_tree starts from the root state (index 1, no ancestors)")
@@ -135,9 +163,11 @@ def grow_tree(
     profiles: dict[int, Any] = {1: root_profile}
     flow_np = None if flow is None else np.asarray(torch.as_tensor(flow, dtype=torch.float64).cpu().numpy())
     decisions: dict[int, dict | None] = {1: root_decision}
+    measured: dict[int, dict | None] = {1: root_measured}
     for d in range(cfg.max_depth + 1):
         new: list[int] = []
         for j in tree.layer(d):
+            dec = None
             if cfg.auto is not None:
                 dec = dict(decisions.get(j) or {"split": False, "reason": "no decision reported"})
                 dec["applied"] = bool(dec["split"]) and d < cfg.max_depth and tree.can_split(j)
@@ -153,13 +183,26 @@ def grow_tree(
             if cfg.split == "flow" and flow_np is not None:
                 prof = flow_np[iv.start : iv.end + 1]
             choice = choose_split(cfg.split, iv, prof, cfg.min_len)
-            a, b = tree.add_children(j, choice.point)
+            keep = (True, True)
+            if dec is not None:
+                keep, dec["children"] = _children_to_train(res.states[j], measured.get(j), choice.point,
+                                                           cfg.auto, 2 * j)  # fmt: skip
+                if not any(keep):
+                    dec["applied"] = False
+                    dec["reason"] += (
+                        "; not split: the node's own fit holds both halves (no child needs training)"
+                    )
+                    continue
+            added = tree.add_children(j, choice.point, keep)
             res.splits[j] = choice
-            left, right = split_state(res.states[j], tree.interval(a), tree.interval(b), cfg.inherit, seed)
             layer_dir = folder / f"layer{d + 1}"
-            write_input(layer_dir, a, node_input(left, d + 1))
-            write_input(layer_dir, b, node_input(right, d + 1))
-            new += [a, b]
+            if len(added) == 2:
+                states = split_state(res.states[j], *iv.split_at(choice.point), cfg.inherit, seed)
+            else:  # one-sided: only the kept child's state is made
+                states = (child_state(res.states[j], added[0], tree.interval(added[0]), cfg.inherit, seed),)
+            for c, st in zip(added, states, strict=True):
+                write_input(layer_dir, c, node_input(st, d + 1))
+            new += list(added)
         if not new:
             break
         layer_dir = folder / f"layer{d + 1}"
@@ -171,6 +214,7 @@ def grow_tree(
             profiles[j] = out.get("profile")
             res.stats[j] = dict(out.get("stats") or {})
             decisions[j] = res.stats[j].get("auto_split")
+            measured[j] = out.get("measured")
     atomic_write_json(
         folder / "tree.json",
         {

@@ -16,6 +16,11 @@ be shorter than ``min_len`` (a 12-frame node gives 5 + 7 frames). This reading m
 (it stops at depth 3). Strategies other than binary keep each child at least ``min_child_len = max(1,
 (min_len - 1) // 2)`` frames, the shortest child the binary rule itself makes (5 for ``min_len = 12``), i.e.
 ``P`` in ``[L + min_child_len, R + 1 - min_child_len]``.
+
+One-sided splits (``--depth auto``, :mod:`worldtree.tree.adaptive`): a split may keep only one of its two
+children, when the parent's own fit already holds the other half's frames. The parent then still renders that
+half: every frame is rendered by the deepest node whose interval contains it (:meth:`TemporalPartitionTree.covering`),
+and :meth:`TemporalPartitionTree.own_frames` says which frames each node renders.
 """
 
 from __future__ import annotations
@@ -196,9 +201,33 @@ class TemporalPartitionTree:
         """Existing nodes of depth ``d``, ascending."""
         return [j for j in layer_indices(d) if j in self.intervals]
 
+    def has_children(self, j: int) -> bool:
+        """Whether node ``j`` has at least one child (a one-sided split keeps one)."""
+        a, b = children(j)
+        return a in self.intervals or b in self.intervals
+
     def leaves(self) -> list[int]:
         """Nodes without children, ascending."""
-        return [j for j in sorted(self.intervals) if 2 * j not in self.intervals]
+        return [j for j in sorted(self.intervals) if not self.has_children(j)]
+
+    def own_frames(self, j: int) -> list[Interval]:
+        """The frames node ``j`` renders: its interval minus its children's (ascending runs; all of it for a
+        leaf, none for a node with both children, the missing half after a one-sided split)."""
+        iv = self.interval(j)
+        taken = [self.intervals[c] for c in children(j) if c in self.intervals]
+        out, start = [], iv.start
+        for c in sorted(taken, key=lambda x: x.start):
+            if c.start > start:
+                out.append(Interval(start, c.start - 1))
+            start = c.end + 1
+        if start <= iv.end:
+            out.append(Interval(start, iv.end))
+        return out
+
+    def rendering_nodes(self) -> list[int]:
+        """Nodes that render at least one frame (:meth:`own_frames` not empty), ascending: the leaves, plus
+        every parent of a one-sided split."""
+        return [j for j in sorted(self.intervals) if self.own_frames(j)]
 
     def chain(self, j: int) -> list[int]:
         """Ancestors of an existing node, nearest first (:func:`ancestors`)."""
@@ -235,15 +264,21 @@ class TemporalPartitionTree:
                 return j
 
     # ------------------------------------------------------------------ growth
-    def add_children(self, j: int, p: int) -> tuple[int, int]:
-        """Split node ``j`` at global frame ``p`` (children ``[L, p-1]``, ``[p, R]``); returns their indices.
+    def add_children(self, j: int, p: int, keep: tuple[bool, bool] = (True, True)) -> tuple[int, ...]:
+        """Split node ``j`` at global frame ``p`` (children ``[L, p-1]``, ``[p, R]``); returns the indices of
+        the children added: both by default, only those ``keep`` marks for a one-sided split (the node itself
+        goes on rendering the frames of a child left out).
 
-        ValueError when ``j`` already has children, is shorter than ``min_len``, or a child would be shorter
-        than ``min_child_len``.
+        ValueError when ``j`` already has children, is shorter than ``min_len``, a child would be shorter than
+        ``min_child_len``, or ``keep`` keeps neither child.
         """
         iv = self.interval(j)
         a, b = children(j)
-        if a in self.intervals:
+        if not any(keep):
+            raise ValueError(
+                f"split of node {j}: keep at least one child (a node without children is a leaf)"
+            )
+        if self.has_children(j):
             raise ValueError(f"node {j} already has children")
         if not self.can_split(j):
             raise ValueError(f"node {j} {iv} has {iv.length} frames; nodes under {self.min_len} are leaves")
@@ -253,8 +288,12 @@ class TemporalPartitionTree:
                 f"split of node {j} {iv} at {p}: each child needs >= {min_child_len(self.min_len)} frames, "
                 f"so P must lie in [{lo}, {hi}]"
             )
-        self.intervals[a], self.intervals[b] = iv.split_at(p)
-        return a, b
+        added = []
+        for c, half, k in zip((a, b), iv.split_at(p), keep, strict=True):
+            if k:
+                self.intervals[c] = half
+                added.append(c)
+        return tuple(added)
 
     def grow_layer(self, d: int, split: SplitFn | None = None) -> list[int]:
         """Add the children of every node of depth ``d`` that can be split; returns the new indices.
@@ -264,7 +303,7 @@ class TemporalPartitionTree:
         """
         new: list[int] = []
         for j in self.layer(d):
-            if 2 * j in self.intervals or not self.can_split(j):
+            if self.has_children(j) or not self.can_split(j):
                 continue
             iv = self.intervals[j]
             p = binary_point(iv.start, iv.end) if split is None else split(j, iv)

@@ -8,14 +8,21 @@ exactly, but not two objects moving in opposite directions, which is what the cr
 
 from __future__ import annotations
 
+import dataclasses
+
+import pytest
 import torch
 
 from worldtree.tree.adaptive import (
     AutoSplitConfig,
+    assess_fit,
+    decide_child,
     decide_fit_split,
     decide_split,
     residual_stats,
+    residual_sums,
     scaffold_motion_px,
+    stats_of_sums,
 )
 
 T, H, W = 16, 24, 48
@@ -202,3 +209,74 @@ def test_decide_fit_split_uses_the_fits_residual_and_scaffold_and_records_its_co
     assert d.split and abs(d.motion_px - 2.5 * 6) < 1e-4 and abs(d.motion_min_px - 0.10 * W) < 1e-9
     assert d.test_cpu_s is not None and 0.0 <= d.test_cpu_s < float("inf")
     assert decide_split(residual, mask, min_len=12).test_cpu_s is None  # a residual given: nothing measured
+
+
+def test_residual_sums_pool_to_the_stats_of_any_run_of_frames():
+    g = torch.Generator().manual_seed(3)
+    r = torch.rand(6, 5, 7, generator=g)
+    m = torch.rand(6, 5, 7, generator=g) > 0.7
+    r[2, 1, 1] = float("inf")  # ignored like residual_stats does
+    sums = residual_sums(r, m)
+    assert sums.shape == (6, 4) and sums.dtype == torch.float64
+    for a, b in [(0, 6), (0, 3), (3, 6), (2, 2)]:
+        rr, mm = r[a:b], m[a:b]
+        ok = torch.isfinite(rr)
+        dyn, sta = rr[mm & ok].double(), rr[~mm & ok].double()  # brute force over the pixels of those frames
+        st = stats_of_sums(sums[a:b])
+        assert abs(st["dynamic_error"] - (float(dyn.mean()) if len(dyn) else 0.0)) < 1e-12
+        assert abs(st["static_error"] - (float(sta.mean()) if len(sta) else 0.0)) < 1e-12
+        n = int(ok.sum())
+        assert abs(st["dynamic_fraction"] - (len(dyn) / n if n else 0.0)) < 1e-12
+
+
+def _half_still_half_moving(speed: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """A square still over frames 0-7, moving ``speed`` px/frame along x over frames 8-15: the scaffold (one
+    node at its centre, image-plane coordinates at depth 1), its dynamic mask, and a residual of 0.3 on its
+    pixels over the moving frames and 0.01 everywhere else (the parent's one canonical space misses the
+    moving half)."""
+    t = torch.arange(T, dtype=torch.float32)
+    x = 10.0 + speed * (t - 7).clamp(min=0)
+    pos = torch.stack([x, torch.full_like(t, 8.0), torch.ones_like(t)], -1)[:, None]
+    mask = torch.zeros(T, H, W, dtype=torch.bool)
+    for k in range(T):
+        c = int(x[k]) - 3
+        mask[k, 5:11, c : c + 6] = True
+    residual = torch.full((T, H, W), 0.01)
+    residual[8:][mask[8:]] = 0.3
+    return pos, mask, residual
+
+
+def test_decide_child_trains_only_the_moving_half():
+    pos, mask, residual = _half_still_half_moving(3.0)
+    measured = {"sums": residual_sums(residual, mask), "Ks": K1, "image_size": [H, W]}
+    cfg = AutoSplitConfig()
+    calm = decide_child(pos, POSE, 0, measured, (0, 7), cfg)
+    fast = decide_child(pos, POSE, 0, measured, (8, 15), cfg)
+    assert not calm.train and calm.reason.startswith("not trained: near-static: scaffold motion")
+    assert calm.motion_px == 0.0 and calm.frames == [0, 7]
+    # 8 frames, 5-frame averages centred on local frames 2..5, the middle one on 4: at most 2 frames away at
+    # 3 px per frame = 6 px, above 10 % of W = 4.8 px; the moving pixels' error 0.3 against 0.01.
+    assert fast.train and fast.reason.startswith("trained: excess")
+    assert abs(fast.motion_px - 6.0) < 1e-5 and abs(fast.motion_min_px - 0.1 * W) < 1e-9
+    assert abs(fast.dynamic_error - 0.3) < 1e-6 and abs(fast.static_error - 0.01) < 1e-6
+    assert abs(fast.excess - 0.29) < 1e-6
+    # A parent that already fits the moving half (same error on moving and static pixels): not trained.
+    fitted = {**measured, "sums": residual_sums(torch.full((T, H, W), 0.01), mask)}
+    d = decide_child(pos, POSE, 0, fitted, (8, 15), cfg)
+    assert not d.train and d.reason.startswith("not trained: motion fit")
+    # Frames are global: the same parent starting at frame 100.
+    assert decide_child(pos, POSE, 100, measured, (108, 115), cfg).motion_px == fast.motion_px
+    with pytest.raises(ValueError):
+        decide_child(pos, POSE, 0, measured, (8, 16), cfg)
+
+
+def test_assess_fit_measures_once_for_the_split_and_the_children():
+    pos, mask, residual = _half_still_half_moving(3.0)
+    fit = _StubFit(residual, pos)
+    a = assess_fit(fit, mask, min_len=12, cfg=AutoSplitConfig())
+    assert fit.rendered == 1
+    assert torch.equal(a.sums, residual_sums(residual, mask)) and a.image_size == (H, W)
+    assert a.decision == dataclasses.replace(decide_split(residual, mask, 12, motion_px=a.decision.motion_px),
+                                             test_cpu_s=a.decision.test_cpu_s)  # fmt: skip
+    payload = a.to_payload()
+    assert payload["sums"].dtype == torch.float64 and payload["image_size"] == [H, W]

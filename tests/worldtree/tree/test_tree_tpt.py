@@ -108,3 +108,35 @@ def test_tree_dict_round_trip_and_local_time():
         iv.local(78)
     with pytest.raises(ValueError):
         Interval(5, 4)
+
+
+def test_one_sided_split_parent_renders_the_half_left_out():
+    # Root [0, 39] split at 19 keeping only the right child [19, 39]; that child split at 29 keeping only its
+    # left child [19, 28]. Worked out by hand: node 1 renders 0-18, node 3 renders 29-39, node 6 renders 19-28.
+    tree = TemporalPartitionTree(40, 12)
+    assert tree.add_children(1, 19, keep=(False, True)) == (3,)
+    assert tree.add_children(3, 29, keep=(True, False)) == (6,)
+    assert sorted(tree.intervals) == [1, 3, 6]
+    assert tree.has_children(1) and tree.has_children(3) and not tree.has_children(6)
+    assert tree.leaves() == [6]
+    assert tree.own_frames(1) == [Interval(0, 18)]
+    assert tree.own_frames(3) == [Interval(29, 39)]
+    assert tree.own_frames(6) == [Interval(19, 28)]
+    assert tree.rendering_nodes() == [1, 3, 6]
+    # Brute force: the deepest node whose interval holds t, among the nodes that exist.
+    for t in range(40):
+        best = max((j for j in tree if tree.interval(j).contains(t)), key=depth_of)
+        assert tree.covering(t) == best
+        assert any(iv.contains(t) for iv in tree.own_frames(best))  # rendered by exactly its own-frames node
+    assert [tree.covering(t) for t in (0, 18, 19, 28, 29, 39)] == [1, 1, 6, 6, 3, 3]
+    with pytest.raises(ValueError):
+        tree.add_children(1, 19, keep=(True, False))  # node 1 already has a child
+    with pytest.raises(ValueError):
+        TemporalPartitionTree(40, 12).add_children(1, 19, keep=(False, False))
+    # A fully split tree: only the leaves render, each its whole interval.
+    full = build_intervals(40, 2)
+    assert full.rendering_nodes() == full.leaves() == [4, 5, 6, 7]
+    assert all(full.own_frames(j) == [full.interval(j)] for j in full.leaves())
+    assert full.own_frames(1) == [] and full.own_frames(2) == []
+    # grow_layer does not split a node that already has one child.
+    assert tree.grow_layer(0) == []
