@@ -38,12 +38,14 @@ def write_run(
     protocol: str = "worldtree",
     done: bool = True,
     scene_dir: Path | None = None,
+    train_cpu_s: float | None = None,
 ) -> RunFolder:
     """One run folder ``runs_dir/scene/method/tag``; ``means`` fills the mean row (missing columns empty).
 
     timing.json: stages load/init/save_model/render of ``other_stages_s / 4`` each, train ``train_s``
     (also ``train.wall_s_all_sessions``), eval ``eval_s``. ``scene_dir``: the scene folder config.json names
-    (default ``/data/<scene>``, which need not exist).
+    (default ``/data/<scene>``, which need not exist). ``train_cpu_s``: also ``stages_cpu_s`` with train
+    ``train_cpu_s``, load 0.5 and eval 2.0 (None: no CPU seconds recorded, as older runs).
     """
     folder = RunFolder(runs_dir / scene / method / tag)
     folder.root.mkdir(parents=True, exist_ok=True)
@@ -83,6 +85,8 @@ def write_run(
         "device": "cpu",
         "method_stats": stats,
     }
+    if train_cpu_s is not None:
+        timing["stages_cpu_s"] = {"load": 0.5, "train": train_cpu_s, "eval": 2.0}
     atomic_write_json(folder.timing_json, timing)
     if done:
         atomic_write_json(folder.done, {"finished": "2026-01-01T00:00:00Z", "mean": {}})

@@ -194,3 +194,24 @@ def test_cli_plot(runs, tmp_path):
     assert res.exit_code == 0, res.output
     heads = [ln for ln in res.stdout.splitlines() if " vs " in ln]
     assert [h.split(" (")[0] for h in heads] == ["wall_time_s vs psnr", "n_gaussians vs psnr"]
+
+
+def test_plot_cpu_time_axis(tmp_path):
+    # "loaded" ran on a busy machine: longer wall time, less CPU than "idle", at the same score.
+    for tag, wall, cpu, psnr in (("loaded", 90.0, 20.0, 20.0), ("idle", 30.0, 30.0, 20.0)):
+        rf.write_run(tmp_path, "A", "m", tag, {"psnr": psnr}, preset=tag, train_s=wall, other_stages_s=0.0,
+                     train_cpu_s=cpu)  # fmt: skip
+    long = collect_runs([tmp_path]).long
+    cpu = make_panel(long, "cpu_time_s", "psnr").points.set_index("configuration")
+    wall = make_panel(long, "wall_time_s", "psnr").points.set_index("configuration")
+    # CPU seconds: load 0.5 + train (eval left out); wall: train only (other stages 0, eval left out).
+    assert cpu.loc["loaded", "x"] == pytest.approx(20.5) and cpu.loc["idle", "x"] == pytest.approx(30.5)
+    assert wall.loc["loaded", "x"] == pytest.approx(90.0)
+    assert bool(cpu.loc["loaded", "pareto"]) and not bool(cpu.loc["idle", "pareto"])
+    assert bool(wall.loc["idle", "pareto"]) and not bool(wall.loc["loaded", "pareto"])
+    res = CliRunner().invoke(
+        app, ["plot", str(tmp_path), "-o", str(tmp_path / "c.svg"), "--y", "psnr", "--x", "wall_time_s,cpu_time_s"]
+    )
+    assert res.exit_code == 0, res.output
+    heads = [ln for ln in res.stdout.splitlines() if " vs " in ln]
+    assert [h.split(" (")[0] for h in heads] == ["wall_time_s vs psnr", "cpu_time_s vs psnr"]
