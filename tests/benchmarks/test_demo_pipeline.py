@@ -60,6 +60,20 @@ def test_tree_summary_depth_nodes_leaves_and_reasons(tmp_path):
     assert tree_summary(_timing(tmp_path, {"nodes": [1, 2, 3], "intervals": intervals})) == (
         "tree depth 1, 3 nodes, leaves over frames 0-18, 19-39"
     )
+    # A one-sided split: node 2 was not trained, so the root renders frames 0-18 (the record's "renders").
+    one_sided = {
+        "nodes": [1, 3],
+        "intervals": {"1": [0, 39], "3": [19, 39]},
+        "renders": {"1": [[0, 18]], "3": [[19, 39]]},
+        "auto": {"1": {"split": True, "applied": True, "reason": "excess 0.03 >= 0.01",
+                       "children": {"2": {"train": False, "reason": "not trained: near-static"},
+                                    "3": {"train": True, "reason": "trained: excess 0.05 >= 0.01"}}},
+                 "3": {"split": True, "applied": False, "reason": "excess 0.03 >= 0.01; not split: no child"}},
+    }  # fmt: skip
+    line = tree_summary(_timing(tmp_path, one_sided))
+    assert line.startswith("--depth auto chose tree depth 1, 2 nodes, frames rendered by node 1: 0-18, node 3: 19-39 (")
+    assert "node 2: not trained: near-static" in line and "node 3: leaf (excess 0.03" in line
+    assert "node 3: trained" not in line  # only the children left out are named
     root = {"nodes": [1], "auto": {"1": {"split": False, "applied": False, "reason": "near-static"}}}
     assert (
         tree_summary(_timing(tmp_path, root))
