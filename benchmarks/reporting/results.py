@@ -204,7 +204,8 @@ def cost_metrics(timing: Mapping[str, Any] | None, model_info: Mapping[str, Any]
     missing. ``peak_memory_mb``: ``cuda_peak_allocated_mib`` when the run was on CUDA, else ``peak_rss_mib``
     (MiB). ``cpu_time_s``: CPU seconds (user + system, every thread) of the run's process over all its
     sessions (``stages_cpu_s`` less ``eval`` and ``kernel_build``) plus those of the tree's worker processes
-    (``method_stats.tree.layers[].nodes_cpu_s``); unlike wall time it hardly changes when other jobs share the
+    (``method_stats.tree.layers[].nodes_cpu_s`` of the layers run in ``parallel`` mode: a ``sequential`` or
+    ``in-process`` layer ran in the run's process and is counted there); unlike wall time it hardly changes when other jobs share the
     machine, so fronts measured on a busy machine compare. NaN for run folders without ``stages_cpu_s``.
     Sizes: the first of ``num_*``/``n_*`` keys found in timing.json, its ``method_stats``, then
     model.json.
@@ -249,7 +250,9 @@ def _cpu_seconds(timing: Mapping[str, Any]) -> float:
     tree = stats.get("tree") if isinstance(stats, Mapping) else None
     layers = tree.get("layers") if isinstance(tree, Mapping) else None
     for layer in layers if isinstance(layers, list) else ():
-        nodes = layer.get("nodes_cpu_s") if isinstance(layer, Mapping) else None
+        if not isinstance(layer, Mapping) or layer.get("mode", "parallel") != "parallel":
+            continue  # a layer run in the main process (sequential, or one node in-process) is in its stages
+        nodes = layer.get("nodes_cpu_s")
         if isinstance(nodes, Mapping):
             total += sum(v for v in map(_number, nodes.values()) if math.isfinite(v))
     return total

@@ -176,5 +176,12 @@ def test_cpu_time_counts_the_tree_workers_and_leaves_out_scoring():
     # A damaged entry counts as nothing rather than poisoning the sum.
     t["method_stats"]["tree"]["layers"].append({"nodes_cpu_s": {"5": "nan?"}})
     assert cost_metrics(t, None)["cpu_time_s"] == pytest.approx(44.5)
+    # A layer that ran in the run's own process (one node: in-process; or --sequential) is in its stages_cpu_s
+    # already (seen on the demo: a one-node layer was counted twice before).
+    t["method_stats"]["tree"]["layers"].append({"mode": "in-process", "nodes_cpu_s": {"13": 25.0}})
+    t["method_stats"]["tree"]["layers"].append({"mode": "sequential", "nodes_cpu_s": {"14": 9.0}})
+    assert cost_metrics(t, None)["cpu_time_s"] == pytest.approx(44.5)
+    t["method_stats"]["tree"]["layers"].append({"mode": "parallel", "nodes_cpu_s": {"15": 0.5}})
+    assert cost_metrics(t, None)["cpu_time_s"] == pytest.approx(45.0)
     # No CPU record (an older run folder): empty, not zero.
     assert math.isnan(cost_metrics({"total_s": 3.0}, None)["cpu_time_s"])
