@@ -99,18 +99,18 @@ class _RasterizeCPU(torch.autograd.Function):
     def forward(ctx, means2d, conics, opacities, colors, depths, background, radii, width, height):
         mod = _load()
         threads = torch.get_num_threads()
-        rgb, alpha, depth, final_T, last, ids, tstart, tcount = mod.forward(
+        rgb, alpha, depth, final_T, last, ids, tstart, tcount, reach = mod.forward(
             means2d, conics, opacities, colors, depths, radii, background, width, height, threads
         )
         ctx.save_for_backward(
-            means2d, conics, opacities, colors, depths, background, ids, tstart, tcount, final_T, last
+            means2d, conics, opacities, colors, depths, background, reach, ids, tstart, tcount, final_T, last
         )
         ctx.size = (width, height)
         return rgb, alpha, depth
 
     @staticmethod
     def backward(ctx, g_rgb, g_alpha, g_depth):
-        means2d, conics, opacities, colors, depths, background, ids, tstart, tcount, final_T, last = (
+        means2d, conics, opacities, colors, depths, background, reach, ids, tstart, tcount, final_T, last = (
             ctx.saved_tensors
         )
         width, height = ctx.size
@@ -124,6 +124,7 @@ class _RasterizeCPU(torch.autograd.Function):
             colors,
             depths,
             background,
+            reach,
             ids,
             tstart,
             tcount,

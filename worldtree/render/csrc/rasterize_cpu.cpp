@@ -3,7 +3,9 @@
 //
 // Same image formation as worldtree/render/reference.py (the oracle): Gaussians binned into 16x16 tiles by
 // their bounding square, front to back per tile (ties by index); per pixel alpha = min(0.99, o exp(power)),
-// skipped when power > 0 or alpha < 1/255; compositing stops before T would fall below 1e-4.
+// skipped when power > 0 or alpha < 1/255; compositing stops before T would fall below 1e-4. A tile's list
+// leaves out the Gaussians whose alpha is below 1/255 on every pixel of the tile (outside their reach box,
+// below), which every pixel would skip anyway: the result is the same, the lists are shorter.
 // Pixel (i, j) has its centre at (u, v) = (j, i).
 //
 // Backward: per pixel, walk the composited Gaussians back to front, recovering T before each one by division
@@ -18,6 +20,7 @@
 #include <cmath>
 #include <cstdint>
 #include <cstring>
+#include <limits>
 #include <numeric>
 #include <type_traits>
 #include <vector>
@@ -45,6 +48,54 @@ struct Bins {
   std::vector<int64_t> count;    // [n_tiles]
 };
 
+// The pixel box outside which a Gaussian's alpha is certainly < 1/255: the bounding box of the ellipse
+// d^T C d <= 2 ln(255 o), widened by a slack on the exponent (far above float rounding) and one pixel, so the
+// exact per-pixel tests decide every borderline case and skipping the rest changes no result. Computed once
+// per Gaussian (in double, unclamped) and intersected with each tile by reach_in_tile. [x0, x1) x [y0, y1);
+// an unusable conic reaches everywhere (-inf, inf); an opacity below 1/255 (or NaN) reaches nowhere.
+struct Reach {
+  double x0, x1, y0, y1;
+};
+
+template <typename T>
+inline Reach reach_of(T mx, T my, T a, T b, T c, T o) {
+  if (!(o >= Consts<T>::alpha_min)) return {1.0, 0.0, 1.0, 0.0};
+  const double inf = std::numeric_limits<double>::infinity();
+  const double det = double(a) * double(c) - double(b) * double(b);
+  const double L = 2.0 * std::log(255.0 * double(o)) + 1e-3;  // alpha >= 1/255 needs d^T C d <= L
+  if (det > 0 && std::isfinite(det) && L >= 0) {
+    const double ex = std::sqrt(L * double(c) / det) + 1.0, ey = std::sqrt(L * double(a) / det) + 1.0;
+    if (std::isfinite(ex) && std::isfinite(ey))
+      return {std::floor(double(mx) - ex), std::ceil(double(mx) + ex) + 1.0, std::floor(double(my) - ey),
+              std::ceil(double(my) + ey) + 1.0};
+  }
+  return {-inf, inf, -inf, inf};
+}
+
+// The pixels [x0, x1) x [y0, y1) of the tile [px0, px1) x [py0, py1) inside the reach box; false when none.
+inline bool reach_in_tile(const Reach& R, int px0, int px1, int py0, int py1, int& x0, int& x1, int& y0, int& y1) {
+  if (!(std::max<double>(px0, R.x0) < std::min<double>(px1, R.x1) &&
+        std::max<double>(py0, R.y0) < std::min<double>(py1, R.y1)))
+    return false;
+  x0 = static_cast<int>(std::max<double>(px0, R.x0));
+  x1 = static_cast<int>(std::min<double>(px1, R.x1));
+  y0 = static_cast<int>(std::max<double>(py0, R.y0));
+  y1 = static_cast<int>(std::min<double>(py1, R.y1));
+  return true;
+}
+
+static_assert(sizeof(Reach) == 4 * sizeof(double), "Reach is stored as 4 doubles per Gaussian");
+
+template <typename T>
+void reach_boxes(const T* means2d, const T* conics, const T* opac, const int32_t* radii, int64_t n, int threads,
+                 Reach* out) {
+#pragma omp parallel for schedule(static) num_threads(threads)
+  for (int64_t g = 0; g < n; ++g)
+    out[g] = radii[g] > 0 ? reach_of<T>(means2d[2 * g], means2d[2 * g + 1], conics[3 * g], conics[3 * g + 1],
+                                        conics[3 * g + 2], opac[g])
+                          : Reach{1.0, 0.0, 1.0, 0.0};
+}
+
 // Tiles touched by a Gaussian's bounding square, as in projection.tile_rect (same precision, same formula).
 template <typename T>
 inline void tile_rect(T u, T v, T r, int tw, int th, int& x0, int& x1, int& y0, int& y1) {
@@ -57,7 +108,8 @@ inline void tile_rect(T u, T v, T r, int tw, int th, int& x0, int& x1, int& y0, 
 }
 
 template <typename T>
-Bins bin_gaussians(const T* means2d, const T* depths, const int32_t* radii, int64_t n, int width, int height) {
+Bins bin_gaussians(const T* means2d, const T* depths, const int32_t* radii, const Reach* reach, int64_t n, int width,
+                   int height) {
   const int tw = (width + TILE - 1) / TILE, th = (height + TILE - 1) / TILE;
   std::vector<int32_t> order;
   order.reserve(n);
@@ -66,13 +118,19 @@ Bins bin_gaussians(const T* means2d, const T* depths, const int32_t* radii, int6
   std::stable_sort(order.begin(), order.end(), [&](int32_t a, int32_t b) { return depths[a] < depths[b]; });
   Bins bins;
   bins.count.assign(static_cast<size_t>(tw) * th, 0);
+  // A (tile, Gaussian) pair is listed only when the reach box meets the tile (the test reach_in_tile makes).
+  auto reaches = [&](int32_t g, int tx, int ty) -> bool {
+    const int px0 = tx * TILE, py0 = ty * TILE, px1 = std::min(px0 + TILE, width), py1 = std::min(py0 + TILE, height);
+    int x0, x1, y0, y1;
+    return reach_in_tile(reach[g], px0, px1, py0, py1, x0, x1, y0, y1);
+  };
   std::vector<int> rect(order.size() * 4);
   for (size_t k = 0; k < order.size(); ++k) {
     const int32_t g = order[k];
     int* r = &rect[4 * k];
     tile_rect<T>(means2d[2 * g], means2d[2 * g + 1], static_cast<T>(radii[g]), tw, th, r[0], r[1], r[2], r[3]);
     for (int ty = r[2]; ty < r[3]; ++ty)
-      for (int tx = r[0]; tx < r[1]; ++tx) bins.count[static_cast<size_t>(ty) * tw + tx]++;
+      for (int tx = r[0]; tx < r[1]; ++tx) bins.count[static_cast<size_t>(ty) * tw + tx] += reaches(g, tx, ty);
   }
   bins.start.assign(bins.count.size(), 0);
   int64_t total = 0;
@@ -85,32 +143,10 @@ Bins bin_gaussians(const T* means2d, const T* depths, const int32_t* radii, int6
   for (size_t k = 0; k < order.size(); ++k) {
     const int* r = &rect[4 * k];
     for (int ty = r[2]; ty < r[3]; ++ty)
-      for (int tx = r[0]; tx < r[1]; ++tx) bins.ids[fill[static_cast<size_t>(ty) * tw + tx]++] = order[k];
+      for (int tx = r[0]; tx < r[1]; ++tx)
+        if (reaches(order[k], tx, ty)) bins.ids[fill[static_cast<size_t>(ty) * tw + tx]++] = order[k];
   }
   return bins;
-}
-
-// Pixels of the tile outside which this Gaussian's alpha is certainly < 1/255: the bounding box of the ellipse
-// d^T C d <= 2 ln(255 o), widened by a slack on the exponent (far above float rounding) and one pixel, so the
-// exact per-pixel tests decide every borderline case and skipping the rest changes no result. Returns false
-// when no pixel can be reached.
-template <typename T>
-inline bool reach_box(T mx, T my, T a, T b, T c, T o, int px0, int px1, int py0, int py1, int& x0, int& x1, int& y0,
-                      int& y1) {
-  if (!(o >= Consts<T>::alpha_min)) return false;
-  x0 = px0, x1 = px1, y0 = py0, y1 = py1;
-  const double det = double(a) * double(c) - double(b) * double(b);
-  const double L = 2.0 * std::log(255.0 * double(o)) + 1e-3;  // alpha >= 1/255 needs d^T C d <= L
-  if (det > 0 && std::isfinite(det) && L >= 0) {
-    const double ex = std::sqrt(L * double(c) / det) + 1.0, ey = std::sqrt(L * double(a) / det) + 1.0;
-    if (std::isfinite(ex) && std::isfinite(ey)) {
-      x0 = static_cast<int>(std::max<double>(px0, std::floor(double(mx) - ex)));
-      x1 = static_cast<int>(std::min<double>(px1, std::ceil(double(mx) + ex) + 1.0));
-      y0 = static_cast<int>(std::max<double>(py0, std::floor(double(my) - ey)));
-      y1 = static_cast<int>(std::min<double>(py1, std::ceil(double(my) + ey) + 1.0));
-    }
-  }
-  return x0 < x1 && y0 < y1;
 }
 
 // SIMD width of the instruction set this file is compiled for: a tile row (16 pixels) is TILE / W vectors of W
@@ -180,8 +216,8 @@ inline void lane_span(int x0, int x1, int px0, int& c0, int& c1) {
 
 template <typename T>
 void forward_impl(const T* means2d, const T* conics, const T* opac, const T* colors, const T* depths, const T* bg,
-                  const Bins& bins, int width, int height, int threads, T* out_rgb, T* out_alpha, T* out_depth,
-                  T* out_T, int32_t* out_last) {
+                  const Reach* reach, const Bins& bins, int width, int height, int threads, T* out_rgb, T* out_alpha,
+                  T* out_depth, T* out_T, int32_t* out_last) {
   using V = typename Simd<T>::V;
   using M = typename Simd<T>::M;
   constexpr int W = Simd<T>::W, N = Simd<T>::N;
@@ -215,7 +251,7 @@ void forward_impl(const T* means2d, const T* conics, const T* opac, const T* col
       const T ca = conics[3 * g], cb = conics[3 * g + 1], cc = conics[3 * g + 2];
       const T o = opac[g];
       int x0, x1, y0, y1, c0, c1;
-      if (!reach_box<T>(mx, my, ca, cb, cc, o, px0, px1, py0, py1, x0, x1, y0, y1)) continue;
+      if (!reach_in_tile(reach[g], px0, px1, py0, py1, x0, x1, y0, y1)) continue;
       lane_span<W>(x0, x1, px0, c0, c1);
       const T cr = colors[3 * g], cg = colors[3 * g + 1], cbl = colors[3 * g + 2], z = depths[g];
       const V kk = splat<V>(k + 1);
@@ -268,7 +304,7 @@ void forward_impl(const T* means2d, const T* conics, const T* opac, const T* col
 
 template <typename T>
 void backward_impl(const T* means2d, const T* conics, const T* opac, const T* colors, const T* depths, const T* bg,
-                   const int32_t* ids, const int64_t* tstart, const int64_t* tcount, const T* final_T,
+                   const Reach* reach, const int32_t* ids, const int64_t* tstart, const int64_t* tcount, const T* final_T,
                    const int32_t* last_in, const T* g_rgb, const T* g_alpha, const T* g_depth, int width, int height,
                    int threads, T* pair_grad) {
   using V = typename Simd<T>::V;
@@ -314,7 +350,7 @@ void backward_impl(const T* means2d, const T* conics, const T* opac, const T* co
       const T ca = conics[3 * g], cb = conics[3 * g + 1], cc = conics[3 * g + 2];
       const T o = opac[g];
       int x0, x1, y0, y1, c0, c1;
-      if (!reach_box<T>(mx, my, ca, cb, cc, o, px0, px1, py0, py1, x0, x1, y0, y1)) continue;
+      if (!reach_in_tile(reach[g], px0, px1, py0, py1, x0, x1, y0, y1)) continue;
       lane_span<W>(x0, x1, px0, c0, c1);
       const T cr = colors[3 * g], cg = colors[3 * g + 1], cbl = colors[3 * g + 2], z = depths[g];
       const V kk = splat<V>(k);
@@ -592,7 +628,7 @@ void check(const torch::Tensor& t, const char* name, int64_t n, int64_t cols) {
 }  // namespace
 
 // Returns rgb [H,W,3], alpha [H,W], depth [H,W], final_T [H,W], last [H,W] int32, ids [M] int32,
-// tile_start [n_tiles] int64, tile_count [n_tiles] int64.
+// tile_start [n_tiles] int64, tile_count [n_tiles] int64, reach [N,4] double (each Gaussian's reach box).
 std::vector<torch::Tensor> rasterize_forward(torch::Tensor means2d, torch::Tensor conics, torch::Tensor opac,
                                              torch::Tensor colors, torch::Tensor depths, torch::Tensor radii,
                                              torch::Tensor bg, int64_t width, int64_t height, int64_t threads) {
@@ -610,14 +646,18 @@ std::vector<torch::Tensor> rasterize_forward(torch::Tensor means2d, torch::Tenso
   auto depth = torch::empty({height, width}, opts);
   auto final_T = torch::empty({height, width}, opts);
   auto last = torch::empty({height, width}, opts.dtype(torch::kInt32));
+  auto reach = torch::empty({n, 4}, opts.dtype(torch::kDouble));
+  Reach* boxes = reinterpret_cast<Reach*>(reach.data_ptr<double>());
   torch::Tensor ids, tstart, tcount;
   AT_DISPATCH_FLOATING_TYPES(means2d.scalar_type(), "rasterize_forward", [&] {
+    reach_boxes<scalar_t>(means2d.data_ptr<scalar_t>(), conics.data_ptr<scalar_t>(), opac.data_ptr<scalar_t>(),
+                          radii.data_ptr<int32_t>(), n, int(threads), boxes);
     Bins bins = bin_gaussians<scalar_t>(means2d.data_ptr<scalar_t>(), depths.data_ptr<scalar_t>(),
-                                        radii.data_ptr<int32_t>(), n, int(width), int(height));
+                                        radii.data_ptr<int32_t>(), boxes, n, int(width), int(height));
     for (int64_t c : bins.count)
       TORCH_CHECK(c < (int64_t(1) << 24), "more than 2^24 Gaussians in one tile; use the reference backend");
     forward_impl<scalar_t>(means2d.data_ptr<scalar_t>(), conics.data_ptr<scalar_t>(), opac.data_ptr<scalar_t>(),
-                           colors.data_ptr<scalar_t>(), depths.data_ptr<scalar_t>(), bg.data_ptr<scalar_t>(), bins,
+                           colors.data_ptr<scalar_t>(), depths.data_ptr<scalar_t>(), bg.data_ptr<scalar_t>(), boxes, bins,
                            int(width), int(height), int(threads), rgb.data_ptr<scalar_t>(),
                            alpha.data_ptr<scalar_t>(), depth.data_ptr<scalar_t>(), final_T.data_ptr<scalar_t>(),
                            last.data_ptr<int32_t>());
@@ -629,25 +669,29 @@ std::vector<torch::Tensor> rasterize_forward(torch::Tensor means2d, torch::Tenso
     std::copy(bins.start.begin(), bins.start.end(), tstart.data_ptr<int64_t>());
     std::copy(bins.count.begin(), bins.count.end(), tcount.data_ptr<int64_t>());
   });
-  return {rgb, alpha, depth, final_T, last, ids, tstart, tcount};
+  return {rgb, alpha, depth, final_T, last, ids, tstart, tcount, reach};
 }
 
 // Returns gradients: means2d [N,2], conics [N,3], opacities [N], colors [N,3], depths [N].
 std::vector<torch::Tensor> rasterize_backward(torch::Tensor means2d, torch::Tensor conics, torch::Tensor opac,
                                               torch::Tensor colors, torch::Tensor depths, torch::Tensor bg,
-                                              torch::Tensor ids, torch::Tensor tstart, torch::Tensor tcount,
+                                              torch::Tensor reach, torch::Tensor ids, torch::Tensor tstart, torch::Tensor tcount,
                                               torch::Tensor final_T, torch::Tensor last, torch::Tensor g_rgb,
                                               torch::Tensor g_alpha, torch::Tensor g_depth, int64_t width,
                                               int64_t height, int64_t threads) {
   const int64_t n = means2d.size(0), m = ids.size(0);
   TORCH_CHECK(g_rgb.is_contiguous() && g_alpha.is_contiguous() && g_depth.is_contiguous(),
               "output gradients must be contiguous");
+  TORCH_CHECK(reach.scalar_type() == torch::kDouble && reach.is_contiguous() && reach.dim() == 2 &&
+                  reach.size(0) == n && reach.size(1) == 4,
+              "reach must be the [N, 4] double tensor the forward returned");
+  const Reach* boxes = reinterpret_cast<const Reach*>(reach.data_ptr<double>());
   auto opts = means2d.options();
   auto pair_grad = torch::zeros({m, NGRAD}, opts);
   auto grad = torch::zeros({n, NGRAD}, opts);
   AT_DISPATCH_FLOATING_TYPES(means2d.scalar_type(), "rasterize_backward", [&] {
     backward_impl<scalar_t>(means2d.data_ptr<scalar_t>(), conics.data_ptr<scalar_t>(), opac.data_ptr<scalar_t>(),
-                            colors.data_ptr<scalar_t>(), depths.data_ptr<scalar_t>(), bg.data_ptr<scalar_t>(),
+                            colors.data_ptr<scalar_t>(), depths.data_ptr<scalar_t>(), bg.data_ptr<scalar_t>(), boxes,
                             ids.data_ptr<int32_t>(), tstart.data_ptr<int64_t>(), tcount.data_ptr<int64_t>(),
                             final_T.data_ptr<scalar_t>(), last.data_ptr<int32_t>(), g_rgb.data_ptr<scalar_t>(),
                             g_alpha.data_ptr<scalar_t>(), g_depth.data_ptr<scalar_t>(), int(width), int(height),
