@@ -383,13 +383,19 @@ def stage_motion(s: BaseState) -> None:
     n_lk = pri.tracks.shape[1] - pri.num_chained_tracks
     xy, vis = pri.tracks[:, :n_lk], pri.track_vis[:, :n_lk]
     dyn = label_dynamic_tracks(xy, vis, mask, pc.epi.track_min_frames)
-    xy, vis, dyn, n_ch = add_chained_tracks(xy, vis, dyn, pri.flow, mask, pc)
+    links: dict[str, int] = {}
+    depth = s.depth.cpu().numpy() if pri.depth_metric else None
+    xy, vis, dyn, n_ch = add_chained_tracks(
+        xy, vis, dyn, pri.flow, mask, pc, sc.images.cpu().numpy(), depth, sc.Ks.cpu().numpy(),
+        s.w2cs.cpu().numpy(), links,
+    )  # fmt: skip
     s.info["motion_refine"] = {
         "mask_fraction_before": float(before.mean()),
         "mask_fraction_after": float(mask.mean()),
         "dynamic_tracks_before": int(pri.track_dynamic.sum()),
         "dynamic_tracks_after": int(dyn.sum()),
         "chained_tracks": int(n_ch),
+        "chained_track_links": links,
     }
     if s.checkpoint_dir is not None:
         buf = io.BytesIO()

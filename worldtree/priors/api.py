@@ -45,6 +45,7 @@ class Priors:
             (``worldtree.priors.dynamic_tracks``; all dynamic).
         config: the settings used.
         cache_dir: the cache root, or None when nothing was cached.
+        depth_metric: ``depth`` agrees with the cameras (classical, or imported and fitted to them).
     """
 
     depth: np.ndarray
@@ -61,6 +62,7 @@ class Priors:
     num_chained_tracks: int = 0
     config: PriorsConfig = field(default_factory=PriorsConfig)
     cache_dir: Path | None = None
+    depth_metric: bool = False
 
     @property
     def num_frames(self) -> int:
@@ -303,10 +305,16 @@ def _refill_dynamic(depth, conf, mask, imgs, cfg: PriorsConfig) -> tuple[np.ndar
     return depth.astype(np.float32), conf.astype(np.float32)
 
 
-def add_chained_tracks(xy, vis, dynamic, flows, mask, cfg: PriorsConfig):
+def add_chained_tracks(
+    xy, vis, dynamic, flows, mask, cfg: PriorsConfig, images=None, depth=None, Ks=None, w2cs=None, stats=None
+):
     """Append the tracks chained through flow inside ``mask`` [T, H, W] to ``xy`` [T, N, 2] / ``vis`` [T, N]
-    / ``dynamic`` [N]; the tracks already on the masks are kept. Returns ``(xy, vis, dynamic, added)``."""
-    ch = dynamic_tracks.chain_dynamic_tracks(flows, mask, cfg.motion)
+    / ``dynamic`` [N]; the tracks already on the masks are kept. Returns ``(xy, vis, dynamic, added)``.
+
+    ``images`` [T, H, W, 3], metric ``depth`` [T, H, W], ``Ks`` [T, 3, 3] and ``w2cs`` [T, 4, 4] (numpy) let the
+    linking of track pieces compare appearance and remove the camera's motion; ``stats`` (a dict) receives
+    the linking counts."""
+    ch = dynamic_tracks.chain_dynamic_tracks(flows, mask, cfg.motion, images, depth, Ks, w2cs, stats)
     if ch.num_tracks == 0:
         return xy, vis, dynamic, 0
     xy = np.concatenate([xy, ch.xy.astype(xy.dtype)], 1)
@@ -390,19 +398,25 @@ def compute_priors(
         mask_conf = mask.astype(np.float32)
         mask_src = f"epipolar (threshold {cfg.epi.threshold_px} px)"
     dynamic = epipolar.label_dynamic_tracks(xy, vis, mask, cfg.epi.track_min_frames)
-    n_chained = 0
-    if cfg.motion.enabled and imported_tracks is None:
-        xy, vis, dynamic, n_chained = add_chained_tracks(xy, vis, dynamic, flows, mask, cfg)
     if depth_src == "classical":
         depth, depth_conf = _refill_dynamic(depth, depth_conf, mask, imgs, cfg)
     elif fill is not None:
         # Stereo on moving objects is noise even where it looks confident: the network depth replaces it.
         depth = np.where(mask, fill, depth).astype(np.float32)
         depth_conf = np.where(mask, cfg.depth_import.fill_conf, depth_conf).astype(np.float32)
+    n_chained = 0
+    links: dict[str, int] = {}
+    if cfg.motion.enabled and imported_tracks is None:
+        # After the refill: the camera's share of a moving point's motion is taken at the depth of the
+        # surfaces around it, not at the stereo noise on the object.
+        metric = depth if depth_key is not None else None
+        xy, vis, dynamic, n_chained = add_chained_tracks(
+            xy, vis, dynamic, flows, mask, cfg, imgs, metric, Ks, w2cs, links
+        )
 
     sources = {"flow": flow_src, "depth": depth_src, "tracks": tracks_src, "masks": mask_src}
     pri = Priors(depth, depth_conf, flows, xy, vis, dynamic, err, mask, sources, mask_conf, evidence, n_chained,
-                 cfg, Path(cache_dir) if cache_dir is not None else None)  # fmt: skip
+                 cfg, Path(cache_dir) if cache_dir is not None else None, depth_key is not None)  # fmt: skip
     if cache_dir is not None:
         atomic_write_json(
             Path(cache_dir) / "priors.json",
@@ -418,6 +432,7 @@ def compute_priors(
                 "num_tracks": int(xy.shape[1]),
                 "num_dynamic_tracks": int(dynamic.sum()),
                 "num_chained_tracks": n_chained,
+                "chained_track_links": links,
                 "dynamic_pixel_fraction": float(mask.mean()),
             },
         )

@@ -158,7 +158,16 @@ class MotionConfig:
     """Two track pieces are linked when one's flow-carried end lands within this of the other's start."""
     track_link_gap: int = 3
     """Pieces ending at frame e and starting within this many frames after are joined when the start lies
-    where the ended piece's last velocity carries it (within ``track_link_px`` + half the distance moved)."""
+    where the ended piece's motion carries it (``worldtree.priors.track_linking``; 0 = no such linking)."""
+    track_link_rel: float = 0.5
+    """Linking tolerance grows by this fraction of the predicted motion (position) or of the faster motion
+    (velocity agreement), on top of ``track_link_px``."""
+    track_link_ncc: float = 0.5
+    """Linked ends must look alike: minimum NCC of their grey patches (-1 = no appearance check)."""
+    track_link_patch_px: int = 3
+    """Half side of the patches compared when linking (pixels)."""
+    track_link_camera: bool = True
+    """Remove the camera's share of the motion (metric depth and poses) before continuing it across a gap."""
     track_min_length: int = 3
     """Dynamic tracks visible in fewer frames are dropped."""
     max_dynamic_tracks: int = 4000

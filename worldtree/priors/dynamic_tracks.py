@@ -14,6 +14,9 @@ and photometrically (``FlowPair.valid``) and which were started from the rigid f
    that step from every visible track point get new tracks, chained forwards and then backwards.
 3. **link**: chained backwards, a new piece that lands within ``track_link_px`` of the end of an older piece
    (visible in no frame the new piece is) is the same point; the two become one track.
+4. **link across gaps**: a piece that ends and one that starts a few frames later where the first one's
+   motion (camera motion removed) carries it, moving alike and looking alike, are joined
+   (:mod:`worldtree.priors.track_linking`).
 
 Output follows the CoTracker layout of the other tracks: ``xy [T, N, 2]`` pixels, ``visible [T, N]``.
 """
@@ -28,6 +31,7 @@ from scipy.spatial import cKDTree
 
 from worldtree.priors.config import MotionConfig
 from worldtree.priors.flow import FlowPair, bilinear
+from worldtree.priors.track_linking import link_pieces
 from worldtree.priors.tracks import Tracks, hold_invisible
 
 
@@ -114,9 +118,20 @@ def _seeds(mask: np.ndarray, taken: np.ndarray, step: int) -> np.ndarray:
 
 
 def chain_dynamic_tracks(
-    flows: Mapping[tuple[int, int], FlowPair], masks: np.ndarray, cfg: MotionConfig
+    flows: Mapping[tuple[int, int], FlowPair],
+    masks: np.ndarray,
+    cfg: MotionConfig,
+    images: np.ndarray | None = None,
+    depth: np.ndarray | None = None,
+    Ks: np.ndarray | None = None,
+    w2cs: np.ndarray | None = None,
+    stats: dict | None = None,
 ) -> Tracks:
     """Dynamic tracks inside ``masks`` [T, H, W] bool, chained through ``flows`` (see the module docstring).
+
+    ``images`` [T, H, W, 3] and metric ``depth`` [T, H, W] with ``Ks`` [T, 3, 3], ``w2cs`` [T, 4, 4] make the
+    last linking step compare appearance and remove the camera's motion (:func:`link_pieces`); ``stats``, when
+    given, receives its counts (:class:`worldtree.priors.track_linking.LinkStats`).
 
     Returns :class:`worldtree.priors.tracks.Tracks` (``xy`` [T, N, 2] float32 px, ``visible`` [T, N],
     ``seed_frame`` [N]); N may be 0 (empty masks).
@@ -190,57 +205,9 @@ def chain_dynamic_tracks(
         back = back[~np.isin(back, act[stop])]
 
     xy, vis, seed = xy[:, :n], vis[:, :n], seed[:n]
-    xy, vis = link_by_velocity(xy, vis, cfg.track_link_gap, cfg.track_link_px)
+    xy, vis, links = link_pieces(xy, vis, cfg, images, depth, Ks, w2cs)
+    if stats is not None:
+        stats.update(links.as_dict())
     ok = vis.sum(0) >= max(1, cfg.track_min_length)
     xy, vis, seed = xy[:, ok], vis[:, ok], seed[ok]
     return Tracks(hold_invisible(xy, vis), vis, seed)
-
-
-def link_by_velocity(
-    xy: np.ndarray, vis: np.ndarray, max_gap: int, tol_px: float
-) -> tuple[np.ndarray, np.ndarray]:
-    """Join pieces across short gaps: piece A ending at frame e, piece B starting at s in (e, e + max_gap],
-    when B's start is within ``tol_px + 0.5 |v| (s - e)`` of A's end carried on at A's last velocity ``v``
-    (pixels per frame, from its last two visible positions; 0 for a single one). Greedy, closest first; each
-    end and each start is used once. ``xy`` [T, N, 2], ``vis`` [T, N] -> the same with joined pieces merged
-    into the earlier one (the later columns emptied)."""
-    T, N = vis.shape
-    if N == 0 or max_gap < 1:
-        return xy, vis
-    xy, vis = xy.copy(), vis.copy()
-    any_vis = vis.any(0)
-    first = np.where(any_vis, vis.argmax(0), T)
-    last = np.where(any_vis, T - 1 - vis[::-1].argmax(0), -1)
-    cands = []
-    for a in np.flatnonzero(any_vis & (last < T - 1)):
-        e = last[a]
-        ts = np.flatnonzero(vis[:, a])
-        v = (xy[ts[-1], a] - xy[ts[-2], a]) / (ts[-1] - ts[-2]) if len(ts) >= 2 else np.zeros(2, np.float32)
-        for b in np.flatnonzero(any_vis & (first > e) & (first <= e + max_gap)):
-            s = first[b]
-            pred = xy[e, a] + v * (s - e)
-            d = float(np.linalg.norm(xy[s, b] - pred))
-            if d <= tol_px + 0.5 * float(np.linalg.norm(v)) * (s - e):
-                cands.append((d, a, b))
-    used_end, used_start = set(), set()
-    root = np.arange(N)
-    for _, a, b in sorted(cands):
-        if a in used_end or b in used_start:
-            continue
-        ra = a
-        while root[ra] != ra:
-            ra = root[ra]
-        if ra == b:
-            continue
-        used_end.add(a)
-        used_start.add(b)
-        root[b] = ra
-    for b in range(N):
-        r = b
-        while root[r] != r:
-            r = root[r]
-        if r != b:
-            xy[vis[:, b], r] = xy[vis[:, b], b]
-            vis[:, r] |= vis[:, b]
-            vis[:, b] = False
-    return xy, vis

@@ -225,7 +225,7 @@ def test_empty_masks_give_no_dynamic_track():
 
 
 def test_velocity_linking_joins_pieces_across_a_short_gap_only_where_motion_continues():
-    from worldtree.priors.dynamic_tracks import link_by_velocity
+    from worldtree.priors.track_linking import link_pieces
 
     T = 10
     xy = np.zeros((T, 3, 2), np.float32)
@@ -237,10 +237,11 @@ def test_velocity_linking_joins_pieces_across_a_short_gap_only_where_motion_cont
     for t in range(6, T):
         xy[t, 1], vis[t, 1] = (10 + 2 * t, 20), True
         xy[t, 2], vis[t, 2] = (10 + 2 * t, 35), True
-    out_xy, out_vis = link_by_velocity(xy, vis, max_gap=3, tol_px=2.0)
+    cfg = MotionConfig(track_link_gap=3, track_link_px=2.0)
+    out_xy, out_vis, _ = link_pieces(xy, vis, cfg)  # no images, no depth: image velocity, no appearance
     assert out_vis[:, 0].sum() == 8 and not out_vis[:, 1].any()  # 0 and 1 joined into column 0
     assert out_vis[:, 2].sum() == 4  # 2 left alone
     np.testing.assert_allclose(out_xy[out_vis[:, 0], 0, 0], 10 + 2 * np.flatnonzero(out_vis[:, 0]))
     # A gap longer than max_gap is not bridged.
-    _, v2 = link_by_velocity(xy, vis, max_gap=1, tol_px=2.0)
+    _, v2, _ = link_pieces(xy, vis, dataclasses.replace(cfg, track_link_gap=1))
     assert v2[:, 1].sum() == 4
