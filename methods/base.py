@@ -364,7 +364,8 @@ def stage_motion(s: BaseState) -> None:
     (``refine_masks`` with ``priors.motion.enabled`` and no imported masks; otherwise nothing changes).
 
     With a checkpoint folder, ``motion.npz`` there keeps the result (masks ``[T, H, W]``, confidence,
-    tracks ``[T, N, 2]``, visibility, dynamic labels): previews and the motion proof read it."""
+    tracks ``[T, N, 2]``, visibility, dynamic labels, the track pieces linked into each track ``[N]``): previews
+    and the motion proof read it."""
     c, sc, pri = s.cfg, s.scene, s.priors
     pc = c.priors
     if not (c.refine_masks and pc.motion.enabled and pc.masks_source is None and pri.motion_evidence):
@@ -385,7 +386,7 @@ def stage_motion(s: BaseState) -> None:
     dyn = label_dynamic_tracks(xy, vis, mask, pc.epi.track_min_frames)
     links: dict[str, int] = {}
     depth = s.depth.cpu().numpy() if pri.depth_metric else None
-    xy, vis, dyn, n_ch = add_chained_tracks(
+    xy, vis, dyn, n_ch, pieces = add_chained_tracks(
         xy, vis, dyn, pri.flow, mask, pc, sc.images.cpu().numpy(), depth, sc.Ks.cpu().numpy(),
         s.w2cs.cpu().numpy(), links,
     )  # fmt: skip
@@ -401,7 +402,7 @@ def stage_motion(s: BaseState) -> None:
         buf = io.BytesIO()
         np.savez_compressed(
             buf, mask=mask, confidence=fused.confidence.astype(np.float16), tracks=xy, visible=vis,
-            dynamic=dyn, mask_before=before,
+            dynamic=dyn, mask_before=before, pieces=pieces,
         )  # fmt: skip
         atomic_write_bytes(s.checkpoint_dir / "motion.npz", buf.getvalue())
     dev = s.device

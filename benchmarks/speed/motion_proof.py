@@ -3,6 +3,7 @@
     python -m benchmarks.speed.motion_proof [--out DIR] [--size 320x180] [--steps 40] [--preset quick]
                                       [--methods base,worldtree]
                                       [--scenes demo,hard] [--seed 0] [--device auto] [--no-runs]
+                                      [--track-tol 3]
 
 Scenes (generated, built and given exact priors as ``benchmarks.base_proof`` does): ``demo`` is the
 slow-then-fast capture of ``wtbench demo`` / ``base_proof``; ``hard`` moves its textured objects at constant
@@ -21,7 +22,9 @@ For each scene it prints, against the exact masks and tracks of ``nvls gt-priors
   stages, so its masks and tracks are Base's; only its mPSNR is added);
 
 mask IoU / precision / recall over all frames, the median visible frames of the dynamic tracks against the
-median number of frames an object is visible, and the mPSNR of static and of both Base runs (gain over
+median number of frames an object is visible, the fraction of dynamic tracks whose error to the exact motion
+stays below ``--track-tol`` px (:func:`track_errors`), how many are linked from pieces
+(:mod:`worldtree.priors.track_linking`) and that fraction among them, and the mPSNR of static and of both Base runs (gain over
 static), with its means over the first and second half of the test frames (the demo's slow and fast halves).
 Finished runs are reused, so an interrupted script resumes. Figures are printed, never asserted.
 """
@@ -79,6 +82,69 @@ def track_life(visible: np.ndarray, dynamic: np.ndarray) -> tuple[int, float]:
     return int(dynamic.sum()), float(np.median(life)) if life.size else 0.0
 
 
+def exact_tracks(gt: Path, W: int, H: int) -> tuple[np.ndarray, np.ndarray]:
+    """The exact dynamic tracks of ``nvls gt-priors`` at the working size ``W`` x ``H``: ``(xy [T, M, 2] px,
+    visible [T, M])`` (pixel centres at integers at both sizes)."""
+    z = np.load(gt / "tracks.npz")
+    dyn = z["object_id"] > 0
+    s = np.array([W, H], np.float64) / np.asarray(z["image_size"], np.float64)
+    return ((z["tracks"][:, dyn] + 0.5) * s - 0.5).astype(np.float32), z["visibility"][:, dyn]
+
+
+def track_errors(
+    xy: np.ndarray, vis: np.ndarray, gt_xy: np.ndarray, gt_vis: np.ndarray, radius: float = 2.5, k: int = 4
+) -> np.ndarray:
+    """Largest error (px) of each track ``xy`` [T, N, 2] / ``vis`` [T, N] against the exact motion: ``[N]``.
+
+    A track starting at ``x`` in frame f should move as the exact tracks ``gt_xy`` [T, M, 2] / ``gt_vis``
+    [T, M] around it: the reference at frame t is ``x`` plus the inverse-distance-weighted mean displacement
+    f -> t of the (up to ``k``) exact tracks visible at f within ``radius`` px of ``x`` and visible at t.
+    NaN where no exact track starts near it (off the moving objects) or none stays visible."""
+    from scipy.spatial import cKDTree
+
+    T, N = vis.shape
+    out = np.full(N, np.nan)
+    first = vis.argmax(0)
+    for f in range(T):
+        ids = np.flatnonzero((first == f) & vis[f])
+        cand = np.flatnonzero(gt_vis[f])
+        if not len(ids) or not len(cand):
+            continue
+        kk = min(k, len(cand))
+        d, nn = cKDTree(gt_xy[f, cand]).query(xy[f, ids], k=kk)
+        d, nn = d.reshape(len(ids), kk), nn.reshape(len(ids), kk)
+        for r, n in enumerate(ids):
+            near = d[r] <= radius
+            g, w = cand[nn[r][near]], 1.0 / (d[r][near] + 0.5)
+            errs = []
+            for t in np.flatnonzero(vis[:, n]):
+                seen = gt_vis[t, g]
+                if seen.any():
+                    disp = ((gt_xy[t, g[seen]] - gt_xy[f, g[seen]]) * w[seen, None]).sum(0) / w[seen].sum()
+                    errs.append(float(np.linalg.norm(xy[t, n] - xy[f, n] - disp)))
+            if errs:
+                out[n] = max(errs)
+    return out
+
+
+def accuracy_row(xy, vis, dynamic, pieces, gt_xy, gt_vis, tol_px: float) -> dict:
+    """Fractions of the dynamic tracks (and of the linked ones, ``pieces`` >= 2) whose largest error to the
+    exact motion stays below ``tol_px``, over those with an exact reference; and how many are linked."""
+    sel = np.flatnonzero(dynamic)
+    err = track_errors(xy[:, sel], vis[:, sel], gt_xy, gt_vis)
+    ok = ~np.isnan(err)
+    linked = (pieces[sel] >= 2) if pieces is not None else np.zeros(len(sel), bool)
+
+    def frac(m):
+        return float((err[m & ok] < tol_px).mean()) if (m & ok).any() else None
+
+    return {
+        "accurate": frac(np.ones(len(sel), bool)),
+        "linked": int(linked.sum()),
+        "linked_accurate": frac(linked),
+    }
+
+
 def object_frames(gt: Path) -> float:
     """Median over the moving objects of the number of training frames in which each is visible."""
     z = np.load(gt / "tracks.npz")
@@ -89,7 +155,7 @@ def object_frames(gt: Path) -> float:
     return float(np.median(counts))
 
 
-def priors_rows(scene_dir: Path, gt: Path, downscale: int) -> dict[str, dict]:
+def priors_rows(scene_dir: Path, gt: Path, downscale: int, tol_px: float = 3.0) -> dict[str, dict]:
     """Mask and track figures of the priors before (plain EPI, LK) and after (fused cues, chained tracks)."""
     import dataclasses
 
@@ -102,6 +168,7 @@ def priors_rows(scene_dir: Path, gt: Path, downscale: int) -> dict[str, dict]:
     cache = scene_dir / "priors" / f"x{downscale}"
     T, H, W = scene.images.shape[:3]
     truth = _resize_masks(np.stack([read_mask(p) for p in sorted((gt / "masks").iterdir())]), H, W)
+    gt_xy, gt_vis = exact_tracks(gt, W, H)
     out = {}
     for name, cfg in (
         ("before", dataclasses.replace(PriorsConfig(), motion=MotionConfig(enabled=False))),
@@ -109,8 +176,11 @@ def priors_rows(scene_dir: Path, gt: Path, downscale: int) -> dict[str, dict]:
     ):
         pri = compute_priors(scene, cfg, cache)
         n, life = track_life(pri.track_vis, pri.track_dynamic)
-        out[name] = {**mask_scores(pri.epi_mask, truth), "tracks": n, "life": life}
-    return out, truth
+        acc = accuracy_row(
+            pri.tracks, pri.track_vis, pri.track_dynamic, pri.track_pieces, gt_xy, gt_vis, tol_px
+        )
+        out[name] = {**mask_scores(pri.epi_mask, truth), "tracks": n, "life": life, **acc}
+    return out, truth, (gt_xy, gt_vis)
 
 
 def half_means(metrics_csv: Path) -> tuple[float, float]:
@@ -153,6 +223,12 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--device", default="auto")
     ap.add_argument("--no-runs", action="store_true", help="mask and track figures of the priors only")
     ap.add_argument("--methods", default="base", help="base, or base,worldtree (WorldTree before/after too)")
+    ap.add_argument(
+        "--track-tol",
+        type=float,
+        default=3.0,
+        help="a track is accurate while its error to the exact motion stays below this (px, working size)",
+    )
     a = ap.parse_args(argv)
     size = parse_size(a.size)
     if size is None:
@@ -168,7 +244,7 @@ def main(argv: list[str] | None = None) -> None:
         if name not in ("demo", "hard"):
             raise SystemExit(f"error: --scenes {name!r}: choose among demo, hard")
         scene, gt = prepare(a.out, name, size, a.steps)
-        rows, truth = priors_rows(scene, gt, downscale)
+        rows, truth, (gt_xy, gt_vis) = priors_rows(scene, gt, downscale, a.track_tol)
         visible = object_frames(gt)
         psnr, halves = {}, {}
         if not a.no_runs:
@@ -193,10 +269,17 @@ def main(argv: list[str] | None = None) -> None:
             if mot.is_file():
                 z = np.load(mot)
                 n, life = track_life(z["visible"], z["dynamic"])
-                rows["after (Base)"] = {**mask_scores(z["mask"], truth), "tracks": n, "life": life,
+                pieces = z["pieces"] if "pieces" in z.files else None
+                acc = accuracy_row(
+                    z["tracks"], z["visible"], z["dynamic"], pieces, gt_xy, gt_vis, a.track_tol
+                )
+                rows["after (Base)"] = {**mask_scores(z["mask"], truth), "tracks": n, "life": life, **acc,
                                         "migration": st.get("migration", {})}  # fmt: skip
             if "worldtree" in methods:
-                for k, sets, src in (("before", BEFORE_SETS, "before"), ("after", AFTER_SETS, "after (Base)")):
+                for k, sets, src in (
+                    ("before", BEFORE_SETS, "before"),
+                    ("after", AFTER_SETS, "after (Base)"),
+                ):
                     print(f"[{name}] worldtree {k}", flush=True)
                     res, _ = run(scene, runs, "worldtree", sets, a.preset, a.device, a.seed,
                                  f"{a.preset}-{k}-s{a.seed}")  # fmt: skip
@@ -209,23 +292,26 @@ def main(argv: list[str] | None = None) -> None:
             gain = p - psnr["static"] if p is not None and psnr.get("static") is not None else None
             table.append((name, k, r, visible, psnr.get("static"), p, gain, halves.get(k)))
     print()
-    print("| scene | masks / tracks | mask IoU | P | R | dyn. tracks | median life | object frames | "
-          "static mPSNR | method mPSNR | gain | 1st / 2nd half |")  # fmt: skip
-    print("|---|---|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|")
+    tol = f"{a.track_tol:g} px"
+    print(f"| scene | masks / tracks | mask IoU | P | R | dyn. tracks | median life | object frames | "
+          f"tracks < {tol} | linked (< {tol}) | static mPSNR | method mPSNR | gain | 1st / 2nd half |")  # fmt: skip
+    print("|---|---|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|")
 
     def f(v, d=2):
         return "-" if v is None else f"{v:.{d}f}"
 
     for name, k, r, vis, st, p, g, hv in table:
         hs = "-" if hv is None else f"{f(hv[0])} / {f(hv[1])}"
+        acc = f"{r['linked']} ({f(r['linked_accurate'])})" if r.get("linked") else "0"
         print(
             f"| {name} | {k} | {f(r['iou'])} | {f(r['precision'])} | {f(r['recall'])} | {r['tracks']} | "
-            f"{f(r['life'], 1)} | {f(vis, 0)} | {f(st)} | {f(p)} | {'-' if g is None else f'{g:+.2f}'} | {hs} |"
+            f"{f(r['life'], 1)} | {f(vis, 0)} | {f(r.get('accurate'))} | {acc} | {f(st)} | {f(p)} | "
+            f"{'-' if g is None else f'{g:+.2f}'} | {hs} |"
         )
         if "migration" in r:
             m = r["migration"]
             print(f"|   | migration: {m.get('static_to_dynamic', 0)} static->dynamic, "
-                  f"{m.get('dynamic_to_static', 0)} dynamic->static | | | | | | | | | |")  # fmt: skip
+                  f"{m.get('dynamic_to_static', 0)} dynamic->static | | | | | | | | | | | |")  # fmt: skip
 
 
 if __name__ == "__main__":

@@ -46,6 +46,7 @@ class Priors:
         config: the settings used.
         cache_dir: the cache root, or None when nothing was cached.
         depth_metric: ``depth`` agrees with the cameras (classical, or imported and fitted to them).
+        track_pieces: ``[N]`` chained pieces linked into each track (1 for the others); None without chaining.
     """
 
     depth: np.ndarray
@@ -63,6 +64,7 @@ class Priors:
     config: PriorsConfig = field(default_factory=PriorsConfig)
     cache_dir: Path | None = None
     depth_metric: bool = False
+    track_pieces: np.ndarray | None = None
 
     @property
     def num_frames(self) -> int:
@@ -309,18 +311,20 @@ def add_chained_tracks(
     xy, vis, dynamic, flows, mask, cfg: PriorsConfig, images=None, depth=None, Ks=None, w2cs=None, stats=None
 ):
     """Append the tracks chained through flow inside ``mask`` [T, H, W] to ``xy`` [T, N, 2] / ``vis`` [T, N]
-    / ``dynamic`` [N]; the tracks already on the masks are kept. Returns ``(xy, vis, dynamic, added)``.
+    / ``dynamic`` [N]; the tracks already on the masks are kept. Returns ``(xy, vis, dynamic, added, pieces)``
+    with ``pieces`` [N + added] the track pieces linked into each track (1 for the tracks given).
 
     ``images`` [T, H, W, 3], metric ``depth`` [T, H, W], ``Ks`` [T, 3, 3] and ``w2cs`` [T, 4, 4] (numpy) let the
     linking of track pieces compare appearance and remove the camera's motion; ``stats`` (a dict) receives
     the linking counts."""
     ch = dynamic_tracks.chain_dynamic_tracks(flows, mask, cfg.motion, images, depth, Ks, w2cs, stats)
+    pieces = np.ones(vis.shape[1], np.int64)
     if ch.num_tracks == 0:
-        return xy, vis, dynamic, 0
+        return xy, vis, dynamic, 0, pieces
     xy = np.concatenate([xy, ch.xy.astype(xy.dtype)], 1)
     vis = np.concatenate([vis, ch.visible], 1)
     dynamic = np.concatenate([dynamic, np.ones(ch.num_tracks, bool)])
-    return xy, vis, dynamic, ch.num_tracks
+    return xy, vis, dynamic, ch.num_tracks, np.concatenate([pieces, ch.pieces])
 
 
 # ------------------------------------------------------------------------------------------------ entry point
@@ -404,19 +408,20 @@ def compute_priors(
         # Stereo on moving objects is noise even where it looks confident: the network depth replaces it.
         depth = np.where(mask, fill, depth).astype(np.float32)
         depth_conf = np.where(mask, cfg.depth_import.fill_conf, depth_conf).astype(np.float32)
-    n_chained = 0
+    n_chained, pieces = 0, None
     links: dict[str, int] = {}
     if cfg.motion.enabled and imported_tracks is None:
         # After the refill: the camera's share of a moving point's motion is taken at the depth of the
         # surfaces around it, not at the stereo noise on the object.
         metric = depth if depth_key is not None else None
-        xy, vis, dynamic, n_chained = add_chained_tracks(
+        xy, vis, dynamic, n_chained, pieces = add_chained_tracks(
             xy, vis, dynamic, flows, mask, cfg, imgs, metric, Ks, w2cs, links
         )
 
     sources = {"flow": flow_src, "depth": depth_src, "tracks": tracks_src, "masks": mask_src}
     pri = Priors(depth, depth_conf, flows, xy, vis, dynamic, err, mask, sources, mask_conf, evidence, n_chained,
-                 cfg, Path(cache_dir) if cache_dir is not None else None, depth_key is not None)  # fmt: skip
+                 cfg, Path(cache_dir) if cache_dir is not None else None, depth_key is not None,
+                 pieces)  # fmt: skip
     if cache_dir is not None:
         atomic_write_json(
             Path(cache_dir) / "priors.json",

@@ -134,7 +134,7 @@ def chain_dynamic_tracks(
     given, receives its counts (:class:`worldtree.priors.track_linking.LinkStats`).
 
     Returns :class:`worldtree.priors.tracks.Tracks` (``xy`` [T, N, 2] float32 px, ``visible`` [T, N],
-    ``seed_frame`` [N]); N may be 0 (empty masks).
+    ``seed_frame`` [N], ``pieces`` [N]); N may be 0 (empty masks).
     """
     T, H, W = masks.shape
     r = max(0, cfg.track_mask_dilate_px)
@@ -210,4 +210,4 @@ def chain_dynamic_tracks(
         stats.update(links.as_dict())
     ok = vis.sum(0) >= max(1, cfg.track_min_length)
     xy, vis, seed = xy[:, ok], vis[:, ok], seed[ok]
-    return Tracks(hold_invisible(xy, vis), vis, seed)
+    return Tracks(hold_invisible(xy, vis), vis, seed, links.parts[ok])

@@ -53,12 +53,17 @@ class LinkStats:
     """... of which the patches do not correlate (and the motions agree)."""
     links: int = 0
     """Joins made (a track made of k pieces counts k - 1)."""
+    parts: np.ndarray | None = None
+    """``[N]`` pieces joined into each column (1 = not linked, 0 = emptied into another column)."""
 
     def as_dict(self) -> dict[str, int]:
-        return dict(self.__dict__)
+        """The counts (``parts`` left out)."""
+        return {k: v for k, v in self.__dict__.items() if k != "parts"}
 
 
-def patch_ncc(gray_a: np.ndarray, pa: np.ndarray, gray_b: np.ndarray, pb: np.ndarray, half: int) -> np.ndarray:
+def patch_ncc(
+    gray_a: np.ndarray, pa: np.ndarray, gray_b: np.ndarray, pb: np.ndarray, half: int
+) -> np.ndarray:
     """Zero-mean NCC ``[N]`` in [-1, 1] of the patches around ``pa`` [N, 2] in ``gray_a`` [H, W] and ``pb``
     [N, 2] in ``gray_b`` (x, y pixels, sub-pixel; float images in [0, 1]). Side ``2 half + 1``; 0 where either
     patch is flat."""
@@ -91,7 +96,9 @@ class _Camera:
         return rigid_transfer(d[t], K[t], w[t], K[u], w[u], pts) - pts
 
 
-def _own_velocity(cam: _Camera, xy: np.ndarray, t0: np.ndarray, t1: np.ndarray, ids: np.ndarray) -> np.ndarray:
+def _own_velocity(
+    cam: _Camera, xy: np.ndarray, t0: np.ndarray, t1: np.ndarray, ids: np.ndarray
+) -> np.ndarray:
     """Per-frame object motion ``[M, 2]`` of tracks ``ids`` between their frames t0 < t1, camera removed,
     in frame t1's image; 0 where t0 < 0 (a single visible frame)."""
     v = np.zeros((len(ids), 2), np.float32)
@@ -126,10 +133,11 @@ def link_pieces(
 
     Returns:
         ``(xy, vis, stats)``: joined pieces are merged into the earliest piece's column, the later columns left
-        with no visible frame (same shapes; callers drop empty columns).
+        with no visible frame (same shapes; callers drop empty columns); ``stats.parts`` [N] counts the
+        pieces of each column.
     """
     T, N = vis.shape
-    stats = LinkStats(pieces=int(vis.any(0).sum()))
+    stats = LinkStats(pieces=int(vis.any(0).sum()), parts=vis.any(0).astype(np.int64))
     gap = int(cfg.track_link_gap)
     if N == 0 or gap < 1:
         return xy, vis, stats
@@ -176,7 +184,9 @@ def link_pieces(
             ia, ib = ia[ok_v], ib[ok_v]
             ncc = np.ones(len(ia))
             if grays is not None and len(ia):
-                ncc = patch_ncc(grays[e], pe[ia], grays[int(s)], xy[s, starts[bs[ib]]], cfg.track_link_patch_px)
+                ncc = patch_ncc(
+                    grays[e], pe[ia], grays[int(s)], xy[s, starts[bs[ib]]], cfg.track_link_patch_px
+                )
                 ok_a = ncc >= cfg.track_link_ncc
                 stats.rejected_appearance += int((~ok_a).sum())
                 ia, ib, ncc = ia[ok_a], ib[ok_a], ncc[ok_a]
@@ -206,4 +216,6 @@ def link_pieces(
             xy[vis[:, b], r] = xy[vis[:, b], b]
             vis[:, r] |= vis[:, b]
             vis[:, b] = False
+            stats.parts[r] += stats.parts[b]
+            stats.parts[b] = 0
     return xy, vis, stats

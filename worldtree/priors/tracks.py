@@ -32,6 +32,9 @@ class Tracks:
     xy: np.ndarray
     visible: np.ndarray
     seed_frame: np.ndarray
+    pieces: np.ndarray | None = None
+    """``[N]`` track pieces joined into each track (:mod:`worldtree.priors.track_linking`); None when the
+    tracker does not link pieces."""
 
     @property
     def num_tracks(self) -> int:

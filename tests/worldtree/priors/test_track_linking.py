@@ -60,7 +60,7 @@ def test_pieces_of_one_trajectory_are_joined_across_camera_jumps_only_with_the_c
     depth = np.full((T, H, W), Z, np.float32)
     cfg = MotionConfig(track_link_gap=3)
     out_xy, out_vis, st = link_pieces(xy, vis, cfg, images, depth, Ks, w2cs)
-    assert st.links == 1 and st.pieces == 2
+    assert st.links == 1 and st.pieces == 2 and list(st.parts) == [2, 0]
     assert out_vis[:, 0].sum() == 8 and not out_vis[:, 1].any()
     np.testing.assert_allclose(out_xy[out_vis[:, 0], 0, 0], x[out_vis[:, 0]], atol=1e-5)
     # In the image alone the last step (2 -> 3) moved 2 + 6 = 8 px: continued that way the start at 6 is
