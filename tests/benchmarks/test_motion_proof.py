@@ -50,7 +50,30 @@ def test_track_errors_against_the_exact_motion():
     assert np.isnan(err[2])
     assert err[3] == pytest.approx(0.0, abs=1e-4)
     acc = accuracy_row(
-        xy, vis, np.array([True, True, True, False]), np.array([1, 2, 1, 3]), gt_xy, gt_vis, 1.0
+        xy, vis, np.array([True, True, True, False]), np.array([1, 2, 1, 3]), (gt_xy, gt_vis, None), 1.0
     )
     # Dynamic tracks with a reference: 0 (accurate) and 1 (2 px off); the only linked one among them is 1.
     assert acc == {"accurate": 0.5, "linked": 1, "linked_accurate": 0.0}
+
+
+def test_track_errors_follow_a_rotating_object():
+    # Exact tracks on a disc turning 0.2 rad per frame about (40, 40): neighbours 2 px apart move differently,
+    # so the reference must map them affinely; a point between them that turns with the disc has no error,
+    # one that translates with the mean of its neighbours' motion has.
+    gx, gy = np.meshgrid(np.arange(30.0, 52.0, 2.0), np.arange(30.0, 52.0, 2.0))
+    p0 = np.stack([gx.ravel(), gy.ravel()], -1) - 40.0
+    ang = 0.2 * np.arange(T)
+
+    def turn(p):
+        c, s = np.cos(ang)[:, None], np.sin(ang)[:, None]
+        return 40.0 + np.stack([c * p[:, 0] - s * p[:, 1], s * p[:, 0] + c * p[:, 1]], -1)
+
+    gt_xy = turn(p0).astype(np.float32)
+    gt_vis = np.ones(gt_xy.shape[:2], bool)
+    start = np.array([[9.0, 5.0]])  # (49, 45): between grid points, 10 px from the centre
+    xy = turn(start).astype(np.float32)
+    vis = np.ones((T, 1), bool)
+    assert track_errors(xy, vis, gt_xy, gt_vis)[0] == pytest.approx(0.0, abs=1e-3)
+    moved = xy[0] + (xy - xy[0]) * 0.8  # lags behind the turn
+    lag = float(np.linalg.norm(xy[-1, 0] - moved[-1, 0]))
+    assert track_errors(moved, vis, gt_xy, gt_vis)[0] == pytest.approx(lag, rel=1e-3)
