@@ -166,6 +166,8 @@ class MotionConfig:
     """Linked ends must look alike: minimum NCC of their grey patches (-1 = no appearance check)."""
     track_link_patch_px: int = 3
     """Half side of the patches compared when linking (pixels)."""
+    track_step_ncc: float = 0.5
+    """A chained step must keep the point's look: minimum NCC of its patches before and after (-1 = no check)."""
     track_link_camera: bool = True
     """Remove the camera's share of the motion (metric depth and poses) before continuing it across a gap."""
     track_min_length: int = 3

@@ -8,7 +8,9 @@ and photometrically (``FlowPair.valid``) and which were started from the rigid f
 1. **chain**: a point at ``x`` in frame t goes to ``x + f_{t,t+g}(x)`` (bilinear) for the first gap ``g`` of
    ``MotionConfig.track_gaps`` whose flow is valid there and lands inside the (dilated) mask of frame t+g;
    a failed step at gap 1 (e.g. a camera change) is bridged by a larger gap, the frames in between left
-   invisible. A point with no valid step ends. Small holes of the flow's validity inside the masks are filled
+   invisible. With the frames given, a step must also keep the point's look (patch NCC at least
+   ``track_step_ncc``): DIS flow that passes the forward-backward check can still land on another part of a
+   fast, turning object, and a chain that follows it drifts. A point with no valid step ends. Small holes of the flow's validity inside the masks are filled
    first (mean of the valid flow within ``track_fill_px``), so one rejected pixel does not end a track.
 2. **re-detect**: every ``track_seed_every`` frames, mask pixels on a ``track_seed_step`` grid farther than
    that step from every visible track point get new tracks, chained forwards and then backwards.
@@ -30,8 +32,8 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from worldtree.priors.config import MotionConfig
-from worldtree.priors.flow import FlowPair, bilinear
-from worldtree.priors.track_linking import link_pieces
+from worldtree.priors.flow import FlowPair, bilinear, to_gray_u8
+from worldtree.priors.track_linking import link_pieces, patch_ncc
 from worldtree.priors.tracks import Tracks, hold_invisible
 
 
@@ -75,7 +77,15 @@ class _HoleFilled:
 
 
 def _step(
-    pts: np.ndarray, t: int, direction: int, flows, inside: np.ndarray, gaps: tuple[int, ...]
+    pts: np.ndarray,
+    t: int,
+    direction: int,
+    flows,
+    inside: np.ndarray,
+    gaps: tuple[int, ...],
+    grays: list[np.ndarray] | None = None,
+    min_ncc: float = -1.0,
+    half: int = 3,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Carry ``pts`` [N, 2] of frame t one step: ``(positions [N, 2], target frame [N] or -1 when it ends)``.
 
@@ -99,6 +109,9 @@ def _step(
         qx = np.clip(np.round(q[:, 0]).astype(np.int64), 0, W - 1)
         qy = np.clip(np.round(q[:, 1]).astype(np.int64), 0, H - 1)
         ok &= inside[u, qy, qx]
+        if grays is not None and min_ncc > -1.0 and ok.any():
+            j = np.flatnonzero(ok)
+            ok[j] = patch_ncc(grays[t], p[j], grays[u], q[j], half) >= min_ncc
         out[idx[ok]] = q[ok]
         dst[idx[ok]] = u
         todo[idx[ok]] = False
@@ -142,6 +155,10 @@ def chain_dynamic_tracks(
     inside = np.stack([cv2.dilate(m.astype(np.uint8), k) > 0 for m in masks]) if r > 0 else masks.astype(bool)
     gaps = tuple(sorted(set(int(g) for g in cfg.track_gaps if g >= 1))) or (1,)
     flows = _HoleFilled(flows, inside, cfg.track_fill_px)
+    grays = None
+    if images is not None and cfg.track_step_ncc > -1.0:
+        grays = [to_gray_u8(im).astype(np.float32) / 255.0 for im in images]
+    half = cfg.track_link_patch_px
     cap = max(0, cfg.max_dynamic_tracks)
     xy = np.zeros((T, cap, 2), np.float32)
     vis = np.zeros((T, cap), bool)
@@ -164,7 +181,7 @@ def chain_dynamic_tracks(
         act = np.flatnonzero(alive[:n] & vis[t, :n])
         if len(act) == 0:
             continue
-        q, dst = _step(xy[t, act], t, +1, flows, inside, gaps)
+        q, dst = _step(xy[t, act], t, +1, flows, inside, gaps, grays, cfg.track_step_ncc, half)
         for u in np.unique(dst[dst >= 0]):
             sel = act[dst == u]
             xy[u, sel] = q[dst == u]
@@ -180,7 +197,7 @@ def chain_dynamic_tracks(
         act = back[(front[back] == t) & ~merged[back]]
         if len(act) == 0:
             continue
-        q, dst = _step(xy[t, act], t, -1, flows, inside, gaps)
+        q, dst = _step(xy[t, act], t, -1, flows, inside, gaps, grays, cfg.track_step_ncc, half)
         stop = dst < 0
         for u in np.unique(dst[dst >= 0]):
             j = np.flatnonzero(dst == u)

@@ -245,3 +245,24 @@ def test_velocity_linking_joins_pieces_across_a_short_gap_only_where_motion_cont
     # A gap longer than max_gap is not bridged.
     _, v2, _ = link_pieces(xy, vis, dataclasses.replace(cfg, track_link_gap=1))
     assert v2[:, 1].sum() == 4
+
+
+def test_chained_step_refused_where_the_point_changes_its_look():
+    # The square's texture is replaced at frame 5 (a flow that lands on another surface): with the step check
+    # no chained point reaches frame 5; without it every point goes on.
+    T = 8
+    flows, masks = _translating_flows(T, 2.0)
+    rng = np.random.default_rng(4)
+    tex, other = rng.random((16, 16)), rng.random((16, 16))
+    images = np.full((T, H, W, 3), 0.5, np.float32)
+    for t in range(T):
+        x0 = 4 + 2 * t
+        images[t, 16:32, x0 : x0 + 16] = (other if t == 5 else tex)[..., None]
+    cfg = dataclasses.replace(MotionConfig(), track_seed_every=100, track_mask_dilate_px=0, track_link_gap=0)
+    off = chain_dynamic_tracks(flows, masks, dataclasses.replace(cfg, track_step_ncc=-1.0), images)
+    on = chain_dynamic_tracks(flows, masks, dataclasses.replace(cfg, track_step_ncc=0.5), images)
+    assert off.num_tracks == on.num_tracks > 0
+    assert off.visible[5].all() and not on.visible[5].any()
+    # The gap-3 step 4 -> 7 skips the changed frame: the points carry on, at the true positions.
+    assert on.visible[7].all()
+    np.testing.assert_allclose(on.xy[7] - on.xy[0], np.tile([[14.0, 0.0]], (on.num_tracks, 1)), atol=1e-4)
