@@ -168,6 +168,9 @@ class MotionConfig:
     """Half side of the patches compared when linking (pixels)."""
     track_step_ncc: float = 0.5
     """A chained step must keep the point's look: minimum NCC of its patches before and after (-1 = no check)."""
+    track_step_min_std: float = 0.0
+    """Steps whose patch has a grey standard deviation below this are kept unchecked (too little texture for
+    NCC to mean anything, e.g. a smooth balloon); 0 checks every step (flat patches never agree)."""
     track_link_camera: bool = True
     """Remove the camera's share of the motion (metric depth and poses) before continuing it across a gap."""
     track_min_length: int = 3

@@ -33,7 +33,7 @@ from scipy.spatial import cKDTree
 
 from worldtree.priors.config import MotionConfig
 from worldtree.priors.flow import FlowPair, bilinear, to_gray_u8
-from worldtree.priors.track_linking import link_pieces, patch_ncc
+from worldtree.priors.track_linking import _FLAT, link_pieces, patch_ncc
 from worldtree.priors.tracks import Tracks, hold_invisible
 
 
@@ -86,6 +86,7 @@ def _step(
     grays: list[np.ndarray] | None = None,
     min_ncc: float = -1.0,
     half: int = 3,
+    min_std: float = 0.0,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Carry ``pts`` [N, 2] of frame t one step: ``(positions [N, 2], target frame [N] or -1 when it ends)``.
 
@@ -111,7 +112,10 @@ def _step(
         ok &= inside[u, qy, qx]
         if grays is not None and min_ncc > -1.0 and ok.any():
             j = np.flatnonzero(ok)
-            ok[j] = patch_ncc(grays[t], p[j], grays[u], q[j], half) >= min_ncc
+            # A patch flatter than min_std (NaN) does not stop the chain; with min_std 0 the nearly uniform
+            # patches (patch_ncc's own floor) do.
+            c = patch_ncc(grays[t], p[j], grays[u], q[j], half, max(min_std, _FLAT))
+            ok[j] = (np.isnan(c) & (min_std > 0)) | (c >= min_ncc)
         out[idx[ok]] = q[ok]
         dst[idx[ok]] = u
         todo[idx[ok]] = False
@@ -181,7 +185,7 @@ def chain_dynamic_tracks(
         act = np.flatnonzero(alive[:n] & vis[t, :n])
         if len(act) == 0:
             continue
-        q, dst = _step(xy[t, act], t, +1, flows, inside, gaps, grays, cfg.track_step_ncc, half)
+        q, dst = _step(xy[t, act], t, +1, flows, inside, gaps, grays, cfg.track_step_ncc, half, cfg.track_step_min_std)
         for u in np.unique(dst[dst >= 0]):
             sel = act[dst == u]
             xy[u, sel] = q[dst == u]
@@ -197,7 +201,7 @@ def chain_dynamic_tracks(
         act = back[(front[back] == t) & ~merged[back]]
         if len(act) == 0:
             continue
-        q, dst = _step(xy[t, act], t, -1, flows, inside, gaps, grays, cfg.track_step_ncc, half)
+        q, dst = _step(xy[t, act], t, -1, flows, inside, gaps, grays, cfg.track_step_ncc, half, cfg.track_step_min_std)
         stop = dst < 0
         for u in np.unique(dst[dst >= 0]):
             j = np.flatnonzero(dst == u)

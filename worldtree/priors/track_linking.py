@@ -36,7 +36,7 @@ from worldtree.priors.flow import rigid_transfer, to_gray_u8
 __all__ = ["LinkStats", "link_pieces", "patch_ncc"]
 
 _FLAT = 1.0 / 255.0
-"""Patches whose grey standard deviation is below this carry no appearance to compare."""
+"""Patches whose grey standard deviation is below this carry no appearance to compare (default)."""
 
 
 @dataclass
@@ -62,19 +62,24 @@ class LinkStats:
 
 
 def patch_ncc(
-    gray_a: np.ndarray, pa: np.ndarray, gray_b: np.ndarray, pb: np.ndarray, half: int
+    gray_a: np.ndarray,
+    pa: np.ndarray,
+    gray_b: np.ndarray,
+    pb: np.ndarray,
+    half: int,
+    min_std: float = _FLAT,
 ) -> np.ndarray:
     """Zero-mean NCC ``[N]`` in [-1, 1] of the patches around ``pa`` [N, 2] in ``gray_a`` [H, W] and ``pb``
-    [N, 2] in ``gray_b`` (x, y pixels, sub-pixel; float images in [0, 1]). Side ``2 half + 1``; 0 where either
-    patch is flat."""
+    [N, 2] in ``gray_b`` (x, y pixels, sub-pixel; float images in [0, 1]). Side ``2 half + 1``; NaN where either
+    patch's standard deviation is below ``min_std`` (too flat to compare: its NCC would be noise)."""
     side = 2 * half + 1
-    out = np.zeros(len(pa), np.float64)
+    out = np.full(len(pa), np.nan)
     for n in range(len(pa)):
         a = cv2.getRectSubPix(gray_a, (side, side), (float(pa[n, 0]), float(pa[n, 1]))).astype(np.float64)
         b = cv2.getRectSubPix(gray_b, (side, side), (float(pb[n, 0]), float(pb[n, 1]))).astype(np.float64)
         a, b = a - a.mean(), b - b.mean()
         sa, sb = np.sqrt((a * a).mean()), np.sqrt((b * b).mean())
-        if sa < _FLAT or sb < _FLAT:
+        if sa < min_std or sb < min_std:
             continue
         out[n] = float((a * b).mean() / (sa * sb))
     return out
@@ -187,7 +192,7 @@ def link_pieces(
                 ncc = patch_ncc(
                     grays[e], pe[ia], grays[int(s)], xy[s, starts[bs[ib]]], cfg.track_link_patch_px
                 )
-                ok_a = ncc >= cfg.track_link_ncc
+                ok_a = ncc >= cfg.track_link_ncc  # a flat patch (NaN) never agrees
                 stats.rejected_appearance += int((~ok_a).sum())
                 ia, ib, ncc = ia[ok_a], ib[ok_a], ncc[ok_a]
             for a, b, c in zip(ia, ib, ncc, strict=True):
