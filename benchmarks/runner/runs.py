@@ -306,7 +306,7 @@ def execute(req: RunRequest) -> RunResult:
 
 
 def _kernel_target(device: torch.device) -> str | None:
-    """The C++ rasterizer build the run used on the CPU (native or portable), None elsewhere or without it."""
+    """The C++ rasterizer build the run used on the CPU (native, avx2 or portable), None elsewhere or without it."""
     if device.type != "cpu":
         return None
     from worldtree.render.cpu_kernel import loaded_target
