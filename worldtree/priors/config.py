@@ -166,8 +166,10 @@ class MotionConfig:
     """Linked ends must look alike: minimum NCC of their grey patches (-1 = no appearance check)."""
     track_link_patch_px: int = 3
     """Half side of the patches compared when linking (pixels)."""
-    track_step_ncc: float = 0.5
-    """A chained step must keep the point's look: minimum NCC of its patches before and after (-1 = no check)."""
+    track_step_ncc: float = -1.0
+    """A chained step must keep the point's look: minimum NCC of its patches before and after (-1 = no check).
+    0.5 makes the demo's chained tracks about twice as accurate but fewer and shorter, and Base lost 0.2-0.3
+    dB mPSNR with it on the generated scenes (docs/base_method.md, "Track life"), hence off by default."""
     track_step_min_std: float = 0.0
     """Steps whose patch has a grey standard deviation below this are kept unchecked (too little texture for
     NCC to mean anything, e.g. a smooth balloon); 0 checks every step (flat patches never agree)."""
