@@ -91,7 +91,8 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--reference-iters", type=int, default=3, help="timed iterations per reference run")
     ap.add_argument("--sizes", default="320x180,480x270", help="comma-separated WIDTHxHEIGHT list")
     ap.add_argument(
-        "--targets", default="native,avx2,portable", help="C++ build targets to time (native, avx2, portable)"
+        "--targets",
+        help="C++ build targets to time, comma-separated (default: those this CPU runs of native, avx2, portable)",
     )
     ap.add_argument("--no-reference", action="store_true", help="skip the PyTorch reference")
     ap.add_argument(
@@ -114,6 +115,10 @@ def main(argv: list[str] | None = None) -> None:
     print(describe())
     policy = a.omp_wait_policy or os.environ.get("OMP_WAIT_POLICY", "default")
     print(f"OMP_WAIT_POLICY: {policy}")
+    if a.targets is None:
+        from worldtree.render.kernel_build import auto_order
+
+        a.targets = ",".join(auto_order())
     variants = [("cpu", t.strip()) for t in a.targets.split(",") if t.strip()]
     if not a.no_reference:
         variants.append(("reference", "-"))
