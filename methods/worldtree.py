@@ -290,6 +290,11 @@ class NodeFit(PhotometricFit):
         own_cache = cache if cache is not None else self.cache
         return gaussians_at(self.static, self.dynamic, self.scaffold, t, own_cache, anc)
 
+    def coupling_extra(self, j: int):
+        """The ancestors as they draw node-local frame ``j`` (fixed in the neighbour coupling)."""
+        with torch.no_grad():
+            return chain_gaussians_at(self.chain, self.t0 + int(j))
+
     def track_means_at(self, j: int) -> torch.Tensor:
         """The root's track loss also colours the ancestors' Gaussians by their pixel in frame ``j``."""
         return self.gaussians_at(j)[0]

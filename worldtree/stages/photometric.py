@@ -42,6 +42,7 @@ from worldtree.optim import ConstantLR, GroupedAdam, gaussian_schedules
 from worldtree.render import rasterize
 from worldtree.stages import set_migration as mig
 from worldtree.stages.cameras import apply_delta
+from worldtree.stages.frame_coupling import carried_frame, neighbour
 from worldtree.strategy import DensifyStrategy, remove
 from worldtree.trainer import StepOutput
 
@@ -64,6 +65,12 @@ class PhotometricConfig:
     """The track loss is evaluated every this many steps."""
     track_clamp_px: float = 100.0
     """Track errors are clamped at this many pixels."""
+    lambda_couple: float = 0.0
+    """Weight of the neighbour coupling (``worldtree.stages.frame_coupling``): frame i's dynamic picture carried
+    by the scaffold to the next or previous training frame must match that image (RGB term: L1 + lambda_dssim
+    (1 - SSIM)); only the scaffold and the skinning correction learn from it. 0 = off."""
+    couple_every: int = 2
+    """The coupling term is evaluated every this many steps (alternately towards i + 1 and i - 1)."""
     motion: MotionLossConfig = field(default_factory=MotionLossConfig)
     """ARAP / velocity / acceleration weights."""
     motion_window: int = 0
@@ -349,6 +356,27 @@ class PhotometricFit:
         err = (flow[row_i, col_i] - self.tracks[j, both]).norm(dim=-1).clamp(max=self.cfg.track_clamp_px)
         return err[ok].mean()
 
+    def coupling_extra(self, j: int):
+        """Further Gaussians drawn (fixed) behind the carried picture at frame ``j``; None here (a tree node
+        adds its ancestors)."""
+        return None
+
+    def coupling_loss(self, i: int, j: int) -> torch.Tensor | None:
+        """RGB error (L1 + lambda_dssim (1 - SSIM)) of frame ``i``'s dynamic picture carried to frame ``j`` and
+        rendered from camera ``j`` (:func:`worldtree.stages.frame_coupling.carried_frame`), or None when no
+        dynamic Gaussian is seen at ``i``."""
+        carried = carried_frame(
+            self.static, self.dynamic, self.scaffold, i, j, self.cache, extra=self.coupling_extra(j)
+        )
+        if carried is None:
+            return None
+        H, W = self.images.shape[1:3]
+        out = rasterize(*carried, self.Ks[j], self.camera(j).detach(), W, H, backend=self.cfg.backend)
+        loss = (out.rgb - self.images[j]).abs().mean()
+        if self.cfg.lambda_dssim > 0:
+            loss = loss + self.cfg.lambda_dssim * (1.0 - ssim(out.rgb, self.ssim_targets[j]))
+        return loss
+
     def frame_losses(self, i: int, step: int) -> tuple[torch.Tensor, dict[str, float], Any]:
         c = self.cfg
         H, W = self.images.shape[1:3]
@@ -371,6 +399,11 @@ class PhotometricFit:
             if lt is not None:
                 loss = loss + c.lambda_track * lt
                 parts["track_px"] = float(lt.detach())
+        if c.lambda_couple > 0 and c.couple_every > 0 and step % c.couple_every == 0 and self.T >= 2:
+            lc = self.coupling_loss(i, neighbour(i, self.T, step // c.couple_every))
+            if lc is not None:
+                loss = loss + c.lambda_couple * lc
+                parts["couple"] = float(lc.detach())
         if self.scaffold.M > 0:
             w = self._motion_window(step)
             ml = motion_losses(
