@@ -279,3 +279,31 @@ def test_node_with_budget_auto_and_early_stop_records_its_choices(runs, tmp_path
     contrib = render_contributions(lambda t: state.gaussians_at(t), views, W, H)
     n_own = len(state.static) + len(state.dynamic)
     assert bool((contrib[:n_own] >= 1.0 - 1e-3).all())
+
+
+def test_node_training_with_neighbour_coupling_moves_its_scaffold_differently(runs, tmp_path):
+    """Node 6 (depth 2, with ancestors drawn behind the carried picture) trained with the neighbour coupling
+    every step: it runs, stays finite, and its scaffold ends elsewhere than without the term."""
+    import dataclasses
+
+    from methods.worldtree import train_node
+
+    src = runs["default"] / "checkpoints" / "tree"
+
+    def train(weight: float):
+        tree = tmp_path / f"tree{weight}"
+        (tree / "layer2" / "node6").mkdir(parents=True)
+        shutil.copy(src / "context.pt", tree / "context.pt")
+        cfg = read_config(src / "node_config.json", NodeTrainConfig)
+        phot = dataclasses.replace(cfg.photometric, lambda_couple=weight, couple_every=1)
+        write_config(
+            tree / "node_config.json", dataclasses.replace(cfg, photometric=phot, checkpoint_every=1000)
+        )
+        torch.manual_seed(0)
+        out = train_node(load_payload(src / "layer2" / "node6" / "input.pt"),
+                         NodeContext(6, 6, "cpu", 1, str(tree / "layer2" / "node6")))  # fmt: skip
+        return NodeState.from_payload(out["state"])
+
+    off, on = train(0.0), train(1.0)
+    assert torch.isfinite(on.scaffold.pos).all()
+    assert not torch.equal(on.scaffold.pos, off.scaffold.pos)
