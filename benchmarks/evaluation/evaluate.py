@@ -14,7 +14,6 @@ import contextlib
 import datetime as _dt
 import hashlib
 import math
-import os
 import re
 import shlex
 import sys
@@ -28,6 +27,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from worldtree.cores import available_cores
 from worldtree.errors import UserError
 
 #: CSV columns, in order.
@@ -224,13 +224,6 @@ def _lpips_model(lpips_weights, device, warn_list: list[str]):
     return model.to(device), {**info.record(), "available": True}
 
 
-def _allowed_cpus() -> int:
-    try:
-        return len(os.sched_getaffinity(0))
-    except AttributeError:  # not on Linux
-        return os.cpu_count() or 1
-
-
 @contextlib.contextmanager
 def _torch_threads(n: int) -> Iterator[None]:
     """Set torch's intra-op threads for the block (restored after)."""
@@ -276,7 +269,7 @@ def _score_all(
 
     results = {k: np.full(n, np.nan) for k in ("psnr", "ssim", "lpips", "mpsnr", "mssim", "mlpips")}
     cpu = device.type == "cpu"
-    workers = min(MAX_CPU_WORKERS, _allowed_cpus()) if cpu else 2
+    workers = min(MAX_CPU_WORKERS, available_cores()) if cpu else 2
     chunk = 1 if cpu else MAX_BATCH
 
     def task(idx: list[int], reader: ThreadPoolExecutor | None) -> tuple[list[int], dict[str, np.ndarray]]:

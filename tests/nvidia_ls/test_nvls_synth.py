@@ -108,6 +108,18 @@ def test_written_ground_truth_is_consistent(tmp_path):
     assert np.load(raw / "gt" / "poses_bounds.npy").shape == (3, 17)
 
 
+def test_cameras_written_side_by_side_match_single_renders_and_progress_counts_up(tmp_path):
+    # The writer renders cameras on a thread per core; every file must still be the camera's own render.
+    cfg = SynthConfig(cameras=4, steps=2, width=40, height=24, supersample=1)
+    calls = []
+    raw = write_raw_scene(tmp_path / "S", cfg, progress=lambda done, total: calls.append((done, total)))
+    sc = make_scene(cfg)
+    for ci in range(cfg.cameras):
+        view = render_view(sc, sc.Ks[ci], sc.w2cs[ci], 40, 24, time=1.0)
+        np.testing.assert_array_equal(read_image(raw / "mv_images" / "00001" / f"cam{ci + 1:02d}.png"), view.rgb)
+    assert calls == [(k, 4) for k in range(1, 5)]
+
+
 def test_deterministic_in_seed():
     a = render_view(make_scene(CFG), make_scene(CFG).Ks[0], make_scene(CFG).w2cs[0], 96, 54, 2.0)
     sc = make_scene(CFG)

@@ -43,6 +43,7 @@ import numpy as np
 import torch
 
 from worldtree.atomic import atomic_write_json
+from worldtree.cores import available_cores
 from worldtree.hashing import sha256_file
 from worldtree.tree.node import load_payload, save_payload
 
@@ -146,14 +147,6 @@ class LayerFailed(RuntimeError):
             f"tree layer {depth}: node(s) {', '.join(str(r.node) for r in failed)} failed "
             f"(node {failed[0].node}: {first})"
         )
-
-
-def available_cores() -> int:
-    """CPU cores this process may run on."""
-    try:
-        return max(1, len(os.sched_getaffinity(0)))
-    except AttributeError:  # not on Linux
-        return max(1, os.cpu_count() or 1)
 
 
 def node_dir(layer_dir: str | Path, node: int) -> Path:
