@@ -3,7 +3,7 @@
     python -m benchmarks.speed.motion_proof [--out DIR] [--size 320x180] [--steps 40] [--preset quick]
                                       [--methods base,worldtree]
                                       [--scenes demo,hard] [--seed 0] [--device auto] [--no-runs]
-                                      [--track-tol 3]
+                                      [--track-tol 3] [--set KEY=VALUE ...] [--no-before]
 
 Scenes (generated, built and given exact priors as ``benchmarks.base_proof`` does): ``demo`` is the
 slow-then-fast capture of ``wtbench demo`` / ``base_proof``; ``hard`` moves its textured objects at constant
@@ -27,6 +27,11 @@ stays below ``--track-tol`` px (:func:`track_errors`), how many are linked from 
 (:mod:`worldtree.priors.track_linking`) and that fraction among them, and the mPSNR of static and of both Base runs (gain over
 static), with its means over the first and second half of the test frames (the demo's slow and fast halves).
 Finished runs are reused, so an interrupted script resumes. Figures are printed, never asserted.
+
+``--set KEY=VALUE`` (repeatable, the ``wtbench run --set`` syntax) is added to the "after" runs only, whose tag
+then ends with the settings' digest, so that their results sit beside the plain "after" runs of the same
+folder; ``priors.*`` keys also change the "after (priors)" row. ``--no-before`` skips the Base "before" runs
+(for a comparison of "after" settings in a folder that already holds them or does not need them).
 """
 
 from __future__ import annotations
@@ -187,10 +192,14 @@ def object_frames(gt: Path) -> float:
     return float(np.median(counts))
 
 
-def priors_rows(scene_dir: Path, gt: Path, downscale: int, tol_px: float = 3.0) -> dict[str, dict]:
-    """Mask and track figures of the priors before (plain EPI, LK) and after (fused cues, chained tracks)."""
+def priors_rows(
+    scene_dir: Path, gt: Path, downscale: int, tol_px: float = 3.0, sets: list[str] | None = None
+) -> dict[str, dict]:
+    """Mask and track figures of the priors before (plain EPI, LK) and after (fused cues, chained tracks);
+    ``sets``: ``priors.*`` assignments applied to the "after" priors."""
     import dataclasses
 
+    from benchmarks.runner.config_overrides import apply_overrides
     from worldtree.imageio import read_mask
     from worldtree.priors import PriorsConfig, compute_priors
     from worldtree.priors.config import MotionConfig
@@ -204,7 +213,13 @@ def priors_rows(scene_dir: Path, gt: Path, downscale: int, tol_px: float = 3.0) 
     out = {}
     for name, cfg in (
         ("before", dataclasses.replace(PriorsConfig(), motion=MotionConfig(enabled=False))),
-        ("after (priors)", dataclasses.replace(PriorsConfig(), motion=MotionConfig(enabled=True))),
+        (
+            "after (priors)",
+            apply_overrides(
+                dataclasses.replace(PriorsConfig(), motion=MotionConfig(enabled=True)),
+                [s.removeprefix("priors.") for s in sets or [] if s.startswith("priors.")],
+            ),
+        ),
     ):
         pri = compute_priors(scene, cfg, cache)
         n, life = track_life(pri.track_vis, pri.track_dynamic)
@@ -259,7 +274,20 @@ def main(argv: list[str] | None = None) -> None:
         default=3.0,
         help="a track is accurate while its error to the exact motion stays below this (px, working size)",
     )
+    ap.add_argument(
+        "--set",
+        dest="sets",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="added to the 'after' runs (tag suffixed with the settings' digest); priors.* also to the priors",
+    )
+    ap.add_argument("--no-before", action="store_true", help="skip the Base (and WorldTree) 'before' runs")
     a = ap.parse_args(argv)
+    from benchmarks.runner.config_overrides import sets_digest
+
+    after_sets = AFTER_SETS + list(a.sets)
+    after_tag = f"{a.preset}-after-s{a.seed}" + (f"-{sets_digest(a.sets)}" if a.sets else "")
     size = parse_size(a.size)
     if size is None:
         raise SystemExit(f"error: --size {a.size!r}: give WxH, e.g. 320x180")
@@ -274,7 +302,7 @@ def main(argv: list[str] | None = None) -> None:
         if name not in ("demo", "hard"):
             raise SystemExit(f"error: --scenes {name!r}: choose among demo, hard")
         scene, gt = prepare(a.out, name, size, a.steps)
-        rows, truth, exact = priors_rows(scene, gt, downscale, a.track_tol)
+        rows, truth, exact = priors_rows(scene, gt, downscale, a.track_tol, a.sets)
         floors[name] = reference_floor(exact, a.track_tol)
         visible = object_frames(gt)
         psnr, halves = {}, {}
@@ -284,16 +312,14 @@ def main(argv: list[str] | None = None) -> None:
             res, _ = run(scene, runs, "static", [], a.preset, a.device, a.seed, f"{a.preset}-s{a.seed}")
             psnr["static"] = res.mean.get("mpsnr")
             halves["static"] = half_means(res.folder.metrics_csv)
-            print(f"[{name}] base before", flush=True)
-            res, _ = run(
-                scene, runs, "base", BEFORE_SETS, a.preset, a.device, a.seed, f"{a.preset}-before-s{a.seed}"
-            )
-            psnr["before"] = res.mean.get("mpsnr")
-            halves["before"] = half_means(res.folder.metrics_csv)
+            if not a.no_before:
+                print(f"[{name}] base before", flush=True)
+                tag = f"{a.preset}-before-s{a.seed}"
+                res, _ = run(scene, runs, "base", BEFORE_SETS, a.preset, a.device, a.seed, tag)
+                psnr["before"] = res.mean.get("mpsnr")
+                halves["before"] = half_means(res.folder.metrics_csv)
             print(f"[{name}] base after", flush=True)
-            res, st = run(
-                scene, runs, "base", AFTER_SETS, a.preset, a.device, a.seed, f"{a.preset}-after-s{a.seed}"
-            )
+            res, st = run(scene, runs, "base", after_sets, a.preset, a.device, a.seed, after_tag)
             psnr["after (Base)"] = res.mean.get("mpsnr")
             halves["after (Base)"] = half_means(res.folder.metrics_csv)
             mot = res.folder.checkpoints / "motion.npz"
@@ -303,19 +329,26 @@ def main(argv: list[str] | None = None) -> None:
                 pieces = z["pieces"] if "pieces" in z.files else None
                 acc = accuracy_row(z["tracks"], z["visible"], z["dynamic"], pieces, exact, a.track_tol)
                 rows["after (Base)"] = {**mask_scores(z["mask"], truth), "tracks": n, "life": life, **acc,
-                                        "migration": st.get("migration", {})}  # fmt: skip
+                                        "migration": st.get("migration", {}),
+                                        "object_flow": {k.removeprefix("object_flow_"): v for k, v in
+                                                        st.get("motion_refine", {}).get("chained_track_links",
+                                                                                        {}).items()
+                                                        if k.startswith("object_flow_")}}  # fmt: skip
             if "worldtree" in methods:
-                for k, sets, src in (
-                    ("before", BEFORE_SETS, "before"),
-                    ("after", AFTER_SETS, "after (Base)"),
+                for k, sets, src, tag in (
+                    ("before", BEFORE_SETS, "before", f"{a.preset}-before-s{a.seed}"),
+                    ("after", after_sets, "after (Base)", after_tag),
                 ):
+                    if k == "before" and a.no_before:
+                        continue
                     print(f"[{name}] worldtree {k}", flush=True)
-                    res, _ = run(scene, runs, "worldtree", sets, a.preset, a.device, a.seed,
-                                 f"{a.preset}-{k}-s{a.seed}")  # fmt: skip
+                    res, _ = run(scene, runs, "worldtree", sets, a.preset, a.device, a.seed, tag)
                     psnr[f"{k} (WorldTree)"] = res.mean.get("mpsnr")
                     halves[f"{k} (WorldTree)"] = half_means(res.folder.metrics_csv)
                     if src in rows:  # the tree's root is the Base stages: same masks and tracks
-                        rows[f"{k} (WorldTree)"] = {x: v for x, v in rows[src].items() if x != "migration"}
+                        rows[f"{k} (WorldTree)"] = {
+                            x: v for x, v in rows[src].items() if x not in ("migration", "object_flow")
+                        }
         for k, r in rows.items():
             p = psnr.get(k) if k != "after (priors)" else None
             gain = p - psnr["static"] if p is not None and psnr.get("static") is not None else None
@@ -343,6 +376,12 @@ def main(argv: list[str] | None = None) -> None:
             m = r["migration"]
             print(f"|   | migration: {m.get('static_to_dynamic', 0)} static->dynamic, "
                   f"{m.get('dynamic_to_static', 0)} dynamic->static | | | | | | | | | | | |")  # fmt: skip
+        if r.get("object_flow"):
+            m = r["object_flow"]
+            print(f"|   | object flow: {m.get('matched', 0)} of {m.get('components', 0)} component matches "
+                  f"accepted (refused: {m.get('refused_flat', 0)} flat, {m.get('refused_window', 0)} window, "
+                  f"{m.get('refused_mask', 0)} off-mask, {m.get('refused_score', 0)} score) "
+                  "| | | | | | | | | | | |")  # fmt: skip
 
 
 if __name__ == "__main__":

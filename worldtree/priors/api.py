@@ -14,7 +14,16 @@ from worldtree.atomic import atomic_write_json
 from worldtree.errors import UserError
 from worldtree.hashing import sha256_file
 from worldtree.priors import depth as depth_mod
-from worldtree.priors import depth_scale, dynamic_masks, dynamic_tracks, epipolar, flow, imported, tracks
+from worldtree.priors import (
+    depth_scale,
+    dynamic_masks,
+    dynamic_tracks,
+    epipolar,
+    flow,
+    imported,
+    object_flow,
+    tracks,
+)
 from worldtree.priors.cache import CacheEntry, PriorCache, hash_key, inputs_fingerprint
 from worldtree.priors.config import PriorsConfig, config_dict
 from worldtree.priors.flow import FlowPair
@@ -316,7 +325,13 @@ def add_chained_tracks(
 
     ``images`` [T, H, W, 3], metric ``depth`` [T, H, W], ``Ks`` [T, 3, 3] and ``w2cs`` [T, 4, 4] (numpy) let the
     linking of track pieces compare appearance and remove the camera's motion; ``stats`` (a dict) receives
-    the linking counts."""
+    the linking counts (and, with ``motion.object_flow``, the object matches' counts).
+
+    With ``cfg.motion.object_flow`` and ``images``, the chaining's flow pairs are first recomputed inside
+    ``mask`` from each object's template-matched displacement (:mod:`worldtree.priors.object_flow`); ``flows``
+    itself is not changed."""
+    if cfg.motion.object_flow and images is not None:
+        flows = object_flow.object_flows(flows, mask, images, cfg.motion, cfg.flow, depth, Ks, w2cs, stats)
     ch = dynamic_tracks.chain_dynamic_tracks(flows, mask, cfg.motion, images, depth, Ks, w2cs, stats)
     pieces = np.ones(vis.shape[1], np.int64)
     if ch.num_tracks == 0:

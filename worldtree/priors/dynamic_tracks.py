@@ -122,6 +122,20 @@ def _step(
     return out, dst
 
 
+def dilate_masks(masks: np.ndarray, radius: int) -> np.ndarray:
+    """``masks`` [T, H, W] grown by a disc of ``radius`` px: the region a chained point must stay in."""
+    r = max(0, radius)
+    if r == 0 or len(masks) == 0:
+        return masks.astype(bool)
+    k = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
+    return np.stack([cv2.dilate(m.astype(np.uint8), k) > 0 for m in masks])
+
+
+def chain_gaps(cfg: MotionConfig) -> tuple[int, ...]:
+    """The frame gaps the chaining steps over, ascending (``MotionConfig.track_gaps``; (1,) when none)."""
+    return tuple(sorted(set(int(g) for g in cfg.track_gaps if g >= 1))) or (1,)
+
+
 def _seeds(mask: np.ndarray, taken: np.ndarray, step: int) -> np.ndarray:
     """Grid pixels [M, 2] (x, y) of ``mask`` [H, W] farther than ``step`` from every point of ``taken``."""
     H, W = mask.shape
@@ -154,10 +168,8 @@ def chain_dynamic_tracks(
     ``seed_frame`` [N], ``pieces`` [N]); N may be 0 (empty masks).
     """
     T, H, W = masks.shape
-    r = max(0, cfg.track_mask_dilate_px)
-    k = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
-    inside = np.stack([cv2.dilate(m.astype(np.uint8), k) > 0 for m in masks]) if r > 0 else masks.astype(bool)
-    gaps = tuple(sorted(set(int(g) for g in cfg.track_gaps if g >= 1))) or (1,)
+    inside = dilate_masks(masks, cfg.track_mask_dilate_px)
+    gaps = chain_gaps(cfg)
     flows = _HoleFilled(flows, inside, cfg.track_fill_px)
     grays = None
     if images is not None and cfg.track_step_ncc > -1.0:
