@@ -18,6 +18,9 @@ For each scene it prints, against the exact masks and tracks of ``nvls gt-priors
 - **after (priors)**: the epipolar + depth-consistency cues fused, dynamic tracks chained through flow;
 - **after (Base)**: the masks refined with the static warm-up's residual inside the Base run (read from its
   ``checkpoints/motion.npz``), with migration, trajectory completion and trajectory depth on;
+- **fitted model**: the tracks read off the fitted Base model (:mod:`worldtree.motion.model_tracks`: each
+  dynamic Gaussian carried by the scaffold and projected, where it is in view and not hidden), over every frame
+  and only within 2 temporal standard deviations of its own frame (how far the model's motion is right);
 - with ``--methods base,worldtree``: the WorldTree method before and after as well (its root is the Base
   stages, so its masks and tracks are Base's; only its mPSNR is added);
 
@@ -228,6 +231,38 @@ def priors_rows(
     return out, truth, exact
 
 
+def model_rows(
+    model_dir: Path, scene_dir: Path, downscale: int, exact, tol_px: float, max_tracks: int = 2000
+):
+    """Track figures of the tracks read off a fitted Base model (:mod:`worldtree.motion.model_tracks`):
+    every frame where a Gaussian is in view and unhidden, and only the frames within 2 temporal standard
+    deviations of its own frame (where its temporal opacity still draws it)."""
+    import torch
+
+    from worldtree.dynamic import DynamicGaussians
+    from worldtree.gaussians import GaussianSet
+    from worldtree.motion.model_tracks import model_tracks, pick_gaussians
+    from worldtree.motion.scaffold import Scaffold
+    from worldtree.scene import load_scene
+
+    scene = load_scene(scene_dir, downscale=downscale, load_masks=False)
+    T, H, W = scene.images.shape[:3]
+    static = GaussianSet.load(model_dir / "static_gaussians.pt")
+    dynamic = DynamicGaussians.load(model_dir / "dynamic_gaussians.pt")
+    sc = torch.load(model_dir / "scaffold_cameras.pt", map_location="cpu", weights_only=False)
+    scaffold = Scaffold.from_state(sc["scaffold"])
+    idx = pick_gaussians(dynamic, max_tracks)
+    out = {}
+    for name, window in (("fitted model, all frames", None), ("fitted model, own time +-2 std", 2.0)):
+        tr = model_tracks(static, dynamic, scaffold, scene.Ks, sc["w2cs"], W, H, idx, window=window)
+        xy, vis = tr.xy.cpu().numpy(), tr.visible.cpu().numpy()
+        dyn = vis.any(0)
+        n, life = track_life(vis, dyn)
+        out[name] = {"iou": None, "precision": None, "recall": None, "tracks": n, "life": life,
+                     **accuracy_row(xy, vis, dyn, None, exact, tol_px)}  # fmt: skip
+    return out
+
+
 def half_means(metrics_csv: Path) -> tuple[float, float]:
     """Mean per-frame mPSNR over the first and the second half of the test frames (the demo's slow and fast
     halves), from a run's ``metrics.csv``."""
@@ -334,6 +369,8 @@ def main(argv: list[str] | None = None) -> None:
                                                         st.get("motion_refine", {}).get("chained_track_links",
                                                                                         {}).items()
                                                         if k.startswith("object_flow_")}}  # fmt: skip
+            if (res.folder.model / "dynamic_gaussians.pt").is_file():
+                rows.update(model_rows(res.folder.model, scene, downscale, exact, a.track_tol))
             if "worldtree" in methods:
                 for k, sets, src, tag in (
                     ("before", BEFORE_SETS, "before", f"{a.preset}-before-s{a.seed}"),
