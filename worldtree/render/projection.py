@@ -63,17 +63,32 @@ def _project_cam(p, quats, log_scales, K, R, width, height, eps2d):
     lim_y_neg = (cy + 0.5) / fy + 0.3 * tan_y
     tx = z * torch.minimum(torch.maximum(x * rz, -lim_x_neg), lim_x_pos)
     ty = z * torch.minimum(torch.maximum(y * rz, -lim_y_neg), lim_y_pos)
-    M = quat_to_rotmat(quats / quats.norm(dim=-1, keepdim=True)) * torch.exp(log_scales)[:, None, :]
-    W = R @ M  # [N, 3, 3] camera-frame square root of the covariance
+    Rq = quat_to_rotmat(quats / quats.norm(dim=-1, keepdim=True))
+    s = torch.exp(log_scales)
+    W = R @ (Rq * s[:, None, :])  # [N, 3, 3] camera-frame square root of the covariance
     # A = J W with the perspective Jacobian J = [[fx/z, 0, -fx tx/z^2], [0, fy/z, -fy ty/z^2]];
     # cov2d = A A^T is a Gram matrix, hence symmetric positive semi-definite by construction.
     A0 = (fx * rz)[:, None] * W[:, 0] - (fx * tx * rz * rz)[:, None] * W[:, 2]  # [N, 3]
     A1 = (fy * rz)[:, None] * W[:, 1] - (fy * ty * rz * rz)[:, None] * W[:, 2]
-    a = (A0 * A0).sum(-1) + eps2d
-    b = (A0 * A1).sum(-1)
-    c = (A1 * A1).sum(-1) + eps2d
+    sq0, sq1 = (A0 * A0).sum(-1), (A1 * A1).sum(-1)
+    a, b, c = sq0 + eps2d, (A0 * A1).sum(-1), sq1 + eps2d
+    # det = a c - b^2 without its cancellation (rounding noise of either sign for large thin footprints):
+    # A = B diag(s) with B = J R Rq, so det(A A^T) = sum over column pairs of (s_i s_j minor_ij(B))^2
+    # (Cauchy-Binet), plus the positive eps2d terms. The C++ projection computes it the same way.
+    Bq = R @ Rq
+    B0 = (fx * rz)[:, None] * Bq[:, 0] - (fx * tx * rz * rz)[:, None] * Bq[:, 2]
+    B1 = (fy * rz)[:, None] * Bq[:, 1] - (fy * ty * rz * rz)[:, None] * Bq[:, 2]
+    minors = torch.stack(
+        [
+            s[:, 0] * s[:, 1] * (B0[:, 0] * B1[:, 1] - B0[:, 1] * B1[:, 0]),
+            s[:, 0] * s[:, 2] * (B0[:, 0] * B1[:, 2] - B0[:, 2] * B1[:, 0]),
+            s[:, 1] * s[:, 2] * (B0[:, 1] * B1[:, 2] - B0[:, 2] * B1[:, 1]),
+        ],
+        -1,
+    )
+    det = (minors * minors).sum(-1) + eps2d * (sq0 + sq1) + eps2d * eps2d
     means2d = torch.stack([fx * x * rz + cx, fy * y * rz + cy], -1)
-    return means2d, torch.stack([a, b, c], -1), z
+    return means2d, torch.stack([a, b, c], -1), z, det
 
 
 def _rotate(v: Tensor, R: Tensor) -> Tensor:
@@ -81,9 +96,8 @@ def _rotate(v: Tensor, R: Tensor) -> Tensor:
     return v @ R.T
 
 
-def _radius(cov2d: Tensor) -> Tensor:
-    a, b, c = cov2d.unbind(-1)
-    det = a * c - b * b
+def _radius(cov2d: Tensor, det: Tensor) -> Tensor:
+    a, _, c = cov2d.unbind(-1)
     mid = 0.5 * (a + c)
     lam = mid + torch.sqrt(torch.clamp(mid * mid - det, min=0.1))
     return torch.ceil(3.0 * torch.sqrt(lam))
@@ -124,11 +138,10 @@ def project_gaussians(
         p = _rotate(m0, R) + w2c[:3, 3]
         ok &= torch.isfinite(p).all(-1) & (p[:, 2] > near)
         p = torch.where(ok[:, None], p, _safe_point(p))
-        mu, cov, _ = _project_cam(p, q0, s0, K, R, width, height, eps2d)
-        det = cov[:, 0] * cov[:, 2] - cov[:, 1] ** 2
+        mu, cov, _, det = _project_cam(p, q0, s0, K, R, width, height, eps2d)
         ok &= torch.isfinite(cov).all(-1) & torch.isfinite(mu).all(-1) & (det > 0)
         ok &= torch.isfinite(cov[:, 2] / det) & torch.isfinite(cov[:, 0] / det)
-        r = torch.where(ok, _radius(cov), torch.zeros_like(det))
+        r = torch.where(ok, _radius(cov, det), torch.zeros_like(det))
         r = torch.clamp(torch.nan_to_num(r, nan=0.0), max=RADIUS_CAP)
         ok &= r > 0
         # Bounding square must touch a tile of the image (same rule the rasterizers use to bin).
@@ -153,9 +166,8 @@ def project_gaussians(
 
     R = w2c[:3, :3]
     p = _rotate(gather(means), R) + w2c[:3, 3]
-    mu, cov, z = _project_cam(p, gather(quats), gather(log_scales), K, R, width, height, eps2d)
+    mu, cov, z, det = _project_cam(p, gather(quats), gather(log_scales), K, R, width, height, eps2d)
     a, b, c = cov.unbind(-1)
-    det = a * c - b * b
     conics = torch.stack([c / det, -b / det, a / det], -1)
 
     return Projection(means2d=scatter(mu, 2), conics=scatter(conics, 3), depths=scatter(z, 0), radii=radii)

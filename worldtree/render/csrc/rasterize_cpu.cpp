@@ -484,6 +484,7 @@ Camera make_camera(const torch::Tensor& K, const torch::Tensor& w2c, int64_t wid
 // Everything the forward computes for one Gaussian, kept for its backward.
 struct ProjState {
   double m[3], qn, qh[4], s[3], Rq[9], M[9], p[3], rz, X, Y, xin, yin, W[9], A0[3], A1[3], a, b, c, det;
+  double C[3];  // A0 x A1, from the scaled minors (accurate where the rows are nearly parallel)
 };
 
 // Returns false when the Gaussian is culled before its covariance is known to be usable.
@@ -523,10 +524,27 @@ inline bool project_one(const Camera& cam, const double* m, const double* q, con
     S.A0[k] = j00 * S.W[k] + j02 * S.W[6 + k];
     S.A1[k] = j11 * S.W[3 + k] + j12 * S.W[6 + k];
   }
-  S.a = S.A0[0] * S.A0[0] + S.A0[1] * S.A0[1] + S.A0[2] * S.A0[2] + cam.eps2d;
+  const double sq0 = S.A0[0] * S.A0[0] + S.A0[1] * S.A0[1] + S.A0[2] * S.A0[2];
+  const double sq1 = S.A1[0] * S.A1[0] + S.A1[1] * S.A1[1] + S.A1[2] * S.A1[2];
+  S.a = sq0 + cam.eps2d;
   S.b = S.A0[0] * S.A1[0] + S.A0[1] * S.A1[1] + S.A0[2] * S.A1[2];
-  S.c = S.A1[0] * S.A1[0] + S.A1[1] * S.A1[1] + S.A1[2] * S.A1[2] + cam.eps2d;
-  S.det = S.a * S.c - S.b * S.b;
+  S.c = sq1 + cam.eps2d;
+  // det = a c - b^2, written without its cancellation (which leaves only rounding noise, of either sign, for
+  // large thin footprints): A = B diag(s) with B = J R Rq, so by Cauchy-Binet det(A A^T) is the sum over
+  // column pairs of (s_i s_j minor_ij(B))^2, and the eps2d terms are positive. Same as projection.py.
+  double B0[3], B1[3];
+  for (int k = 0; k < 3; ++k) {
+    double Bq[3];
+    for (int r = 0; r < 3; ++r)
+      Bq[r] = cam.R[3 * r] * Rq[k] + cam.R[3 * r + 1] * Rq[3 + k] + cam.R[3 * r + 2] * Rq[6 + k];
+    B0[k] = j00 * Bq[0] + j02 * Bq[2];
+    B1[k] = j11 * Bq[1] + j12 * Bq[2];
+  }
+  const double t01 = S.s[0] * S.s[1] * (B0[0] * B1[1] - B0[1] * B1[0]);
+  const double t02 = S.s[0] * S.s[2] * (B0[0] * B1[2] - B0[2] * B1[0]);
+  const double t12 = S.s[1] * S.s[2] * (B0[1] * B1[2] - B0[2] * B1[1]);
+  S.det = t01 * t01 + t02 * t02 + t12 * t12 + cam.eps2d * (sq0 + sq1) + cam.eps2d * cam.eps2d;
+  S.C[0] = t12, S.C[1] = -t02, S.C[2] = t01;
   return std::isfinite(S.a) && std::isfinite(S.b) && std::isfinite(S.c) && std::isfinite(S.det) && S.det > 0 &&
          std::isfinite(S.c / S.det) && std::isfinite(S.a / S.det);
 }
@@ -551,7 +569,7 @@ void project_forward_impl(const Camera& cam, const T* means, const T* quats, con
     {
       // Cull what the storage type cannot hold, as the PyTorch projection does in that dtype: a covariance or
       // determinant that overflows, or a conic that is not finite and positive on its diagonal.
-      const T ta = T(S.a), tb = T(S.b), tc = T(S.c), tdet = ta * tc - tb * tb;
+      const T ta = T(S.a), tc = T(S.c), tdet = T(S.det);
       const T c0 = T(S.c / S.det), c1 = T(-S.b / S.det), c2 = T(S.a / S.det);
       if (!(std::isfinite(double(tdet)) && tdet > T(0) && std::isfinite(double(ta)) && std::isfinite(double(tc))))
         continue;
@@ -595,14 +613,20 @@ void project_backward_impl(const Camera& cam, const T* means, const T* quats, co
       if (!project_one(cam, m, q, ls, S)) continue;
       const double a = S.a, b = S.b, c = S.c, det = S.det, d2 = det * det;
       const double g0 = double(g_con[3 * i]), g1 = double(g_con[3 * i + 1]), g2 = double(g_con[3 * i + 2]);
-      // conic = (c, -b, a) / det with det = a c - b^2.
-      const double ga = g0 * (-c * c / d2) + g1 * (b * c / d2) + g2 * (-b * b / d2);
-      const double gb = g0 * (2 * b * c / d2) + g1 * (-1.0 / det - 2 * b * b / d2) + g2 * (2 * a * b / d2);
-      const double gc = g0 * (-b * b / d2) + g1 * (a * b / d2) + g2 * (-a * a / d2);
+      // conic = (c, -b, a) / det. The numerators go through a, b, c; det through its own gradient,
+      // d det / dA0 = 2 (A1 x C + eps A0), d det / dA1 = 2 (C x A0 + eps A1) with C = A0 x A1: going through
+      // d(a c - b^2) instead would cancel huge terms for long thin footprints (as the forward would).
+      const double ga = g2 / det, gb = -g1 / det, gc = g0 / det;
+      const double gdet = -(g0 * c - g1 * b + g2 * a) / d2;
+      const double* A0 = S.A0;
+      const double* A1 = S.A1;
+      const double* C = S.C;
+      const double A1xC[3] = {A1[1] * C[2] - A1[2] * C[1], A1[2] * C[0] - A1[0] * C[2], A1[0] * C[1] - A1[1] * C[0]};
+      const double CxA0[3] = {C[1] * A0[2] - C[2] * A0[1], C[2] * A0[0] - C[0] * A0[2], C[0] * A0[1] - C[1] * A0[0]};
       double dA0[3], dA1[3];
       for (int k = 0; k < 3; ++k) {
-        dA0[k] = 2 * ga * S.A0[k] + gb * S.A1[k];
-        dA1[k] = gb * S.A0[k] + 2 * gc * S.A1[k];
+        dA0[k] = 2 * ga * A0[k] + gb * A1[k] + 2 * gdet * (A1xC[k] + cam.eps2d * A0[k]);
+        dA1[k] = gb * A0[k] + 2 * gc * A1[k] + 2 * gdet * (CxA0[k] + cam.eps2d * A1[k]);
       }
       const double rz = S.rz, fx = cam.fx, fy = cam.fy;
       const double j00 = fx * rz, j02 = -fx * S.X * rz, j11 = fy * rz, j12 = -fy * S.Y * rz;
