@@ -47,7 +47,10 @@ def test_gsplat_matches_reference(make_scene):
     assert (gs.alpha - ref.alpha).abs().max() < 1e-3
     assert (gs.depth - ref.depth).abs().max() < 1e-3 * ref.depth.abs().max()
     assert torch.equal(gs.visible, ref.visible)
-    assert torch.allclose(gs.means2d, ref.means2d, atol=1e-3)
+    # Culled rows' means2d are undefined (the reference writes 0, gsplat the projection): compare drawn ones.
+    vis = ref.visible
+    assert vis.sum() > 30
+    assert torch.allclose(gs.means2d[vis], ref.means2d[vis], atol=1e-3)
     for k in KEYS:
         rel = (g_gs[k] - g_ref[k]).norm() / g_ref[k].norm()
         assert rel < 1e-2, f"{k}: {rel:.2e}"
