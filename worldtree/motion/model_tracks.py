@@ -80,7 +80,8 @@ def model_tracks(
     for t in range(T):
         K = Ks[t].to(dev, torch.float32)
         w2c = w2cs[t].to(dev, torch.float32)
-        means, _ = dynamic.at(scaffold, t, cache)
+        frame = gaussians_at(static, dynamic, scaffold, t, cache)
+        means = frame[0][len(static) :]  # gaussians_at puts the static set first
         cam = means[index] @ w2c[:3, :3].T + w2c[:3, 3]
         z = cam[:, 2]
         zs = z.clamp_min(1e-6)  # behind the camera: refused below, finite here
@@ -89,7 +90,7 @@ def model_tracks(
         xy[t, :, 0], xy[t, :, 1] = u, v
         iu, iv = u.round().long(), v.round().long()
         ok = (z > 1e-6) & (iu >= 0) & (iu < width) & (iv >= 0) & (iv < height)
-        out = rasterize(*gaussians_at(static, dynamic, scaffold, t, cache), K, w2c, width, height)
+        out = rasterize(*frame, K, w2c, width, height)
         alpha = out.alpha[iv.clamp(0, height - 1), iu.clamp(0, width - 1)]
         depth = out.depth[iv.clamp(0, height - 1), iu.clamp(0, width - 1)] / alpha.clamp_min(1e-6)
         ok &= (alpha < 0.5) | (z <= depth * (1.0 + depth_tol))
