@@ -65,19 +65,17 @@ def _project_cam(p, quats, log_scales, K, R, width, height, eps2d):
     ty = z * torch.minimum(torch.maximum(y * rz, -lim_y_neg), lim_y_pos)
     Rq = quat_to_rotmat(quats / quats.norm(dim=-1, keepdim=True))
     s = torch.exp(log_scales)
-    W = R @ (Rq * s[:, None, :])  # [N, 3, 3] camera-frame square root of the covariance
-    # A = J W with the perspective Jacobian J = [[fx/z, 0, -fx tx/z^2], [0, fy/z, -fy ty/z^2]];
-    # cov2d = A A^T is a Gram matrix, hence symmetric positive semi-definite by construction.
-    A0 = (fx * rz)[:, None] * W[:, 0] - (fx * tx * rz * rz)[:, None] * W[:, 2]  # [N, 3]
-    A1 = (fy * rz)[:, None] * W[:, 1] - (fy * ty * rz * rz)[:, None] * W[:, 2]
+    # B = J R Rq with the perspective Jacobian J = [[fx/z, 0, -fx tx/z^2], [0, fy/z, -fy ty/z^2]], and
+    # A = J R Rq diag(s) = B diag(s); cov2d = A A^T is a Gram matrix, hence symmetric positive semi-definite.
+    Bq = R @ Rq
+    B0 = (fx * rz)[:, None] * Bq[:, 0] - (fx * tx * rz * rz)[:, None] * Bq[:, 2]  # [N, 3]
+    B1 = (fy * rz)[:, None] * Bq[:, 1] - (fy * ty * rz * rz)[:, None] * Bq[:, 2]
+    A0, A1 = B0 * s, B1 * s
     sq0, sq1 = (A0 * A0).sum(-1), (A1 * A1).sum(-1)
     a, b, c = sq0 + eps2d, (A0 * A1).sum(-1), sq1 + eps2d
     # det = a c - b^2 without its cancellation (rounding noise of either sign for large thin footprints):
-    # A = B diag(s) with B = J R Rq, so det(A A^T) = sum over column pairs of (s_i s_j minor_ij(B))^2
-    # (Cauchy-Binet), plus the positive eps2d terms. The C++ projection computes it the same way.
-    Bq = R @ Rq
-    B0 = (fx * rz)[:, None] * Bq[:, 0] - (fx * tx * rz * rz)[:, None] * Bq[:, 2]
-    B1 = (fy * rz)[:, None] * Bq[:, 1] - (fy * ty * rz * rz)[:, None] * Bq[:, 2]
+    # det(A A^T) = sum over column pairs of (s_i s_j minor_ij(B))^2 (Cauchy-Binet), plus the positive eps2d
+    # terms. The C++ projection computes it the same way.
     minors = torch.stack(
         [
             s[:, 0] * s[:, 1] * (B0[:, 0] * B1[:, 1] - B0[:, 1] * B1[:, 0]),

@@ -510,9 +510,13 @@ inline bool project_one(const Camera& cam, const double* m, const double* q, con
       S.Rq[3 * j + k] = Rq[3 * j + k];
       S.M[3 * j + k] = Rq[3 * j + k] * S.s[k];
     }
+  // Bq = R Rq, so W = R M = Bq diag(s); B = J Bq and A = J W = B diag(s). B also gives the determinant below.
+  double Bq[9];
   for (int r = 0; r < 3; ++r)
-    for (int k = 0; k < 3; ++k)
-      S.W[3 * r + k] = cam.R[3 * r] * S.M[k] + cam.R[3 * r + 1] * S.M[3 + k] + cam.R[3 * r + 2] * S.M[6 + k];
+    for (int k = 0; k < 3; ++k) {
+      Bq[3 * r + k] = cam.R[3 * r] * Rq[k] + cam.R[3 * r + 1] * Rq[3 + k] + cam.R[3 * r + 2] * Rq[6 + k];
+      S.W[3 * r + k] = Bq[3 * r + k] * S.s[k];
+    }
   S.rz = 1.0 / S.p[2];
   const double xr = S.p[0] * S.rz, yr = S.p[1] * S.rz;
   S.X = std::min(std::max(xr, -cam.lxn), cam.lxp);
@@ -520,9 +524,12 @@ inline bool project_one(const Camera& cam, const double* m, const double* q, con
   S.xin = (xr > -cam.lxn && xr < cam.lxp) ? 1.0 : 0.0;  // direction not clamped: J follows x
   S.yin = (yr > -cam.lyn && yr < cam.lyp) ? 1.0 : 0.0;
   const double j00 = cam.fx * S.rz, j02 = -cam.fx * S.X * S.rz, j11 = cam.fy * S.rz, j12 = -cam.fy * S.Y * S.rz;
+  double B0[3], B1[3];
   for (int k = 0; k < 3; ++k) {
-    S.A0[k] = j00 * S.W[k] + j02 * S.W[6 + k];
-    S.A1[k] = j11 * S.W[3 + k] + j12 * S.W[6 + k];
+    B0[k] = j00 * Bq[k] + j02 * Bq[6 + k];
+    B1[k] = j11 * Bq[3 + k] + j12 * Bq[6 + k];
+    S.A0[k] = B0[k] * S.s[k];
+    S.A1[k] = B1[k] * S.s[k];
   }
   const double sq0 = S.A0[0] * S.A0[0] + S.A0[1] * S.A0[1] + S.A0[2] * S.A0[2];
   const double sq1 = S.A1[0] * S.A1[0] + S.A1[1] * S.A1[1] + S.A1[2] * S.A1[2];
@@ -530,16 +537,8 @@ inline bool project_one(const Camera& cam, const double* m, const double* q, con
   S.b = S.A0[0] * S.A1[0] + S.A0[1] * S.A1[1] + S.A0[2] * S.A1[2];
   S.c = sq1 + cam.eps2d;
   // det = a c - b^2, written without its cancellation (which leaves only rounding noise, of either sign, for
-  // large thin footprints): A = B diag(s) with B = J R Rq, so by Cauchy-Binet det(A A^T) is the sum over
-  // column pairs of (s_i s_j minor_ij(B))^2, and the eps2d terms are positive. Same as projection.py.
-  double B0[3], B1[3];
-  for (int k = 0; k < 3; ++k) {
-    double Bq[3];
-    for (int r = 0; r < 3; ++r)
-      Bq[r] = cam.R[3 * r] * Rq[k] + cam.R[3 * r + 1] * Rq[3 + k] + cam.R[3 * r + 2] * Rq[6 + k];
-    B0[k] = j00 * Bq[0] + j02 * Bq[2];
-    B1[k] = j11 * Bq[1] + j12 * Bq[2];
-  }
+  // large thin footprints): by Cauchy-Binet det(A A^T) is the sum over column pairs of
+  // (s_i s_j minor_ij(B))^2, and the eps2d terms are positive. Same as projection.py.
   const double t01 = S.s[0] * S.s[1] * (B0[0] * B1[1] - B0[1] * B1[0]);
   const double t02 = S.s[0] * S.s[2] * (B0[0] * B1[2] - B0[2] * B1[0]);
   const double t12 = S.s[1] * S.s[2] * (B0[1] * B1[2] - B0[2] * B1[1]);
