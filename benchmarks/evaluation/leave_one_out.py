@@ -14,9 +14,12 @@ training frames too (``k<k>_<method>_prev.png`` / ``_next.png``, ``psnr_train_ne
 is a fitting problem, a sharp fit there and a blur at k an interpolation problem. Imported priors (``--depth-maps``, ``--flow``, ``--masks``: the
 folders `nvls import` writes) are re-indexed without frame k (flow pairs touching k are dropped).
 
-WorldTree is not run: a 12-frame capture leaves 11 training frames, and its tree splits a node only when the
-node itself has at least 12 frames (``worldtree.tree.tpt``), so the root is the whole model (the Base
-stages). On all 12 frames the root would split once, into frames 0-4 and 5-11.
+WorldTree (``--methods worldtree``) is rendered at time k by the node that covers both kept neighbours: the
+leaf holding them, or, when the tree's split falls between them, the lowest node whose frames hold both (its
+Gaussians exist at both times), with its ancestral chain, halfway as above (opacities averaged). A 12-frame
+capture leaves 11 training frames and the tree splits a node only when it has at least ``min_len`` (12)
+frames, so by default the tree is the root alone (the Base stages); ``--set min_len=11`` gives the one split
+the full 12 frames would get (two children of 5 and 6 frames).
 
 Usage (results appended to OUT/loo.json; finished (k, method) pairs are skipped, so an interrupted run
 resumes)::
@@ -131,12 +134,64 @@ def render_between(
     return out.rgb.clamp(0.0, 1.0)
 
 
+def _halfway(ga: tuple, gb: tuple) -> tuple:
+    """Render list halfway between two lists of the same Gaussians: means averaged, rotations nlerped (same
+    hemisphere first), opacities averaged; log-scales and colours of ``ga``."""
+    ma, qa, ls, oa, c = ga
+    mb, qb, _, ob, _ = gb
+    qb = torch.where((qa * qb).sum(-1, keepdim=True) < 0, -qb, qb)
+    q = qa + qb
+    q = q / q.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+    return 0.5 * (ma + mb), q, ls, 0.5 * (oa + ob), c
+
+
+def tree_node_between(tree, a: int) -> int:
+    """Index of the node that renders the time between frames ``a`` and ``a + 1``: the deepest node covering
+    ``a`` whose interval also holds ``a + 1`` (its parent chain is walked up when a split falls between)."""
+    from worldtree.tree.tpt import parent
+
+    j = tree.covering(a)
+    while j != 1 and not tree.interval(j).contains(a + 1):
+        j = parent(j)
+    return j
+
+
+@torch.no_grad()
+def render_between_tree(
+    method, K: torch.Tensor, w2c: torch.Tensor, width: int, height: int, a: int
+) -> torch.Tensor:
+    """``[H, W, 3]`` of a WorldTree model halfway between its frames ``a`` and ``a + 1``, rendered by
+    :func:`tree_node_between`'s node with its chain (``chain_length``), every Gaussian halfway."""
+    from worldtree.render import rasterize
+
+    s = method.state
+    j = tree_node_between(s.tree, a)
+    st = s.states[j]
+    if j not in s.caches:
+        s.caches[j] = st.dynamic.attach(st.scaffold)
+    ga = st.gaussians_at(a, s.cfg.chain_length, s.caches[j])
+    gb = st.gaussians_at(a + 1, s.cfg.chain_length, s.caches[j])
+    m, q, ls, o, c = _halfway(ga, gb)
+    pose = s.sim3.apply_w2c(w2c.to(method.device, torch.float32))
+    out = rasterize(m, q, ls, o, c, K.to(method.device, torch.float32), pose, width, height,
+                    backend=s.cfg.photometric.backend)  # fmt: skip
+    return out.rgb.clamp(0.0, 1.0)
+
+
 @torch.no_grad()
 def render_training_frame(method, sub: Scene, t: int) -> torch.Tensor:
     """``[H, W, 3]`` of the trained model at its own training frame ``t`` (of ``sub``), through the camera it
     trained with: the optimised pose for a Base-family model, the given one otherwise."""
+    from worldtree.render import rasterize
+
     H, W = sub.height, sub.width
-    fit = getattr(getattr(method, "state", None), "fit", None)  # a Base-family method's photometric fit
+    state = getattr(method, "state", None)
+    fit = getattr(state, "fit", None)  # a Base-family method's photometric fit
+    if fit is not None and getattr(state, "tree", None) is not None:  # WorldTree: the covering node renders
+        m, q, ls, o, c = state.gaussians_at(t)
+        out = rasterize(m, q, ls, o, c, sub.Ks[t].to(method.device, torch.float32), fit.cameras()[t], W, H,
+                        backend=state.cfg.photometric.backend)  # fmt: skip
+        return out.rgb.clamp(0.0, 1.0)
     if fit is not None and hasattr(fit, "cameras"):
         out = fit.render(sub.Ks[t].to(method.device, torch.float32), fit.cameras()[t], W, H, t)
         return out.rgb.clamp(0.0, 1.0)
@@ -168,14 +223,20 @@ def run_one(args, spec, cfg, scene: Scene, k: int, device, prior_dirs: dict[str,
         train_s = time.perf_counter() - t0
     H, W = scene.height, scene.width
     K, w2c = scene.Ks[k], scene.w2cs[k]
+    row_tree = None
     state = getattr(method, "state", None)  # a Base-family method (methods.base.BaseState)
-    if getattr(state, "fit", None) is not None and getattr(state, "sim3", None) is not None:
+    if getattr(state, "tree", None) is not None and getattr(state, "sim3", None) is not None:
+        img = render_between_tree(method, K, w2c, W, H, k - 1)
+        row_tree = {"tree_nodes": sorted(state.states), "rendered_by": tree_node_between(state.tree, k - 1)}
+    elif getattr(state, "fit", None) is not None and getattr(state, "sim3", None) is not None:
         img = render_between(method, K, w2c, W, H, k - 1)
     else:
         img = method.render(K, w2c, W, H, k)
     pred, gt = _to_u8(img), _to_u8(scene.images[k])
     write_image(out / f"k{k:02d}_{spec.name}.png", pred)
     row = {"k": k, "method": spec.name, "psnr": psnr_u8(pred, gt), "train_s": round(train_s, 1)}
+    if row_tree is not None:
+        row["tree"] = row_tree
     # How well the kept neighbours themselves are fitted: a blur at time k that is already a blur at k-1 and
     # k+1 is a fitting problem, a sharp fit there and a blur at k an interpolation problem.
     row["psnr_train_neighbours"] = {}

@@ -73,3 +73,31 @@ def test_training_frame_render_uses_the_camera_the_model_trained_with():
     static_like = SimpleNamespace(render=method_render)
     render_training_frame(static_like, sc, 1)
     assert seen[-1][0] == "given" and torch.equal(seen[-1][1], sc.w2cs[1]) and seen[-1][4] == 1
+
+
+def test_tree_node_between_walks_up_across_a_split():
+    from benchmarks.evaluation.leave_one_out import tree_node_between
+    from worldtree.tree.tpt import TemporalPartitionTree
+
+    tree = TemporalPartitionTree(11, min_len=11)
+    tree.add_children(1, 5)  # frames 0-4 and 5-10
+    left, right = tree.interval(2), tree.interval(3)
+    assert (left.start, left.end, right.start, right.end) == (0, 4, 5, 10)
+    assert tree_node_between(tree, 2) == 2  # frames 2 and 3: both in the left leaf
+    assert tree_node_between(tree, 7) == 3
+    assert tree_node_between(tree, 4) == 1  # frames 4 and 5 straddle the split: the root holds both
+    assert tree_node_between(TemporalPartitionTree(11, min_len=12), 4) == 1  # root only
+
+
+def test_halfway_means_and_antipodal_rotations():
+    from benchmarks.evaluation.leave_one_out import _halfway
+
+    q = torch.tensor([[0.0, 0.0, 0.0, 1.0], [1.0, 0.0, 0.0, 0.0]])
+    ga = (torch.zeros(2, 3), q, torch.zeros(2, 3), torch.tensor([0.2, 1.0]), torch.ones(2, 3))
+    # Same rotations written with the opposite sign: the blend must not cancel to zero.
+    gb = (torch.full((2, 3), 2.0), -q, torch.ones(2, 3), torch.tensor([0.6, 0.0]), torch.zeros(2, 3))
+    m, qh, ls, o, c = _halfway(ga, gb)
+    torch.testing.assert_close(m, torch.ones(2, 3))
+    torch.testing.assert_close(qh.abs(), q.abs())
+    torch.testing.assert_close(o, torch.tensor([0.4, 0.5]))
+    assert torch.equal(ls, ga[2]) and torch.equal(c, ga[4]) and torch.isfinite(qh).all()
