@@ -101,3 +101,38 @@ def test_halfway_means_and_antipodal_rotations():
     torch.testing.assert_close(qh.abs(), q.abs())
     torch.testing.assert_close(o, torch.tensor([0.4, 0.5]))
     assert torch.equal(ls, ga[2]) and torch.equal(c, ga[4]) and torch.isfinite(qh).all()
+
+
+def _dyn(t_ref: list[float], std: list[float], logits: list[float]):
+    from worldtree.dynamic import DynamicGaussians
+
+    n = len(t_ref)
+    return DynamicGaussians({
+        "means": torch.zeros(n, 3), "quats": torch.tensor([[1.0, 0, 0, 0]]).repeat(n, 1),
+        "log_scales": torch.zeros(n, 3), "opacity_logits": torch.tensor(logits), "sh0": torch.zeros(n, 3),
+        "t_ref": torch.tensor(t_ref), "t_logstd": torch.tensor(std).log(),
+    })  # fmt: skip
+
+
+def test_node_opacities_halfway_use_each_sets_local_time():
+    from types import SimpleNamespace
+
+    from benchmarks.evaluation.leave_one_out import node_opacities_halfway
+
+    # A node over global frames 5-10 (local = global - 5) with one ancestor over 0-10 (local = global).
+    own = _dyn([1.0, 2.0], [1.0, 0.5], [0.0, 2.0])
+    anc = _dyn([6.0], [2.0], [1.0])
+    st = SimpleNamespace(
+        static=SimpleNamespace(opacities=torch.tensor([0.3])),
+        dynamic=own,
+        local_time=lambda t: t - 5,
+        chain=[SimpleNamespace(dynamic=anc, local_time=lambda t: t)],
+    )
+    got = node_opacities_halfway(st, 6, None)  # halfway between global frames 6 and 7
+
+    def expect(logit, t_ref, std, t):
+        return 1.0 / (1.0 + np.exp(-logit)) * np.exp(-0.5 * ((t - t_ref) / std) ** 2)
+
+    want = [0.3, expect(0.0, 1.0, 1.0, 1.5), expect(2.0, 2.0, 0.5, 1.5), expect(1.0, 6.0, 2.0, 6.5)]
+    np.testing.assert_allclose(got.detach().numpy(), want, rtol=1e-5)
+    assert node_opacities_halfway(st, 6, 0).shape == (3,)  # chain_length 0: no ancestor
