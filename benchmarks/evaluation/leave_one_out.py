@@ -240,6 +240,9 @@ def run_one(args, spec, cfg, scene: Scene, k: int, device, prior_dirs: dict[str,
     if getattr(state, "tree", None) is not None and getattr(state, "sim3", None) is not None:
         img = render_between_tree(method, K, w2c, W, H, k - 1)
         row_tree = {"tree_nodes": sorted(state.states), "rendered_by": tree_node_between(state.tree, k - 1)}
+        auto = (getattr(state, "info", None) or {}).get("tree", {}).get("auto")
+        if auto is not None:  # --depth auto: what the criterion measured and decided, per node
+            row_tree["auto"] = auto
     elif getattr(state, "fit", None) is not None and getattr(state, "sim3", None) is not None:
         img = render_between(method, K, w2c, W, H, k - 1)
     else:
