@@ -110,6 +110,18 @@ def masked_psnr_u8(a: np.ndarray, b: np.ndarray, mask: np.ndarray) -> float | No
     return psnr_u8(a[mask], b[mask])
 
 
+def _halfway(ga: tuple, gb: tuple, opacities: torch.Tensor) -> tuple:
+    """Render list halfway between two lists of the same Gaussians: means averaged, rotations nlerped (same
+    hemisphere first), the given ``opacities`` [N] (the caller's, at the half-frame time); log-scales and
+    colours of ``ga``."""
+    ma, qa, ls, _, c = ga
+    mb, qb, _, _, _ = gb
+    qb = torch.where((qa * qb).sum(-1, keepdim=True) < 0, -qb, qb)
+    q = qa + qb
+    q = q / q.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+    return 0.5 * (ma + mb), q, ls, opacities, c
+
+
 @torch.no_grad()
 def render_between(
     method, K: torch.Tensor, w2c: torch.Tensor, width: int, height: int, a: int
@@ -120,29 +132,16 @@ def render_between(
     from worldtree.render import rasterize
 
     fit = method.state.fit
-    ma, qa, ls, o, c = fit.gaussians_at(a)
-    mb, qb, _, _, _ = fit.gaussians_at(a + 1)
+    ga = fit.gaussians_at(a)
+    o = ga[3]
     n_s, n_d = len(fit.static), len(fit.dynamic)
     if o.shape[0] == n_s + n_d:  # the dynamic opacities halfway too (they change only with temporal opacity)
         o = torch.cat([o[:n_s], fit.dynamic.opacities_at(a + 0.5)])
-    qb = torch.where((qa * qb).sum(-1, keepdim=True) < 0, -qb, qb)  # same hemisphere before blending
-    q = qa + qb
-    q = q / q.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+    m, q, ls, o, c = _halfway(ga, fit.gaussians_at(a + 1), o)
     pose = method.state.sim3.apply_w2c(w2c.to(method.device, torch.float32))
-    out = rasterize(0.5 * (ma + mb), q, ls, o, c, K.to(method.device, torch.float32), pose, width, height,
+    out = rasterize(m, q, ls, o, c, K.to(method.device, torch.float32), pose, width, height,
                     backend=fit.cfg.backend)  # fmt: skip
     return out.rgb.clamp(0.0, 1.0)
-
-
-def _halfway(ga: tuple, gb: tuple, opacities: torch.Tensor | None = None) -> tuple:
-    """Render list halfway between two lists of the same Gaussians: means averaged, rotations nlerped (same
-    hemisphere first), ``opacities`` [N] (None: the two lists' averaged); log-scales and colours of ``ga``."""
-    ma, qa, ls, oa, c = ga
-    mb, qb, _, ob, _ = gb
-    qb = torch.where((qa * qb).sum(-1, keepdim=True) < 0, -qb, qb)
-    q = qa + qb
-    q = q / q.norm(dim=-1, keepdim=True).clamp_min(1e-12)
-    return 0.5 * (ma + mb), q, ls, 0.5 * (oa + ob) if opacities is None else opacities, c
 
 
 def node_opacities_halfway(st, a: int, chain_length: int | None) -> torch.Tensor:

@@ -37,6 +37,9 @@ import numpy as np
 SCENES = {"demo": ("slow_fast", 0), "hard": ("constant", 1)}
 """Motion and seed of motion_proof's scenes."""
 
+HAS_ECC_MASK = hasattr(cv2, "findTransformECCWithMask")
+"""ECC with the template's mask is OpenCV >= 4.13; without it the per-object affine column stays NaN."""
+
 
 @dataclass
 class StepFigures:
@@ -157,16 +160,18 @@ def measure(name: str, size: tuple[int, int], steps: int, tol: float) -> list[St
         f_change = dis_flow(g0, to_gray_u8(v1.rgb), "medium", camera_only)
         g1_same = to_gray_u8(v1_same.rgb)
         f_same = dis_flow(g0, g1_same, "medium")
-        # findTransformECCWithMask (the template's mask) is OpenCV >= 4.13: older versions leave the column NaN.
-        has_ecc_mask = hasattr(cv2, "findTransformECCWithMask")
-        f_affine = object_affine_flow(v0, g0, g1_same, gt_same) if has_ecc_mask else None
+        affine = (
+            object_step_accuracy(v0, v1_same, gt_same, object_affine_flow(v0, g0, g1_same, gt_same), tol)
+            if HAS_ECC_MASK
+            else float("nan")
+        )
         out.append(
             StepFigures(
                 speed,
                 object_step_accuracy(v0, v1, gt, f_change, tol),
                 object_step_accuracy(v0, v1_same, gt_same, f_same, tol),
                 *sift_step(v0, v1, gt),
-                object_step_accuracy(v0, v1_same, gt_same, f_affine, tol) if has_ecc_mask else float("nan"),
+                affine,
             )
         )
     return out
