@@ -31,7 +31,12 @@ from worldtree.atomic import atomic_dir, atomic_write_bytes, atomic_write_json, 
 from worldtree.errors import UserError
 from worldtree.folder_lock import FolderLock, lock_paths
 from worldtree.losses import SSIM_WINDOW
-from worldtree.output_paths import check_output_folder, remove_new_folders_on_failure
+from worldtree.output_paths import (
+    check_name,
+    check_output_folder,
+    check_replaceable,
+    remove_new_folders_on_failure,
+)
 from worldtree.timing import StageClock
 
 NORMALIZE = ("auto", "rig", "none")
@@ -76,6 +81,8 @@ class BuildConfig:
     """Thumbnails per row of preview.png."""
 
     def check(self) -> None:
+        if self.name is not None:
+            check_name(self.name, "--name")
         if self.frames < 1:
             raise UserError(f"--frames {self.frames}: must be at least 1")
         if self.camera_model not in CAMERA_MODELS:
@@ -98,6 +105,10 @@ class BuildConfig:
             if value is not None and value < least:
                 raise UserError(f"{flag} {value}: must be at least {least}")
         self.mask.check()
+
+
+# Files every scene folder written by `nvls build` / `nvls import` holds: --force replaces only such a folder.
+SCENE_MARKERS = ("manifest.json", "cameras.json")
 
 
 def parse_size(text: str | None) -> tuple[int, int] | None:
@@ -146,7 +157,9 @@ def build_scene(
     cfg.check()
     check_output_folder(out_dir, "-o")
     raw_dir = Path(raw_dir)
-    final = Path(out_dir) / scene_name(raw_dir, cfg)
+    final = Path(out_dir) / check_name(scene_name(raw_dir, cfg), "--name")
+    if cfg.force:
+        check_replaceable(final, "--force", "scene folder", SCENE_MARKERS)
     # One builder per scene folder; a failed build removes the -o folders it made (and its lock files there).
     leftovers = tuple(p.name for p in lock_paths(final))
     with remove_new_folders_on_failure(out_dir, leftovers), FolderLock(final, "scene"):

@@ -44,6 +44,7 @@ from worldtree import __version__
 from worldtree.atomic import atomic_dir, atomic_write_bytes, atomic_write_json
 from worldtree.errors import UserError
 from worldtree.imageio import read_image, read_mask
+from worldtree.output_paths import check_name, check_replaceable
 from worldtree.priors.imported import _load_array, read_flo, resize_flow
 
 LAYOUTS = ("auto", "dynamicnerf", "nvidia-ls")
@@ -286,14 +287,19 @@ def import_scene(
     Returns the scene folder. Everything is checked before anything is written, and the folder appears in
     one rename when complete (:func:`worldtree.atomic.atomic_dir`).
     """
+    from nvidia_ls.build import SCENE_MARKERS
+
     t0 = time.perf_counter()
     root = Path(source)
+    # The name first: a bad one is refused before the source is read and before anything is deleted.
+    name = check_name(cfg.name if cfg.name is not None else root.resolve().name, "--name")
+    final = Path(out_dir) / name
+    if cfg.force:
+        check_replaceable(final, "--force", "scene folder", SCENE_MARKERS)
     src = scan_source(root, cfg)
     geo = _geometry(root, src, cfg)
     times, has_tmasks, depth_files, warnings = _check_inputs(root, src)
-    name = cfg.name or root.resolve().name
-    final = Path(out_dir) / name
-    if final.exists() and not cfg.force:
+    if (final.exists() or final.is_symlink()) and not cfg.force:
         raise UserError(f"{final}: exists; pass --force to replace it")
     try:
         with atomic_dir(final, force=cfg.force) as tmp:

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import threading
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass
@@ -33,6 +34,7 @@ from worldtree import __version__
 from worldtree.atomic import atomic_dir, atomic_write_json
 from worldtree.cores import available_cores
 from worldtree.errors import UserError
+from worldtree.output_paths import check_replaceable
 
 FLOOR_Y = 1.0
 MOTIONS = ("constant", "slow_fast", "near_static", "slow", "fast")
@@ -40,6 +42,8 @@ MOTIONS = ("constant", "slow_fast", "near_static", "slow", "fast")
 over the clip at ``constant`` speed; ``slow`` a quarter loop, ``fast`` two loops, ``near_static`` 2 % of one,
 so they barely move; ``slow_fast`` one loop, its first half at a quarter of the second's speed)."""
 LAYOUTS = ("multiview", "camera_folders", "videos")
+# Written into every raw capture this module makes: --force replaces only a folder holding it.
+SYNTH_MARKERS = ("gt/cameras.json",)
 
 
 @dataclass
@@ -491,6 +495,10 @@ def write_raw_scene(
     out_dir = Path(out_dir)
     if out_dir.exists() and not force:
         raise UserError(f"{out_dir}: already exists; choose another folder or pass --force to replace it")
+    if force:
+        check_replaceable(
+            Path(os.path.abspath(out_dir)), "--force", "raw capture of `nvls synth`", SYNTH_MARKERS
+        )
     scene = make_scene(cfg)
     with atomic_dir(out_dir, force=True) as tmp:
         # Cameras are independent and numpy's ray casting releases the GIL for most of its work, so a thread

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import unicodedata
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -81,3 +82,80 @@ def remove_new_folders_on_failure(folder: str | Path, leftovers: tuple[str, ...]
             except OSError:
                 break  # not empty (or not ours to remove): keep it and its parents
         raise
+
+
+# The longest file name most file systems take (ext4, XFS, APFS: 255 bytes).
+NAME_MAX_BYTES = 255
+
+
+def check_name(value: str, option: str) -> str:
+    """Return ``value`` when it is exactly one ordinary path component, else raise :class:`UserError`
+    naming ``option``. Every name a user gives that becomes a folder or file name (``--tag``, ``--name``)
+    goes through here before anything is created or deleted: a separator, ``.``/``..``, an absolute path or
+    a control character would put the output somewhere else than under the output folder (or break a line
+    of a script or log that names it)."""
+    why = _name_problem(value)
+    if why is not None:
+        raise UserError(
+            f"{option} {value!r}: {why}; give one folder name (letters, digits, '-', '_', '.'), e.g. run1"
+        )
+    return value
+
+
+def _name_problem(value: str) -> str | None:
+    if not isinstance(value, str) or value == "":
+        return "is empty"
+    if value in (".", ".."):
+        return f"{value!r} names an existing folder, not a new one"
+    if "/" in value or "\\" in value:
+        return "is a path (holds '/' or '\\'), not one folder name"
+    if has_control_characters(value):
+        return "holds a newline or another control character"
+    if value.startswith("."):
+        # Hidden names beside an output folder are the tool's own: lock files and partial folders.
+        return "starts with '.', which is kept for the tool's own lock files and partial folders"
+    if value != value.strip():
+        return "starts or ends with a space"
+    if len(value.encode("utf-8", "surrogateescape")) > NAME_MAX_BYTES:
+        return f"is longer than {NAME_MAX_BYTES} bytes"
+    return None
+
+
+def has_control_characters(text: str) -> bool:
+    """Whether ``text`` holds a newline, carriage return, tab or any other control or format character
+    (Unicode categories Cc, Cf, Zl, Zp): text that ends up in a file name, a log line or a script line
+    must not."""
+    return any(unicodedata.category(c) in ("Cc", "Cf", "Zl", "Zp") for c in text)
+
+
+def folder_name_of(path: str | Path) -> str:
+    """The name of the folder ``path`` points at, with ``.`` and ``..`` resolved lexically (symbolic links
+    are not followed, so a linked folder keeps its link's name): ``Path('.').name`` is ``''`` and
+    ``Path('a/..').name`` is ``'..'``, neither of which may name an output folder."""
+    return Path(os.path.abspath(path)).name
+
+
+def check_replaceable(
+    folder: str | Path, option: str, what: str, markers: tuple[str, ...], also_own: tuple[str, ...] = ()
+) -> None:
+    """Refuse to delete an existing ``folder`` (for ``--force``) unless this tool made it: a real folder
+    (not a link or file) that holds every file in ``markers`` (the files the tool writes into every
+    ``what`` it makes), or nothing but names in ``also_own`` (files the tool may write there first, e.g. a
+    sweep's job record). Nothing happens when ``folder`` does not exist."""
+    folder = Path(folder)
+    if not (folder.exists() or folder.is_symlink()):
+        return
+    if folder.is_symlink() or not folder.is_dir():
+        kind = "a symbolic link" if folder.is_symlink() else "a file"
+        raise UserError(
+            f"{option}: {folder} is {kind}, not a {what} this tool made, so --force will not delete it; "
+            "remove it yourself or choose another name"
+        )
+    if {p.name for p in folder.iterdir()} <= set(also_own):
+        return
+    missing = [m for m in markers if not (folder / m).is_file()]
+    if missing:
+        raise UserError(
+            f"{option}: {folder} is not a {what} this tool made (no {', '.join(missing)}), so --force will not "
+            "delete it; remove it yourself or choose another name"
+        )

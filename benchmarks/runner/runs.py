@@ -40,12 +40,16 @@ from worldtree.atomic import atomic_write_json, atomic_write_text
 from worldtree.errors import UserError
 from worldtree.imageio import write_image
 from worldtree.losses import SSIM_WINDOW
-from worldtree.output_paths import check_output_folder
+from worldtree.output_paths import check_name, check_output_folder, check_replaceable, folder_name_of
 from worldtree.timing import StageClock
 
 TUNABLE = ("steps", "seed", "downscale")
 # Method options of `wtbench run` (set only on methods whose config has the field), in tag order.
 METHOD_OPTIONS = ("ablate", "depth", "chain_length", "split", "sequential")
+# Files every run folder gets first (config.json, then command.txt): `--force` deletes only a folder holding them.
+RUN_MARKERS = ("config.json", "command.txt")
+# What a sweep writes into a run folder before its job starts the run (benchmarks.runner.sweep_executors).
+SWEEP_FILES = ("job.json",)
 # Imported-prior options of `wtbench run` -> the PriorsConfig field each sets (priors.<field>), and what the
 # path must be ("dir", "file" or "any"; as `wtbench prep` reads them, docs/priors.md).
 PRIOR_OPTIONS: dict[str, tuple[str, str]] = {
@@ -273,10 +277,10 @@ def execute(req: RunRequest) -> RunResult:
         raise UserError(f"--scene {root}: no such folder; give a scene folder written by `nvls build`")
     view = native_test_view(root)
     cfg, sets = resolve_config(spec, req)
-    tag = req.tag or run_tag(req.preset, req.overrides, req.options, sets)
-    folder = RunFolder(Path(req.runs_dir) / root.name / spec.name / tag)
+    folder = _run_folder(req, spec, sets)
     device = pick_device(req.device)
     check_output_folder(req.runs_dir, "--out")
+    check_run_folder(folder, req.force)
     timer = StageClock()  # the run's clock, from the start of this session
 
     def build_method():
@@ -321,6 +325,7 @@ def _execute_locked(req, spec, cfg, folder, root, view, device, timer, method, b
 
     record = _config_record(spec, cfg, req)
     if req.force and folder.root.exists():
+        check_run_folder(folder, force=True)  # again under the lock: what is deleted is what was checked
         shutil.rmtree(folder.root)
     if folder.config_json.is_file():
         _check_same_config(folder, record)
@@ -381,8 +386,36 @@ def run_folder_of(req: RunRequest) -> RunFolder:
 
     spec = get_method(req.method)
     _, sets = resolve_config(spec, req)
-    tag = req.tag or run_tag(req.preset, req.overrides, req.options, sets)
-    return RunFolder(Path(req.runs_dir) / Path(req.scene).name / spec.name / tag)
+    return _run_folder(req, spec, sets)
+
+
+def _run_folder(req: RunRequest, spec, sets: list[str]) -> RunFolder:
+    """``RUNS_DIR/<scene>/<method>/<tag>`` of ``req``, each part checked to be one folder name (a ``--tag``
+    or scene name holding ``/``, ``..`` or a newline would put the run, and what ``--force`` deletes,
+    outside RUNS_DIR)."""
+    scene = check_name(folder_name_of(req.scene), f"--scene {req.scene}: the folder name")
+    if req.tag is not None:
+        tag = check_name(req.tag, "--tag")
+    else:
+        tag = check_name(run_tag(req.preset, req.overrides, req.options, sets), "the run folder name")
+    return RunFolder(Path(req.runs_dir) / scene / spec.name / tag)
+
+
+def check_run_folder(folder: RunFolder, force: bool) -> None:
+    """Refuse a run folder path that holds something other than a run: with ``force`` (which deletes it)
+    anything but a folder holding ``RUN_MARKERS`` (or nothing but ``SWEEP_FILES``); without, a file or link,
+    or a folder holding other files but no config.json, which the run would write into."""
+    root = folder.root
+    if force:
+        check_replaceable(root, "--force", "run folder", RUN_MARKERS, also_own=SWEEP_FILES)
+        return
+    if root.is_symlink() or (root.exists() and not root.is_dir()):
+        raise UserError(f"{root}: is a file or link, not a run folder; choose another --tag or -o")
+    own = {p.name for p in root.iterdir()} <= set(SWEEP_FILES) if root.is_dir() else True
+    if not own and not folder.config_json.is_file():
+        raise UserError(
+            f"{root}: holds files but no config.json, so it is not a run folder; choose another --tag or -o"
+        )
 
 
 def _train_record(summary) -> dict[str, Any] | None:

@@ -57,7 +57,13 @@ def test_force_over_a_file_leaves_no_old_copy(raw, tmp_path):
     (out / "Raw").write_text("a file where the scene goes")
     with pytest.raises(UserError, match="already exists; pass --force"):
         build_scene(raw, out, _cfg(raw))
-    scene = build_scene(raw, out, _cfg(raw, force=True))
+    # --force replaces only a scene folder nvls made: a user's file is kept (issue #30).
+    with pytest.raises(UserError, match="is a file, not a scene folder this tool made"):
+        build_scene(raw, out, _cfg(raw, force=True))
+    assert (out / "Raw").read_text() == "a file where the scene goes"
+    (out / "Raw").unlink()
+    build_scene(raw, out, _cfg(raw))
+    scene = build_scene(raw, out, _cfg(raw, force=True))  # over its own scene folder
     assert (scene / "cameras.json").is_file()
     assert sorted(p.name for p in out.iterdir() if not p.name.endswith((".lock", ".owner"))) == ["Raw"]
 
