@@ -34,6 +34,7 @@ from benchmarks.runner.sweep import SweepOutcome, run_device
 from worldtree.atomic import atomic_write_json
 from worldtree.errors import UserError
 from worldtree.folder_lock import is_locked, read_holder
+from worldtree.output_paths import has_control_characters
 
 EXECUTORS = ("local", "slurm", "auto")
 JOB_RECORD = "job.json"
@@ -42,6 +43,18 @@ JOBS_DIR = ".sweep-jobs"
 SLURM_ALIVE = {
     "PENDING", "RUNNING", "CONFIGURING", "COMPLETING", "REQUEUED", "REQUEUE_HOLD", "REQUEUE_FED", "RESIZING",
     "SUSPENDED", "SIGNALING", "STAGE_OUT", "STOPPED",
+}  # fmt: skip
+# An sbatch option name (``--slurm-arg KEY=VALUE``): submitit writes keys unquoted into ``#SBATCH --KEY=...``.
+SBATCH_KEY = re.compile(r"[A-Za-z][A-Za-z0-9_-]*")
+# Memory in Slurm's syntax: an integer with an optional K, M, G or T suffix.
+SBATCH_MEM = re.compile(r"[0-9]+[KMGTkmgt]?")
+# sbatch options the sweep sets itself (job logs, requeue signal, job name) or that have their own option;
+# a --slurm-arg of one of them would silently break requeue or the sweep's bookkeeping, or say one thing twice.
+SBATCH_OWN = {
+    "output": None, "error": None, "open-mode": None, "signal": None, "job-name": None, "array": None,
+    "wckey": None, "nodes": None, "ntasks-per-node": None, "partition": "--slurm-partition",
+    "time": "--slurm-time", "mem": "--slurm-mem", "cpus-per-task": "--slurm-cpus-per-job",
+    "gpus-per-node": "--slurm-gpus-per-job",
 }  # fmt: skip
 # Seconds a Slurm job may be gone from the queue before its result file shows up (shared file systems lag).
 RESULT_GRACE_S = 10.0
@@ -60,6 +73,49 @@ class SlurmOptions:
     """Memory per job in Slurm's syntax (16G); None: the partition's default."""
     extra: dict[str, str] = field(default_factory=dict)
     """More sbatch options, ``--KEY=VALUE`` (``--slurm-arg KEY=VALUE``), e.g. account, qos, constraint."""
+
+    def __post_init__(self) -> None:
+        # Every value here becomes a line of the batch script: a newline in one would start a line of its own
+        # (a shell command) and end the #SBATCH header, so --time and the requeue --signal would be ignored.
+        if self.partition is not None:
+            _script_value(self.partition, "--slurm-partition")
+            if not self.partition or any(c.isspace() for c in self.partition):
+                raise UserError(f"--slurm-partition {self.partition!r}: give a partition name, e.g. gpu")
+        if self.mem is not None and not SBATCH_MEM.fullmatch(self.mem):
+            raise UserError(
+                f"--slurm-mem {self.mem!r}: give an amount such as 32G (a number with K, M, G or T)"
+            )
+        for name, value, least in (("--slurm-time", self.time_min, 1), ("--slurm-cpus-per-job", self.cpus_per_job, 1),
+                                   ("--slurm-gpus-per-job", self.gpus_per_job, 0)):  # fmt: skip
+            if isinstance(value, bool) or not isinstance(value, int) or value < least:
+                raise UserError(f"{name} {value!r}: must be a whole number of at least {least}")
+        for key, value in self.extra.items():
+            check_sbatch_key(key, f"{key}={value}")
+            _script_value(str(value), f"--slurm-arg {key}")
+
+
+def check_sbatch_key(key: str, item: str) -> None:
+    """Refuse an sbatch option name ``key`` (of ``--slurm-arg item``) that is not a plain option name, or
+    that the sweep sets itself."""
+    if not isinstance(key, str) or not SBATCH_KEY.fullmatch(key):
+        raise UserError(
+            f"--slurm-arg {item!r}: KEY must be an sbatch option name (letters, digits, '-', '_'), "
+            "e.g. --slurm-arg account=myproject"
+        )
+    norm = key.replace("_", "-")
+    if norm in SBATCH_OWN:
+        use = SBATCH_OWN[norm]
+        fix = (
+            f"use {use} instead"
+            if use
+            else "the sweep sets it itself (logs, requeue signal, job name); drop it"
+        )
+        raise UserError(f"--slurm-arg {item!r}: {norm} is set by `wtbench sweep`; {fix}")
+
+
+def _script_value(value: str, option: str) -> None:
+    if has_control_characters(value):
+        raise UserError(f"{option} {value!r}: holds a newline or another control character; give one line")
 
 
 @dataclass(frozen=True)
@@ -116,9 +172,45 @@ def parse_slurm_args(items: Sequence[str]) -> dict[str, str]:
         key, sep, value = item.partition("=")
         key = key.strip().lstrip("-").replace("_", "-")
         if not sep or not key:
-            raise UserError(f"--slurm-arg {item}: give KEY=VALUE, e.g. --slurm-arg account=myproject")
+            raise UserError(f"--slurm-arg {item!r}: give KEY=VALUE, e.g. --slurm-arg account=myproject")
+        check_sbatch_key(key, item)
+        _script_value(value, f"--slurm-arg {key}")
         out[key] = value
     return out
+
+
+def slurm_parameters(s: SlurmOptions, device: str) -> dict[str, Any]:
+    """The ``SlurmExecutor.update_parameters`` of every job of a sweep with ``s`` on ``device`` (what the
+    sbatch script's ``#SBATCH`` lines say; the job name is added per job, :func:`slurm_job_name`)."""
+    params: dict[str, Any] = {
+        "time": s.time_min,
+        "cpus_per_task": s.cpus_per_job,
+        "nodes": 1,
+        "ntasks_per_node": 1,
+        "additional_parameters": dict(s.extra),
+    }
+    if s.partition:
+        params["partition"] = s.partition
+    if s.mem:
+        params["mem"] = s.mem
+    if s.gpus_per_job > 0 and device != "cpu":
+        params["gpus_per_node"] = s.gpus_per_job
+    return params
+
+
+def slurm_job_name(scene: str, tag: str) -> str:
+    """The Slurm job name of a run: ``wtbench-<scene>-<tag>``, characters other than letters, digits, ``.``,
+    ``_`` and ``-`` replaced by ``_`` (scene folder names come from disk and may hold anything), at most 120."""
+    return re.sub(r"[^A-Za-z0-9._-]", "_", f"wtbench-{scene}-{tag}")[:120]
+
+
+def check_jobs_folder(jobs_dir: Path) -> None:
+    """Refuse a jobs folder whose path cannot be written into a batch script line (it names the job logs)."""
+    text = str(Path(jobs_dir).absolute())
+    if has_control_characters(text):
+        raise UserError(
+            f"-o {text!r}: holds a newline or another control character; choose another -o for Slurm"
+        )
 
 
 @dataclass
@@ -325,22 +417,10 @@ def run_tasks(
         threads = None if gpus else max(1, (os.cpu_count() or 1) // limit)
         executor.update_parameters(timeout_min=cfg.slurm.time_min)
     else:
+        check_jobs_folder(jobs_dir)
         executor = submitit.SlurmExecutor(folder=str(jobs_dir / "%j"))
         s = cfg.slurm
-        params: dict[str, Any] = {
-            "time": s.time_min,
-            "cpus_per_task": s.cpus_per_job,
-            "nodes": 1,
-            "ntasks_per_node": 1,
-            "additional_parameters": dict(s.extra),
-        }
-        if s.partition:
-            params["partition"] = s.partition
-        if s.mem:
-            params["mem"] = s.mem
-        if s.gpus_per_job > 0 and tasks and tasks[0].request.device != "cpu":
-            params["gpus_per_node"] = s.gpus_per_job
-        executor.update_parameters(**params)
+        executor.update_parameters(**slurm_parameters(s, tasks[0].request.device if tasks else "cpu"))
         limit = cfg.max_parallel or max(1, len(todo))
         threads = s.cpus_per_job
 
@@ -362,7 +442,7 @@ def run_tasks(
                         visible_gpus=(gpu,) if gpu is not None else (),
                     )
                 else:
-                    executor.update_parameters(job_name=f"wtbench-{t.scene}-{t.folder.root.name}"[:120])
+                    executor.update_parameters(job_name=slurm_job_name(t.scene, t.folder.root.name))
                 submitted = time.time()
                 job = executor.submit(RunJob(t.request, threads))
                 running[i] = (job, gpu, submitted)
