@@ -105,12 +105,12 @@ def check_sbatch_key(key: str, item: str) -> None:
     norm = key.replace("_", "-")
     if norm in SBATCH_OWN:
         use = SBATCH_OWN[norm]
-        fix = (
-            f"use {use} instead"
-            if use
-            else "the sweep sets it itself (logs, requeue signal, job name); drop it"
+        if use:
+            raise UserError(f"--slurm-arg {item!r}: {norm} has its own option; use {use} instead")
+        raise UserError(
+            f"--slurm-arg {item!r}: `wtbench sweep` sets {norm} itself (job logs, requeue signal, job name); "
+            "drop it"
         )
-        raise UserError(f"--slurm-arg {item!r}: {norm} is set by `wtbench sweep`; {fix}")
 
 
 def _script_value(value: str, option: str) -> None:
