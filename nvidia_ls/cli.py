@@ -11,6 +11,7 @@ from pathlib import Path
 
 import typer
 
+from nvidia_ls.config_options import ConfigCommand, Shown, config_options
 from worldtree.cli_runner import run_cli
 
 app = typer.Typer(
@@ -28,7 +29,20 @@ def _console():
     return Console(stderr=True)
 
 
-@app.command(help="Turn one raw scene into an NVIDIA-LS scene folder OUT_DIR/<Scene>/.")
+def _build_options():
+    """``nvls build``'s options: every field of :class:`~nvidia_ls.build.BuildConfig`, with its default and help."""
+    from nvidia_ls.build import BuildConfig, parse_size
+
+    return BuildConfig, config_options(
+        BuildConfig,
+        {
+            "size": Shown(
+                type=str | None, parse=parse_size, help="Output size WxH (same aspect as the raw images)."
+            )
+        },
+    )
+
+
 def build(
     raw_dir: Path = typer.Argument(
         ..., help="Raw scene: mv_images/%05d/cam%02d.*, camNN/%05d.* or camNN.mp4."
@@ -36,41 +50,12 @@ def build(
     out_dir: Path = typer.Option(
         Path("scenes"), "-o", "--out-dir", help="Parent folder of the scene folder."
     ),
-    frames: int = typer.Option(160, help="Keep at most this many time steps (uniform sampling)."),
-    test_camera: int = typer.Option(1, help="Rig camera held out as the test view."),
-    masks: Path | None = typer.Option(None, help="Folder of test-camera masks by source time (%05d.png)."),
-    poses: Path | None = typer.Option(None, help="LLFF poses_bounds.npy of the rig cameras; skips SfM."),
-    size: str | None = typer.Option(None, help="Output size WxH (same aspect as the raw images)."),
-    camera_model: str = typer.Option("shared", help="SfM intrinsics: shared | per-camera."),
-    sfm_tries: int = typer.Option(8, help="Time steps tried for SfM (the first, then spread)."),
-    normalize: str = typer.Option("auto", help="World frame: auto | rig | none (see docs/nvidia_ls.md)."),
-    num_cameras: int | None = typer.Option(None, help="Expected rig size (default: highest camera number)."),
-    name: str | None = typer.Option(None, help="Scene folder name (default: the raw folder's name)."),
-    mask_threshold: float = typer.Option(30.0, help="Background-model colour difference threshold (0..255)."),
-    seed: int = typer.Option(0, help="SfM mapper seed."),
-    sfm_threads: int = typer.Option(1, help="pycolmap threads (1 = bit-reproducible SfM)."),
-    force: bool = typer.Option(False, "--force", help="Replace an existing scene folder."),
+    cfg=None,  # the BuildConfig made from the generated options (ConfigCommand)
 ) -> None:
     from rich.progress import Progress
 
-    from nvidia_ls.build import BuildConfig, build_scene, parse_size
-    from nvidia_ls.masks import MaskConfig
+    from nvidia_ls.build import build_scene
 
-    cfg = BuildConfig(
-        frames=frames,
-        test_camera=test_camera,
-        masks=masks,
-        poses=poses,
-        size=parse_size(size),
-        camera_model=camera_model,
-        sfm_tries=sfm_tries,
-        normalize=normalize,
-        num_cameras=num_cameras,
-        name=name,
-        force=force,
-        seed=seed,
-        mask=MaskConfig(threshold=mask_threshold),
-    )
     console = _console()
 
     def log(msg: str) -> None:
@@ -84,6 +69,13 @@ def build(
 
         path = build_scene(raw_dir, out_dir, cfg, log=log, progress=progress)
     console.print(f"wrote {path}", highlight=False)
+
+
+# The options are generated from BuildConfig when the app runs (not at import: it would import torch before
+# main() sets the OpenMP policy).
+app.command("build", help="Turn one raw scene into an NVIDIA-LS scene folder OUT_DIR/<Scene>/.")(
+    ConfigCommand(build, _build_options)
+)
 
 
 @app.command(
