@@ -83,7 +83,7 @@ app.command("build", help="Turn one raw scene into an NVIDIA-LS scene folder OUT
 )
 def synth(
     out_dir: Path = typer.Argument(..., help="Scene folder to create."),
-    cameras: int = typer.Option(12, help="Rig cameras (two rows)."),
+    cameras: int = typer.Option(12, help="Rig cameras (two rows for --rig rows, else one row)."),
     steps: int = typer.Option(30, help="Time steps."),
     width: int = typer.Option(320, help="Image width."),
     height: int = typer.Option(180, help="Image height."),
@@ -96,11 +96,24 @@ def synth(
     layout: str = typer.Option("multiview", help="Raw layout: multiview | camera_folders | videos."),
     image_ext: str = typer.Option("png", help="Raw image format: png | jpg."),
     supersample: int = typer.Option(2, help="Anti-aliasing rays per pixel along each axis."),
+    # The scene-family options default to None = SynthConfig's value, so their defaults live in one place.
+    rig: str | None = typer.Option(
+        None, help="Rig layout: rows (two rows on a gentle arc; default) | row (parallel, as NVIDIA's) | arc."
+    ),
+    path: str | None = typer.Option(
+        None, help="Object paths: loop (default) | straight | turning | enter_leave."
+    ),
+    texture: str | None = typer.Option(None, help="Textures: fine (default) | smooth (low frequencies)."),
+    camera_order: str | None = typer.Option(
+        None, help="Camera ids: spatial (follow the rig; default) | shuffled (permuted by --seed)."
+    ),
     force: bool = typer.Option(False, "--force", help="Replace an existing folder."),
 ) -> None:
     from nvidia_ls.synth import SynthConfig, write_raw_scene
 
+    family = {"rig": rig, "path": path, "texture": texture, "camera_order": camera_order}
     cfg = SynthConfig(
+        **{k: v for k, v in family.items() if v is not None},
         cameras=cameras,
         steps=steps,
         width=width,

@@ -99,9 +99,21 @@ class Alignment:
 
 
 def align_cameras(gen_w2cs: np.ndarray, scene_w2cs: np.ndarray) -> Alignment:
-    """Fit the similarity from the generator's world to the scene's on the camera centres ``[N, 4, 4]`` each."""
+    """Fit the similarity from the generator's world to the scene's on the camera centres ``[N, 4, 4]`` each.
+
+    Centres in one straight row (``nvls synth --rig row``) leave the rotation about the row free; there the
+    fit also uses one point per camera a rig's length along its optical axis."""
     src, dst = camera_centres(gen_w2cs), camera_centres(scene_w2cs)
     s, R, t = umeyama(src, dst)
+    spread = np.linalg.svd(src - src.mean(0), compute_uv=False)
+    if spread[1] < 0.05 * spread[0]:
+        length = float(spread[0])
+        gen_axes = np.asarray(gen_w2cs, float)[:, 2, :3]  # optical axes in world coordinates (third rows)
+        scene_axes = np.asarray(scene_w2cs, float)[:, 2, :3]
+        s, R, t = umeyama(
+            np.concatenate([src, src + length * gen_axes]),
+            np.concatenate([dst, dst + s * length * scene_axes]),
+        )
     res = dst - (s * (R @ src.T)).T - t
     rms = float(np.sqrt((res**2).sum(1).mean()))
     extent = float(max(np.linalg.norm(p - q) for p in dst for q in dst))

@@ -34,6 +34,7 @@ from worldtree import __version__
 from worldtree.atomic import atomic_dir, atomic_write_json
 from worldtree.cores import available_cores
 from worldtree.errors import UserError
+from worldtree.imageio import check_pixels
 from worldtree.output_paths import check_replaceable
 
 FLOOR_Y = 1.0
@@ -42,6 +43,25 @@ MOTIONS = ("constant", "slow_fast", "near_static", "slow", "fast")
 over the clip at ``constant`` speed; ``slow`` a quarter loop, ``fast`` two loops, ``near_static`` 2 % of one,
 so they barely move; ``slow_fast`` one loop, its first half at a quarter of the second's speed)."""
 LAYOUTS = ("multiview", "camera_folders", "videos")
+RIGS = ("rows", "row", "arc")
+"""Rig layouts: "rows" (two rows on a gentle arc aimed at the scene centre), "row" (one straight row, every
+camera looking along +z, as the NVIDIA rig) and "arc" (one row on a wide arc of +-``ARC_HALF_DEG`` degrees
+around the scene centre, every camera aimed at it)."""
+PATHS = ("loop", "straight", "turning", "enter_leave")
+"""Object paths: "loop" (closed loops), "straight" (a straight segment at constant speed), "turning" (a half
+circle at constant speed: the direction turns by 180 degrees) and "enter_leave" (a straight crossing that
+starts and ends behind the side walls, so every camera sees each object enter and leave)."""
+TEXTURES = ("fine", "smooth")
+"""Textures: "fine" (five octaves of colour noise plus small discs and rectangles) or "smooth" (the two
+lowest octaves only, no shapes, sinusoidal instead of square stripes on the moving objects)."""
+CAMERA_ORDERS = ("spatial", "shuffled")
+"""Camera ids: "spatial" (ids follow the rig positions) or "shuffled" (positions permuted by the seed)."""
+ARC_HALF_DEG = 40.0
+"""Half the angle the "arc" rig spans around the scene centre (degrees)."""
+SCENE_CENTRE = (0.0, 0.2, 4.0)
+"""The point the rigs are arranged around (world units)."""
+RIG_RADIUS = 4.0
+"""Distance from :data:`SCENE_CENTRE` to the cameras of the "rows" and "arc" rigs."""
 # Written into every raw capture this module makes: --force replaces only a folder holding it.
 SYNTH_MARKERS = ("gt/cameras.json",)
 
@@ -51,7 +71,7 @@ class SynthConfig:
     """Configuration of a synthetic raw scene (one source of defaults; also the ``nvls synth`` options)."""
 
     cameras: int = 12
-    """Number of rig cameras, in two rows (first row cam01.., left to right)."""
+    """Number of rig cameras: two rows for rig "rows" (first row cam01.., left to right), one row otherwise."""
     steps: int = 30
     """Number of time steps rendered."""
     width: int = 320
@@ -76,9 +96,21 @@ class SynthConfig:
     fov_deg: float = 60.0
     """Horizontal field of view of every camera (degrees)."""
     rig_width: float = 1.6
-    """Distance between the outermost cameras of a row (world units)."""
+    """Distance between the outermost cameras of a row (world units; rigs "rows" and "row")."""
     fps: float = 30.0
     """Frame rate of the videos written for layout "videos"."""
+    rig: str = "rows"
+    """Rig layout (:data:`RIGS`): "rows" (two rows on a gentle arc), "row" (one straight row looking along
+    +z in parallel, as the NVIDIA rig) or "arc" (one row on a +-40 degree arc, aimed at the scene centre)."""
+    path: str = "loop"
+    """Object paths (:data:`PATHS`): "loop", "straight" (constant velocity), "turning" (half circle at
+    constant speed) or "enter_leave" (crossing from behind one side wall to behind the other)."""
+    texture: str = "fine"
+    """Textures (:data:`TEXTURES`): "fine" (multi-octave noise and small shapes) or "smooth" (low
+    frequencies only)."""
+    camera_order: str = "spatial"
+    """Camera ids (:data:`CAMERA_ORDERS`): "spatial" (ids follow rig positions) or "shuffled" (positions
+    permuted by the seed, so consecutive ids jump across the rig)."""
 
     def check(self) -> None:
         """Raise :class:`UserError` for values the generator cannot honour."""
@@ -88,6 +120,7 @@ class SynthConfig:
             raise UserError(f"--steps {self.steps}: need at least 1 time step")
         if self.width < 16 or self.height < 16:
             raise UserError(f"--width/--height {self.width}x{self.height}: need at least 16x16 pixels")
+        check_pixels(self.width, self.height, "--width/--height")
         if self.motion not in MOTIONS:
             raise UserError(f"--motion {self.motion!r}: choose one of {', '.join(MOTIONS)}")
         if self.objects not in (0, 1, 2):
@@ -100,6 +133,14 @@ class SynthConfig:
             raise UserError(f"--layout {self.layout!r}: choose one of {', '.join(LAYOUTS)}")
         if not 10.0 <= self.fov_deg <= 120.0:
             raise UserError(f"--fov-deg {self.fov_deg}: choose a field of view between 10 and 120 degrees")
+        for flag, value, choices in (
+            ("--rig", self.rig, RIGS),
+            ("--path", self.path, PATHS),
+            ("--texture", self.texture, TEXTURES),
+            ("--camera-order", self.camera_order, CAMERA_ORDERS),
+        ):
+            if value not in choices:
+                raise UserError(f"{flag} {value!r}: choose one of {', '.join(choices)}")
 
 
 @dataclass
@@ -112,6 +153,8 @@ class SynthScene:
         w2cs: ``[N, 4, 4]`` world-to-camera poses (OpenCV).
         static: primitives of the static set (object id 0).
         objects: the moving primitives (object ids 1..).
+        rig_positions: ``[N]`` rig position (0-based, in rig order) of each camera; ``arange(N)`` unless
+            ``cfg.camera_order`` is "shuffled".
     """
 
     cfg: SynthConfig
@@ -119,6 +162,7 @@ class SynthScene:
     w2cs: np.ndarray
     static: list[Primitive]
     objects: list[Primitive]
+    rig_positions: np.ndarray | None = None
 
     @property
     def width(self) -> int:
@@ -141,26 +185,80 @@ class SynthScene:
         return (slow * min(tau, 0.5) + fast * max(tau - 0.5, 0.0)) / total
 
     def object_pose(self, index: int, time: float) -> np.ndarray:
-        """``[4, 4]`` world-from-object transform of moving object ``index`` (0-based) at time ``time``."""
+        """``[4, 4]`` world-from-object transform of moving object ``index`` (0-based) at time ``time``.
+
+        The one source of object motion: rendering, ``gt/objects.json``, :func:`gt_flow` and ``nvls gt-priors``
+        all call it. Rotation follows the phase on every path; the centre follows ``cfg.path``."""
+        if not 0 <= index < len(self.objects):
+            raise IndexError(f"object {index}: the scene has {len(self.objects)} moving objects")
         phi = 2.0 * math.pi * self.phase(time)
         T = np.eye(4)
+        if self.cfg.path != "loop":
+            T[:3, :3] = _object_rotation(index, phi)
+            T[:3, 3] = open_path_point(self.cfg.path, index, _fold(self.phase(time)))
+            return T
         if index == 0:  # the sphere: sweeps left-right-left while bouncing and spinning
-            T[:3, :3] = _axis_angle([0.0, 1.0, 0.3], 3.0 * phi)
+            T[:3, :3] = _object_rotation(index, phi)
             T[:3, 3] = [
                 1.3 * math.sin(phi),
                 FLOOR_Y - 0.45 - 0.35 * abs(math.sin(2 * phi)),
                 3.6 + 0.5 * math.cos(phi),
             ]
-        elif index == 1:  # the box: circles in depth while tumbling
-            T[:3, :3] = _axis_angle([0.0, 1.0, 0.0], 2.0 * phi) @ _axis_angle([1.0, 0.0, 0.0], phi)
+        else:  # the box: circles in depth while tumbling
+            T[:3, :3] = _object_rotation(index, phi)
             T[:3, 3] = [
                 0.9 + 0.8 * math.cos(phi + 1.0),
                 0.1 + 0.3 * math.sin(2 * phi),
                 5.0 + 0.8 * math.sin(phi + 1.0),
             ]
-        else:
-            raise IndexError(f"object {index}: the scene has {len(self.objects)} moving objects")
         return T
+
+
+# Open paths, per object (sphere, box), in world units. Endpoints keep clear of the static boxes and of each
+# other; "enter_leave" starts and ends with the whole object behind a side wall (x = -+3.5), so no camera
+# inside the room sees it at the first and last time step.
+STRAIGHT = (((-1.4, FLOOR_Y - 0.55, 3.0), (1.4, FLOOR_Y - 0.55, 4.2)), ((1.5, -0.1, 5.4), (-0.6, 0.2, 4.6)))
+"""``(start, end)`` of each object's "straight" path."""
+ENTER_LEAVE = (
+    ((-4.1, FLOOR_Y - 0.55, 2.6), (4.1, FLOOR_Y - 0.55, 3.4)),
+    ((4.2, -0.3, 4.2), (-4.2, -0.3, 3.6)),
+)
+"""``(start, end)`` of each object's "enter_leave" path."""
+TURNING = (((0.0, FLOOR_Y - 0.55, 3.4), 1.3, ((-1.0, 0.0, 0.0), (0.0, 0.0, -1.0))),
+           ((0.6, 0.35, 5.0), 0.9, ((1.0, 0.0, 0.0), (0.0, -1.0, 0.0))))  # fmt: skip
+"""``(centre, radius, (a, b))`` of each object's "turning" half circle ``centre + radius (cos(pi s) a +
+sin(pi s) b)``: the sphere swings towards the rig in a horizontal plane, the box arches up in a vertical one."""
+
+
+def open_path_point(path: str, index: int, s: float) -> np.ndarray:
+    """``[3]`` centre of object ``index`` at path parameter ``s`` in [0, 1] of an open path (not "loop").
+
+    Every open path is traversed at constant speed in ``s``: "straight" and "enter_leave" interpolate their
+    endpoints linearly, "turning" runs a half circle at constant angular speed."""
+    if path in ("straight", "enter_leave"):
+        a, b = (np.asarray(p, float) for p in (STRAIGHT if path == "straight" else ENTER_LEAVE)[index])
+        return a + s * (b - a)
+    if path == "turning":
+        centre, radius, (a, b) = TURNING[index]
+        ang = math.pi * s
+        return np.asarray(centre, float) + radius * (
+            math.cos(ang) * np.asarray(a, float) + math.sin(ang) * np.asarray(b, float)
+        )
+    raise ValueError(f"path {path!r} is not an open path")
+
+
+def _fold(phase: float) -> float:
+    """Phase -> open-path parameter: the path is run forth (0..1) and back (1..2) ("fast" runs it twice)."""
+    p = phase % 2.0
+    return p if p <= 1.0 else 2.0 - p
+
+
+def _object_rotation(index: int, phi: float) -> np.ndarray:
+    """``[3, 3]`` world-from-object rotation of object ``index`` at loop angle ``phi`` (the sphere spins, the
+    box tumbles), the same on every path."""
+    if index == 0:
+        return _axis_angle([0.0, 1.0, 0.3], 3.0 * phi)
+    return _axis_angle([0.0, 1.0, 0.0], 2.0 * phi) @ _axis_angle([1.0, 0.0, 0.0], phi)
 
 
 @dataclass
@@ -184,17 +282,31 @@ def _axis_angle(axis, angle: float) -> np.ndarray:
     return cv2.Rodrigues(rvec)[0]
 
 
-def _texture(rng: np.random.Generator, size: int, vivid: bool) -> np.ndarray:
-    """Multi-octave colour noise plus random discs and rectangles: rich corners and blobs for SIFT."""
+SMOOTH_OCTAVES = 2
+"""Noise octaves (of five, coarsest first) a "smooth" texture keeps."""
+
+
+def _texture(rng: np.random.Generator, size: int, vivid: bool, smooth: bool = False) -> np.ndarray:
+    """Multi-octave colour noise plus random discs and rectangles: rich corners and blobs for SIFT.
+
+    ``smooth`` keeps the coarsest :data:`SMOOTH_OCTAVES` octaves (rescaled to the same total amplitude), draws no
+    shapes and makes the stripes sinusoidal. It draws the same random numbers either way, so the later textures
+    of a scene (and its aiming jitter) do not depend on the texture option."""
     tex = np.zeros((size, size, 3), np.float32)
-    for cells, amp in ((4, 0.35), (8, 0.25), (16, 0.2), (32, 0.12), (64, 0.08)):
+    octaves = ((4, 0.35), (8, 0.25), (16, 0.2), (32, 0.12), (64, 0.08))
+    for k, (cells, amp) in enumerate(octaves):
         grid = rng.random((cells, cells, 3)).astype(np.float32)
+        if smooth and k >= SMOOTH_OCTAVES:
+            continue
         tex += amp * cv2.resize(grid, (size, size), interpolation=cv2.INTER_CUBIC)
+    if smooth:
+        tex *= np.float32(sum(a for _, a in octaves) / sum(a for _, a in octaves[:SMOOTH_OCTAVES]))
     tex = np.clip(tex, 0, 1)
     if vivid:
         # Moving objects: saturated stripes so they stand apart from the earthy static set.
         hue = rng.random(3)
-        stripes = (np.sin(np.arange(size) * 2 * np.pi / (size / 6))[None, :] > 0).astype(np.float32)
+        wave = np.sin(np.arange(size) * 2 * np.pi / (size / 6))[None, :]
+        stripes = (0.5 + 0.5 * wave if smooth else wave > 0).astype(np.float32)
         tex = 0.5 * tex + 0.5 * (
             stripes[..., None] * hue[None, None, :] + (1 - stripes[..., None]) * hue[::-1]
         )
@@ -204,7 +316,10 @@ def _texture(rng: np.random.Generator, size: int, vivid: bool) -> np.ndarray:
         col = tuple(int(x) for x in rng.integers(0, 256, 3))
         x, y = (int(v) for v in rng.integers(0, size, 2))
         r = int(rng.integers(size // 64 + 2, size // 12 + 3))
-        if rng.random() < 0.5:
+        disc = rng.random() < 0.5
+        if smooth:
+            continue
+        if disc:
             cv2.circle(img, (x, y), r, col, -1, lineType=cv2.LINE_AA)
         else:
             cv2.rectangle(img, (x - r, y - r // 2), (x + r, y + r), col, -1, lineType=cv2.LINE_AA)
@@ -225,32 +340,55 @@ def _look_at(centre: np.ndarray, target: np.ndarray) -> np.ndarray:
     return w2c
 
 
-def _rig(cfg: SynthConfig, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
-    """Intrinsics and poses of a two-row rig on a gentle arc centred on the scene."""
+def _rig(cfg: SynthConfig, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Intrinsics, poses and rig positions of the cameras of ``cfg.rig`` (see :data:`RIGS`), ids in
+    ``cfg.camera_order``."""
     n = cfg.cameras
-    per_row = math.ceil(n / 2)
     f = 0.5 * cfg.width / math.tan(math.radians(cfg.fov_deg) / 2)
     K = np.array([[f, 0, (cfg.width - 1) / 2], [0, f, (cfg.height - 1) / 2], [0, 0, 1.0]])
-    target = np.array([0.0, 0.2, 4.0])
-    radius = 4.0
-    half_angle = math.asin(min(0.99, cfg.rig_width / 2 / radius))
-    Ks, w2cs = [], []
+    target = np.array(SCENE_CENTRE)
+    radius = RIG_RADIUS
+    # Drawn for every rig (used by "rows" only), so the textures drawn next are the same on every rig.
+    jitter = [rng.normal(0.0, 0.05, 3) for _ in range(n)]  # real rigs are never aimed perfectly
+    w2cs = []
     for i in range(n):
-        row, col = divmod(i, per_row)
-        ncol = per_row if row == 0 else n - per_row
-        a = 0.0 if ncol == 1 else -half_angle + 2 * half_angle * col / (ncol - 1)
-        centre = np.array([radius * math.sin(a), -0.12 + 0.24 * row, target[2] - radius * math.cos(a)])
-        aim = target + rng.normal(0.0, 0.05, 3)  # real rigs are never aimed perfectly
-        Ks.append(K.copy())
-        w2cs.append(_look_at(centre, aim))
-    return np.stack(Ks), np.stack(w2cs)
+        if cfg.rig == "rows":
+            per_row = math.ceil(n / 2)
+            half_angle = math.asin(min(0.99, cfg.rig_width / 2 / radius))
+            row, col = divmod(i, per_row)
+            ncol = per_row if row == 0 else n - per_row
+            a = 0.0 if ncol == 1 else -half_angle + 2 * half_angle * col / (ncol - 1)
+            centre = np.array([radius * math.sin(a), -0.12 + 0.24 * row, target[2] - radius * math.cos(a)])
+            w2cs.append(_look_at(centre, target + jitter[i]))
+        elif cfg.rig == "row":  # exactly parallel optical axes along +z (rotation = identity)
+            centre = np.array([-cfg.rig_width / 2 + cfg.rig_width * i / (n - 1), 0.0, target[2] - radius])
+            w2cs.append(_look_at(centre, centre + np.array([0.0, 0.0, 1.0])))
+        else:  # arc: exactly aimed at the centre, so the optical axes meet there
+            a = math.radians(ARC_HALF_DEG) * (2 * i / (n - 1) - 1)
+            centre = np.array([radius * math.sin(a), target[1], target[2] - radius * math.cos(a)])
+            w2cs.append(_look_at(centre, target))
+    positions = _camera_positions(n, cfg.camera_order, cfg.seed)
+    return np.stack([K.copy() for _ in range(n)]), np.stack(w2cs)[positions], positions
+
+
+def _camera_positions(n: int, order: str, seed: int) -> np.ndarray:
+    """``[n]`` rig position of each camera id (0-based): identity, or a seeded permutation that is not one."""
+    if order == "spatial":
+        return np.arange(n)
+    # Its own generator: shuffling must not change the textures or the aiming drawn from the scene's.
+    rng = np.random.default_rng([seed, 0x5EED])
+    while True:
+        perm = rng.permutation(n)
+        if np.any(perm != np.arange(n)):
+            return perm
 
 
 def make_scene(cfg: SynthConfig) -> SynthScene:
     """Build the scene description (textures, rig, objects) for ``cfg``; deterministic in ``cfg.seed``."""
     cfg.check()
     rng = np.random.default_rng(cfg.seed)
-    Ks, w2cs = _rig(cfg, rng)
+    Ks, w2cs, positions = _rig(cfg, rng)
+    smooth = cfg.texture == "smooth"
     tpu = 64.0  # texels per world unit: about one texel per pixel at 480 px width on the back wall
 
     def plane(origin, u_axis, v_axis, size_u, size_v) -> Primitive:
@@ -260,7 +398,7 @@ def make_scene(cfg: SynthConfig) -> SynthScene:
         return Primitive(
             "plane",
             np.array([size_u, size_v, 0.0]),
-            _texture(rng, 512, False),
+            _texture(rng, 512, False, smooth),
             tpu,
             0,
             R,
@@ -280,7 +418,7 @@ def make_scene(cfg: SynthConfig) -> SynthScene:
             Primitive(
                 "box",
                 np.full(3, half),
-                _texture(rng, 256, False),
+                _texture(rng, 256, False, smooth),
                 tpu,
                 0,
                 np.eye(3),
@@ -289,10 +427,10 @@ def make_scene(cfg: SynthConfig) -> SynthScene:
         )
     objects = []
     if cfg.objects >= 1:
-        objects.append(Primitive("sphere", np.array([0.45, 0, 0]), _texture(rng, 256, True), tpu, 1))
+        objects.append(Primitive("sphere", np.array([0.45, 0, 0]), _texture(rng, 256, True, smooth), tpu, 1))
     if cfg.objects >= 2:
-        objects.append(Primitive("box", np.full(3, 0.3), _texture(rng, 256, True), tpu, 2))
-    return SynthScene(cfg, Ks, w2cs, static, objects)
+        objects.append(Primitive("box", np.full(3, 0.3), _texture(rng, 256, True, smooth), tpu, 2))
+    return SynthScene(cfg, Ks, w2cs, static, objects, positions)
 
 
 def pixel_rays(K: np.ndarray, w2c: np.ndarray, pix: np.ndarray):
@@ -555,7 +693,14 @@ def _write_gt(gt: Path, scene, cfg: SynthConfig, bounds: np.ndarray) -> None:
     gt.mkdir(parents=True, exist_ok=True)
     np.save(gt / "poses_bounds.npy", llff.opencv_to_llff(scene.w2cs, scene.Ks, cfg.height, cfg.width, bounds))
     cams = [
-        {"id": i + 1, "K": scene.Ks[i], "w2c": scene.w2cs[i], "near": bounds[i, 0], "far": bounds[i, 1]}
+        {
+            "id": i + 1,
+            "K": scene.Ks[i],
+            "w2c": scene.w2cs[i],
+            "near": bounds[i, 0],
+            "far": bounds[i, 1],
+            "rig_position": int(scene.rig_positions[i]),
+        }
         for i in range(n)
     ]
     atomic_write_json(
