@@ -78,60 +78,33 @@ app.command("build", help="Turn one raw scene into an NVIDIA-LS scene folder OUT
 )
 
 
-@app.command(
-    help="Write a synthetic raw rig scene with ground-truth poses, masks (and depth) under OUT_DIR/gt."
-)
+def _synth_options():
+    """``nvls synth``'s options: every field of :class:`~nvidia_ls.synth.SynthConfig`, with its default and help."""
+    from nvidia_ls.synth import SynthConfig
+
+    return SynthConfig, config_options(SynthConfig)
+
+
 def synth(
     out_dir: Path = typer.Argument(..., help="Scene folder to create."),
-    cameras: int = typer.Option(12, help="Rig cameras (two rows for --rig rows, else one row)."),
-    steps: int = typer.Option(30, help="Time steps."),
-    width: int = typer.Option(320, help="Image width."),
-    height: int = typer.Option(180, help="Image height."),
-    seed: int = typer.Option(0, help="Texture and aiming seed."),
-    motion: str = typer.Option(
-        "constant", help="Motion profile: constant | slow_fast | near_static | slow | fast."
-    ),
-    objects: int = typer.Option(2, help="Moving objects: 0, 1 or 2."),
-    depth: bool = typer.Option(False, "--depth", help="Also write gt/depth/%05d/cam%02d.npy (float32)."),
-    layout: str = typer.Option("multiview", help="Raw layout: multiview | camera_folders | videos."),
-    image_ext: str = typer.Option("png", help="Raw image format: png | jpg."),
-    supersample: int = typer.Option(2, help="Anti-aliasing rays per pixel along each axis."),
-    # The scene-family options default to None = SynthConfig's value, so their defaults live in one place.
-    rig: str | None = typer.Option(
-        None, help="Rig layout: rows (two rows on a gentle arc; default) | row (parallel, as NVIDIA's) | arc."
-    ),
-    path: str | None = typer.Option(
-        None, help="Object paths: loop (default) | straight | turning | enter_leave."
-    ),
-    texture: str | None = typer.Option(None, help="Textures: fine (default) | smooth (low frequencies)."),
-    camera_order: str | None = typer.Option(
-        None, help="Camera ids: spatial (follow the rig; default) | shuffled (permuted by --seed)."
-    ),
     force: bool = typer.Option(False, "--force", help="Replace an existing folder."),
+    cfg=None,  # the SynthConfig made from the generated options (ConfigCommand)
 ) -> None:
-    from nvidia_ls.synth import SynthConfig, write_raw_scene
+    from nvidia_ls.synth import write_raw_scene
 
-    family = {"rig": rig, "path": path, "texture": texture, "camera_order": camera_order}
-    cfg = SynthConfig(
-        **{k: v for k, v in family.items() if v is not None},
-        cameras=cameras,
-        steps=steps,
-        width=width,
-        height=height,
-        seed=seed,
-        motion=motion,
-        objects=objects,
-        depth=depth,
-        layout=layout,
-        image_ext=image_ext,
-        supersample=supersample,
-    )
     console = _console()
     with console.status("rendering") as status:
         path = write_raw_scene(
             out_dir, cfg, force=force, progress=lambda d, n: status.update(f"rendering camera {d}/{n}")
         )
     console.print(f"wrote {path}", highlight=False)
+
+
+# Options generated from SynthConfig like build's (one source of defaults and help).
+app.command(
+    "synth",
+    help="Write a synthetic raw rig scene with ground-truth poses, masks (and depth) under OUT_DIR/gt.",
+)(ConfigCommand(synth, _synth_options))
 
 
 @app.command(

@@ -68,10 +68,11 @@ SYNTH_MARKERS = ("gt/cameras.json",)
 
 @dataclass
 class SynthConfig:
-    """Configuration of a synthetic raw scene (one source of defaults; also the ``nvls synth`` options)."""
+    """Configuration of a synthetic raw scene (one source of defaults; also the ``nvls synth`` options: each field
+    is ``--field-name`` with the string under it as its help)."""
 
     cameras: int = 12
-    """Number of rig cameras: two rows for rig "rows" (first row cam01.., left to right), one row otherwise."""
+    """Rig cameras: two rows for --rig rows (first row cam01.., left to right), one row otherwise."""
     steps: int = 30
     """Number of time steps rendered."""
     width: int = 320
@@ -79,38 +80,37 @@ class SynthConfig:
     height: int = 180
     """Image height in pixels."""
     seed: int = 0
-    """Seed of textures and of the small per-camera aiming jitter."""
+    """Seed of textures, of the small per-camera aiming jitter and of --camera-order shuffled."""
     motion: str = "constant"
-    """Motion profile (:data:`MOTIONS`): "constant", "slow_fast" (first half 4x slower than the second half),
-    "near_static", "slow" or "fast"."""
+    """Speed profile along the path: constant | slow_fast (first half 4x slower than the second) | near_static
+    (2% of a loop) | slow (a quarter) | fast (two loops; an open path is run forth and back)."""
     objects: int = 2
-    """Number of moving objects (1: a sphere; 2: a sphere and a box)."""
+    """Moving objects: 0, 1 (a sphere) or 2 (a sphere and a box)."""
     supersample: int = 2
     """Anti-aliasing: rays per pixel along each axis for the colour images (depth/masks use pixel centres)."""
     depth: bool = False
     """Also write ground-truth z-depth maps (float32 .npy, world units) for every camera and time."""
     image_ext: str = "png"
-    """Raw image format: "png" (lossless) or "jpg"."""
+    """Raw image format: png (lossless) | jpg."""
     layout: str = "multiview"
-    """Raw layout: "multiview" (mv_images/%05d/cam%02d), "camera_folders" (cam%02d/%05d) or "videos"."""
+    """Raw layout: multiview (mv_images/%05d/cam%02d) | camera_folders (cam%02d/%05d) | videos."""
     fov_deg: float = 60.0
     """Horizontal field of view of every camera (degrees)."""
     rig_width: float = 1.6
-    """Distance between the outermost cameras of a row (world units; rigs "rows" and "row")."""
+    """Distance between the outermost cameras of a row (world units; --rig rows and row)."""
     fps: float = 30.0
-    """Frame rate of the videos written for layout "videos"."""
+    """Frame rate of the videos written for --layout videos."""
     rig: str = "rows"
-    """Rig layout (:data:`RIGS`): "rows" (two rows on a gentle arc), "row" (one straight row looking along
-    +z in parallel, as the NVIDIA rig) or "arc" (one row on a +-40 degree arc, aimed at the scene centre)."""
+    """Rig layout: rows (two rows on a gentle arc) | row (one straight row looking along +z in parallel, as the
+    NVIDIA rig) | arc (one row on a +-40 degree arc around the scene centre, aimed at it)."""
     path: str = "loop"
-    """Object paths (:data:`PATHS`): "loop", "straight" (constant velocity), "turning" (half circle at
-    constant speed) or "enter_leave" (crossing from behind one side wall to behind the other)."""
+    """Object paths: loop (closed loops) | straight (constant velocity) | turning (a half circle at constant
+    speed) | enter_leave (across the room, from behind one side wall to behind the other)."""
     texture: str = "fine"
-    """Textures (:data:`TEXTURES`): "fine" (multi-octave noise and small shapes) or "smooth" (low
-    frequencies only)."""
+    """Textures: fine (multi-octave noise and small shapes) | smooth (low frequencies only)."""
     camera_order: str = "spatial"
-    """Camera ids (:data:`CAMERA_ORDERS`): "spatial" (ids follow rig positions) or "shuffled" (positions
-    permuted by the seed, so consecutive ids jump across the rig)."""
+    """Camera ids: spatial (ids follow the rig positions) | shuffled (positions permuted by --seed, so
+    consecutive ids jump across the rig)."""
 
     def check(self) -> None:
         """Raise :class:`UserError` for values the generator cannot honour."""

@@ -6,6 +6,8 @@ from __future__ import annotations
 import hashlib
 import json
 import math
+import subprocess
+import sys
 
 import cv2
 import numpy as np
@@ -260,19 +262,23 @@ def test_cli_options_reach_the_config_and_default_to_it(monkeypatch, tmp_path):
     runner = CliRunner()
     res = runner.invoke(app, ["synth", str(tmp_path / "a")])
     assert res.exit_code == 0, res.output
-    d = SynthConfig()
-    assert (got[-1].rig, got[-1].path, got[-1].texture, got[-1].camera_order) == (
-        d.rig, d.path, d.texture, d.camera_order
-    )  # fmt: skip
+    assert got[-1] == SynthConfig()  # every default comes from the dataclass
     args = ["--rig", "arc", "--path", "enter_leave", "--texture", "smooth", "--camera-order", "shuffled"]
-    res = runner.invoke(app, ["synth", str(tmp_path / "b"), *args])
+    res = runner.invoke(app, ["synth", str(tmp_path / "b"), *args, "--steps", "7"])
     assert res.exit_code == 0, res.output
-    assert (got[-1].rig, got[-1].path, got[-1].texture, got[-1].camera_order) == (
-        "arc", "enter_leave", "smooth", "shuffled"
-    )  # fmt: skip
+    assert got[-1] == SynthConfig(
+        rig="arc", path="enter_leave", texture="smooth", camera_order="shuffled", steps=7
+    )
     help_text = " ".join(runner.invoke(app, ["synth", "--help"], terminal_width=200).output.split())
     for choice in RIGS + PATHS + TEXTURES + CAMERA_ORDERS:
         assert choice in help_text
+    # A bad value is refused in one line before anything is written (the real writer, in a real process).
+    r = subprocess.run(
+        [sys.executable, "-m", "nvidia_ls.cli", "synth", str(tmp_path / "c"), "--rig", "ring"],
+        capture_output=True, text=True, timeout=120,
+    )  # fmt: skip
+    assert r.returncode == 2 and r.stderr.strip().startswith("error: --rig 'ring'"), r.stderr
+    assert len(r.stderr.strip().splitlines()) == 1 and not (tmp_path / "c").exists()
 
 
 # ------------------------------------------------------------------------------------------------ ground truth
