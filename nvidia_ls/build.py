@@ -30,6 +30,7 @@ from worldtree import __version__
 from worldtree.atomic import atomic_dir, atomic_write_bytes, atomic_write_json, remove_stale_partials
 from worldtree.errors import UserError
 from worldtree.folder_lock import FolderLock, lock_paths
+from worldtree.imageio import check_pixels
 from worldtree.losses import SSIM_WINDOW
 from worldtree.output_paths import (
     check_name,
@@ -119,6 +120,9 @@ def parse_size(text: str | None) -> tuple[int, int] | None:
         w, h = (int(v) for v in text.lower().split("x"))
     except ValueError:
         raise UserError(f"--size {text!r}: expected WxH, e.g. 480x270") from None
+    if w < 1 or h < 1:
+        raise UserError(f"--size {text}: width and height must be positive, e.g. 480x270")
+    check_pixels(w, h, f"--size {text}")  # before any image is read or resized to it
     return w, h
 
 

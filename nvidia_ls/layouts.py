@@ -19,7 +19,7 @@ import cv2
 import numpy as np
 
 from worldtree.errors import UserError
-from worldtree.imageio import IMAGE_SUFFIXES, read_image
+from worldtree.imageio import IMAGE_SUFFIXES, check_pixels, read_image
 
 VIDEO_SUFFIXES = (".mp4", ".mov", ".avi", ".mkv")
 _CAM_RE = re.compile(r"^cam(\d+)$", re.IGNORECASE)
@@ -228,6 +228,7 @@ def _open_videos(raw: Path, videos: dict[int, Path], num_cameras: int | None) ->
             cap.release()
         if n <= 0:
             raise UserError(f"{videos[c]}: the video has no frames (unreadable or truncated); replace it")
+        check_pixels(w, h, str(videos[c]))  # before any frame is decoded
         if size is None:
             size = (w, h)
         elif (w, h) != size:

@@ -7,6 +7,8 @@ which is what the NVIDIA-LS evaluation code does by reading only the colour chan
 
 from __future__ import annotations
 
+import os
+import struct
 from pathlib import Path
 
 import cv2
@@ -16,12 +18,99 @@ from worldtree.atomic import atomic_write_bytes
 from worldtree.errors import UserError
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
+# The largest image (file read, or output size asked for) in megapixels, and the variable that raises it.
+# A 20000x20000 PNG is 1.2 MB on disk but 1.2 GB decoded and ~10 GB once scored in float: refuse it up front.
+DEFAULT_MAX_MEGAPIXELS = 100
+MAX_MEGAPIXELS_ENV = "WTBENCH_MAX_MEGAPIXELS"
+
+
+def max_pixels() -> int:
+    """The image size limit in pixels: ``$WTBENCH_MAX_MEGAPIXELS`` (default 100) million."""
+    raw = os.environ.get(MAX_MEGAPIXELS_ENV, "").strip()
+    if not raw:
+        return DEFAULT_MAX_MEGAPIXELS * 1_000_000
+    try:
+        mp = float(raw)
+    except ValueError:
+        mp = float("nan")
+    if not (mp > 0 and mp < 1e7):  # also refuses NaN
+        raise UserError(f"${MAX_MEGAPIXELS_ENV}={raw!r}: give a positive number of megapixels, e.g. 400")
+    return int(mp * 1_000_000)
+
+
+def check_pixels(width: int, height: int, what: str) -> None:
+    """Refuse an image of ``width`` x ``height`` over :func:`max_pixels` (``what`` names the file or option),
+    in one line naming the limit and how to raise it."""
+    limit = max_pixels()
+    if width * height > limit:
+        raise UserError(
+            f"{what}: {width}x{height} is {_megapixels(width * height)} megapixels, over the {limit / 1e6:g}-megapixel "
+            f"limit; set {MAX_MEGAPIXELS_ENV}={-(-width * height // 1_000_000)} to allow it (if the memory is "
+            "there) or use smaller images"
+        )
+
+
+def _megapixels(pixels: int) -> str:
+    mp = pixels / 1e6
+    return f"{mp:.0f}" if mp >= 10 else f"{mp:.2g}"
+
+
+def image_size(data: bytes | np.ndarray) -> tuple[int, int] | None:
+    """(width, height) of an encoded PNG, JPEG or BMP image from its header alone (nothing is decoded);
+    None for another format or a header too damaged to read."""
+    b = data.tobytes() if isinstance(data, np.ndarray) else bytes(data)
+    if b[:8] == b"\x89PNG\r\n\x1a\n" and len(b) >= 24 and b[12:16] == b"IHDR":
+        return struct.unpack(">II", b[16:24])
+    if b[:2] == b"BM" and len(b) >= 26:
+        w, h = struct.unpack("<ii", b[18:26])
+        return abs(w), abs(h)  # a negative height means a top-down bitmap
+    if b[:2] == b"\xff\xd8":
+        return _jpeg_size(b)
+    return None
+
+
+# JPEG start-of-frame markers (every SOFn except DHT C4, JPG C8 and DAC CC): they hold the frame size.
+_SOF = {0xC0, 0xC1, 0xC2, 0xC3, 0xC5, 0xC6, 0xC7, 0xC9, 0xCA, 0xCB, 0xCD, 0xCE, 0xCF}
+
+
+def _jpeg_size(b: bytes) -> tuple[int, int] | None:
+    i = 2
+    while i + 4 <= len(b):
+        if b[i] != 0xFF:
+            return None
+        marker = b[i + 1]
+        if marker == 0xFF:  # fill byte
+            i += 1
+            continue
+        if marker in (0x01, *range(0xD0, 0xD9)):  # markers without a length
+            i += 2
+            continue
+        (length,) = struct.unpack(">H", b[i + 2 : i + 4])
+        if marker in _SOF:
+            if i + 9 > len(b):
+                return None
+            h, w = struct.unpack(">HH", b[i + 5 : i + 9])
+            return w, h
+        if marker == 0xDA:  # start of scan before any frame header
+            return None
+        i += 2 + length
+    return None
 
 
 def _imread(path: Path) -> np.ndarray:
     if not path.is_file():
         raise UserError(f"{path}: no such image file")
     data = np.fromfile(str(path), dtype=np.uint8)
+    if data.size:
+        # Size from the header before decoding: a small file can decode to gigabytes. A file whose size the
+        # header does not give is not decoded either (another format could hide any size).
+        size = image_size(data)
+        if size is None:
+            raise UserError(
+                f"{path}: cannot decode image (not a PNG, JPEG or BMP file, or its header is unreadable or "
+                "truncated); replace or remove it"
+            )
+        check_pixels(*size, str(path))
     img = cv2.imdecode(data, cv2.IMREAD_UNCHANGED) if data.size else None
     if img is None:
         raise UserError(f"{path}: cannot decode image (unreadable or truncated file); replace or remove it")
