@@ -28,6 +28,7 @@ the parent renders the frames of a child left out.
 from __future__ import annotations
 
 import dataclasses
+import json
 import math
 import tempfile
 import time
@@ -55,7 +56,8 @@ from worldtree.budget import BudgetConfig, inherited_prune_due, negligible
 from worldtree.config_json import read_config, write_config
 from worldtree.dynamic import gaussians_at
 from worldtree.errors import UserError
-from worldtree.gaussians import inverse_sigmoid
+from worldtree.gaussians import GaussianSet, inverse_sigmoid
+from worldtree.optim import GroupedAdam, ScaledLR
 from worldtree.plateau import PlateauRule
 from worldtree.render import rasterize
 from worldtree.stages.photometric import PhotometricConfig, PhotometricFit
@@ -77,6 +79,7 @@ from worldtree.tree.sac import (
 )
 from worldtree.tree.split import SPLIT_STRATEGIES, ProfileAccumulator, flow_profile
 from worldtree.tree.tpt import Interval, TemporalPartitionTree, depth_of
+from worldtree.tree.validate import HoldoutConfig, Verdict, holdout_frames, keep_child
 
 __all__ = ["ABLATIONS", "NodeFit", "NodeTrainConfig", "WorldTreeConfig", "WorldTreeMethod", "train_node"]
 
@@ -123,6 +126,14 @@ class WorldTreeConfig(BaseConfig):
     """Inherited dynamic opacities are reset to at most this."""
     ancestors_optimised: int = AncestorPolicy.optimised_nearest
     """The nearest this many ancestors train with a node; deeper ones are frozen."""
+    node_static_lr: float = 1.0
+    """Learning rates of a child node's copy of the static background, as a fraction of the root's (0: every
+    node renders the background the root fitted from all frames, unchanged)."""
+    ancestor_lr: float = 1.0
+    """Learning rates of the optimised ancestors, as a fraction of the root's initial ones (constant)."""
+    holdout: HoldoutConfig = field(default_factory=HoldoutConfig)
+    """Held-out validation of each child (:mod:`worldtree.tree.validate`): some of its frames are kept from
+    its training and it is kept only where it draws them better than its parent."""
 
     @classmethod
     def ablation_names(cls) -> tuple[str, ...]:
@@ -168,6 +179,13 @@ class WorldTreeConfig(BaseConfig):
         """Photometric steps of a node at ``depth`` (>= 1)."""
         return self.layer_steps[min(depth, len(self.layer_steps)) - 1]
 
+    def holdout_on(self) -> bool:
+        """Whether children are validated on held-out frames (``holdout.enabled``; None: with ``--depth
+        auto``). Never under ``ablate sac``: a child without ancestors has no parent render to compare with."""
+        if "sac" in self.ablate:
+            return False
+        return self.auto_depth if self.holdout.enabled is None else bool(self.holdout.enabled)
+
     def node_steps_per_frame_on(self) -> bool:
         """Whether children's steps follow their frame count (``node_steps_per_frame``)."""
         return self.auto_depth if self.node_steps_per_frame is None else bool(self.node_steps_per_frame)
@@ -184,7 +202,8 @@ class WorldTreeConfig(BaseConfig):
         if self.tree_depth == 0:
             why = "no tree grows (depth 0 or --ablate tpt)"
             tree = ("chain_length", "split", "layer_steps", "min_len", "inherit_caps", "inherit_opacity",
-                    "ancestors_optimised", "max_workers", "sequential", "node_steps_per_frame")  # fmt: skip
+                    "ancestors_optimised", "max_workers", "sequential", "node_steps_per_frame", "node_static_lr",
+                    "ancestor_lr")  # fmt: skip
             out.update({k: why for k in tree})
         return out
 
@@ -231,6 +250,12 @@ class NodeTrainConfig:
     """Opacity cap applied to the inherited dynamic Gaussians after the contribution pruning (budget on)."""
     early_stop: PlateauRule | None = None
     """Stop the node at a loss plateau (None: run ``steps_at(depth)``)."""
+    node_static_lr: float = 1.0
+    """Static learning rates of a node as a fraction of the root's (0: the root's background, frozen)."""
+    ancestor_lr: float = 1.0
+    """The optimised ancestors' constant learning rates as a fraction of the root's initial ones."""
+    holdout: HoldoutConfig | None = None
+    """Held-out validation of the node (None: off)."""
     steps_per_frame: float | None = None
     """The root's steps per training frame: a node of ``n`` frames trains at most ``ceil(steps_per_frame *
     n)`` steps (None: ``steps_at(depth)`` whatever its length)."""
@@ -257,10 +282,15 @@ class NodeFit(PhotometricFit):
     A per-frame position-gradient profile of the node's dynamic Gaussians is gathered for the gradient split.
     """
 
-    def __init__(self, *args, t0: int, chain: list[AncestorCopy], policy: AncestorPolicy, **kwargs):
+    def __init__(self, *args, t0: int, chain: list[AncestorCopy], policy: AncestorPolicy,
+                 static_lr: float = 1.0, ancestor_lr: float = 1.0, holdout: tuple[int, ...] = (),
+                 **kwargs):  # fmt: skip
+        self.holdout = frozenset(int(i) for i in holdout)
         self.t0 = int(t0)
         self.chain = chain
         self.policy = policy
+        self.static_lr = float(static_lr)
+        self.ancestor_lr = float(ancestor_lr)
         super().__init__(*args, **kwargs)
         self.profile = ProfileAccumulator(self.T)
         self._frame = 0
@@ -279,10 +309,19 @@ class NodeFit(PhotometricFit):
             "scaffold.quat": c.lr_node_quat,
             "scaffold.sigma_logit": c.lr_node_sigma,
         }
+        lrs = {k: v * self.ancestor_lr for k, v in lrs.items()}
         for a in self.chain:
             a.apply_policy(self.policy)
             a.refresh_cache()
         self.anc_opt = ancestor_optimizer(self.chain, self.policy, lrs)
+
+    def _build_optimizers(self) -> None:
+        super()._build_optimizers()
+        if self.static_lr != 1.0:
+            # The node's copy of the background trains at a fraction of the root's rates (0: kept as the root
+            # fitted it from every frame; a node sees a few cameras only and would over-fit them).
+            st = {k: ScaledLR(v, self.static_lr) for k, v in self._gauss_schedules(self.static).items()}
+            self.static_opt = GroupedAdam({k: self.static.params[k] for k in st}, st)
 
     def gaussians_at(self, t: int, cache=None):
         """Static + own dynamic at node-local frame ``t``, then the ancestors at global ``t0 + t``."""
@@ -300,8 +339,21 @@ class NodeFit(PhotometricFit):
         return self.gaussians_at(j)[0]
 
     def _next_frame(self) -> int:
-        self._frame = super()._next_frame()
+        if not self.holdout:
+            self._frame = super()._next_frame()
+            return self._frame
+        if not self.queue:  # one pass over the training frames, the held-out ones left out
+            perm = torch.randperm(self.T, generator=self.order).tolist()
+            self.queue = [i for i in perm if i not in self.holdout]
+        self._frame = self.queue.pop()
         return self._frame
+
+    @torch.no_grad()
+    def render_frame(self, i: int, gaussians=None) -> torch.Tensor:
+        """``[H, W, 3]`` render of node-local frame ``i`` from its camera (``gaussians``: another render list,
+        e.g. the parent's)."""
+        H, W = self.images.shape[1:3]
+        return self.render(self.Ks[i], self.cameras_detached(i), W, H, i, gaussians=gaussians).rgb.clamp(0, 1)
 
     def optimizer_step(self, step: int, out) -> dict[str, float]:
         g = self.dynamic.params["means"].grad if len(self.dynamic) else None
@@ -388,7 +440,7 @@ def _node_photometric(cfg: NodeTrainConfig, steps: int) -> PhotometricConfig:
 
 
 def _node_fit(state: NodeState, pcfg: PhotometricConfig, data: dict, cfg: NodeTrainConfig, seed: int,
-              with_tracks: bool = True) -> NodeFit:  # fmt: skip
+              with_tracks: bool = True, holdout: tuple[int, ...] = ()) -> NodeFit:  # fmt: skip
     """The photometric fit of ``state`` on its own frames of the run's context ``data``."""
     iv = state.interval
     sl = slice(iv.start, iv.end + 1)
@@ -397,6 +449,7 @@ def _node_fit(state: NodeState, pcfg: PhotometricConfig, data: dict, cfg: NodeTr
     return NodeFit(
         pcfg, data["images"][sl], data["depth"][sl], data["Ks"][sl], state.w2cs, state.static, state.dynamic,
         state.scaffold, tracks, vis, cfg.extent, seed=seed, t0=iv.start, chain=state.chain, policy=cfg.policy,
+        static_lr=cfg.node_static_lr, ancestor_lr=cfg.ancestor_lr, holdout=holdout,
     )  # fmt: skip
 
 
@@ -410,6 +463,42 @@ def _prune_inherited(state: NodeState, pcfg: PhotometricConfig, data: dict, cfg:
     with torch.no_grad():
         state.dynamic.params["opacity_logits"].clamp_(max=cap)
     return counts
+
+
+def _parent_view(state: NodeState):
+    """``at(t_global)``: the render list of the node's parent as it is now (before the node trains): the
+    static copy and the ancestor chain, snapshotted (training the node changes its copies)."""
+    static = GaussianSet({k: v.detach().clone() for k, v in state.static.params.items()})
+    chain = [a.copy() for a in state.chain]
+
+    def at(t_global: int):
+        anc = chain_gaussians_at(chain, int(t_global))
+        own = (static.means, static.quats, static.log_scales, static.opacities, static.colors)
+        parts = [own] if anc is None else [own, anc]
+        return tuple(torch.cat(xs) for xs in zip(*parts, strict=True))
+
+    return at
+
+
+def _holdout_record(path: Path) -> dict:
+    return json.loads(path.read_text())
+
+
+def _validate(fit: NodeFit, parent_at, hold: list[int], hcfg: HoldoutConfig, record: Path,
+              summary: TrainSummary) -> Verdict:  # fmt: skip
+    """The node's verdict on its held-out frames against its parent (:func:`keep_child`). Written to
+    ``record`` once with the step it was taken at, so a node resumed after it (while refitting on every frame)
+    reuses it instead of judging a model that has seen the held-out frames."""
+    if record.exists():
+        d = _holdout_record(record)
+        return Verdict(**{k: d[k] for k in Verdict.__dataclass_fields__})
+    with torch.no_grad():
+        child = [fit.render_frame(i) for i in hold]
+        parent = [fit.render_frame(i, parent_at(fit.t0 + i)) for i in hold]
+    target = [fit.images[i] for i in hold]
+    verdict = keep_child(child, parent, target, hold, hcfg.margin)
+    atomic_write_json(record, {**verdict.to_dict(), "end_step": summary.end_step})
+    return verdict
 
 
 def train_node(payload: dict, ctx: NodeContext) -> dict:
@@ -429,19 +518,35 @@ def train_node(payload: dict, ctx: NodeContext) -> dict:
     adaptive: dict[str, Any] = {}
     if cfg.budget is not None:
         adaptive["inherit_prune"] = _prune_inherited(state, pcfg, data, cfg, ctx.seed)
-    fit = _node_fit(state, pcfg, data, cfg, ctx.seed)
+    hold = holdout_frames(iv.length, cfg.holdout.frac) if cfg.holdout is not None and state.chain else []
+    parent_at = _parent_view(state) if hold else None
+    fit = _node_fit(state, pcfg, data, cfg, ctx.seed, holdout=tuple(hold))
     stop = cfg.early_stop.detector(iv.length) if cfg.early_stop is not None else None
-    summary = Trainer(
-        TrainerConfig(steps=steps, checkpoint_every=cfg.checkpoint_every, log_every=cfg.log_every),
-        fit,
-        checkpoint_dir=Path(ctx.folder) / "checkpoints",
-        generators={"frame_order": fit.order},
-        progress=False,
-        description=f"node {state.index}",
-        stop=stop,
-    ).fit(resume=True)
+
+    def train(total: int, rule) -> TrainSummary:
+        return Trainer(
+            TrainerConfig(steps=total, checkpoint_every=cfg.checkpoint_every, log_every=cfg.log_every),
+            fit,
+            checkpoint_dir=Path(ctx.folder) / "checkpoints",
+            generators={"frame_order": fit.order},
+            progress=False,
+            description=f"node {state.index}",
+            stop=rule,
+        ).fit(resume=True)
+
+    summary = train(steps, stop)
     if stop is not None:
         adaptive["early_stop"] = stop.report()
+    verdict, refit_steps = None, 0
+    if hold:
+        verdict = _validate(fit, parent_at, hold, cfg.holdout, Path(ctx.folder) / "holdout.json", summary)
+        if verdict.keep and cfg.holdout.refit:
+            # The kept child now also trains on the frames it was judged on (at the schedule's final rates).
+            fit.holdout = frozenset()
+            fit.queue = []
+            judged = int(_holdout_record(Path(ctx.folder) / "holdout.json")["end_step"])
+            refit_steps = math.ceil(judged * cfg.holdout.frac)
+            summary = train(judged + refit_steps, None)
     if cfg.budget is not None:
         # Inherited dynamic Gaussians (opacity reset) are pruned only once they had steps to recover.
         due = inherited_prune_due(summary.end_step, fit.T, cfg.budget)
@@ -467,6 +572,9 @@ def train_node(payload: dict, ctx: NodeContext) -> dict:
         "steps_per_frame": cfg.steps_per_frame,
         "adaptive": adaptive,
     }
+    if verdict is not None:
+        stats["holdout"] = verdict.to_dict()
+        stats["steps_refit"] = refit_steps
     measured = None
     if cfg.auto is not None:
         sl = slice(iv.start, iv.end + 1)
@@ -590,6 +698,7 @@ def _tree_info(s: WorldTreeState, res: TreeResult) -> dict[str, Any]:
         "intervals": {str(j): [tree.interval(j).start, tree.interval(j).end] for j in s.states},
         "renders": {str(j): [[iv.start, iv.end] for iv in tree.own_frames(j)] for j in tree.rendering_nodes()},
         "splits": {str(j): {"point": ch.point, "fallback": ch.fallback} for j, ch in res.splits.items()},
+        "rejected": res.rejected,
         "layers": [
             {
                 "depth": r.depth,
@@ -633,6 +742,9 @@ def _write_context(s: WorldTreeState, tree_dir: Path, no_ancestors: bool) -> Non
         inherit_opacity=c.inherit_opacity,
         early_stop=c.early_stop if c.early_stop_on() else None,
         steps_per_frame=c.steps / sc.num_frames if c.node_steps_per_frame_on() else None,
+        node_static_lr=c.node_static_lr,
+        ancestor_lr=c.ancestor_lr,
+        holdout=c.holdout if c.holdout_on() else None,
     )
     write_config(tree_dir / "node_config.json", ncfg)
 

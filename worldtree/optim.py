@@ -34,6 +34,19 @@ class ConstantLR:
 
 
 @dataclass(frozen=True)
+class ScaledLR:
+    """Another schedule times a constant factor (0 freezes the group: Adam's update is ``lr * ...``)."""
+
+    base: Callable[[int], float]
+    """The schedule scaled."""
+    scale: float
+    """Factor >= 0."""
+
+    def __call__(self, step: int) -> float:
+        return float(self.scale) * float(self.base(step))
+
+
+@dataclass(frozen=True)
 class ExponentialLR:
     """Log-linear decay from ``init`` to ``final`` (3DGS's position learning rate), with optional warm-up."""
 

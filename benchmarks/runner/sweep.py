@@ -60,6 +60,10 @@ GRIDS: dict[str, tuple[str, Callable[[], list[GridPoint]]]] = {
             + [GridPoint("depth auto", {"depth": "auto"})]
         ),
     ),
+    "tree": (
+        "the root alone (depth 0), fixed depths 1 and 2, and --depth auto: does the tree beat its root?",
+        lambda: [GridPoint(f"depth {d}", {"depth": d}) for d in (0, 1, 2, "auto")],
+    ),
     "chain": (
         "chain length 0..4 at depth 4 (the paper's chain-length study)",
         lambda: [GridPoint(f"chain {k}", {"depth": 4, "chain_length": k}) for k in range(5)],

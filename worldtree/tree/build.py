@@ -79,6 +79,8 @@ class TreeResult:
     """Split decision of every node that has children."""
     stats: dict[int, dict] = field(default_factory=dict)
     """Each trained node's ``stats`` from its function."""
+    rejected: list[int] = field(default_factory=list)
+    """Children trained but dropped by their held-out validation (their ``stats`` say why)."""
     decisions: dict[int, dict] = field(default_factory=dict)
     """Auto mode: every node's split decision (``SplitDecision.to_dict()`` plus ``"applied"``: whether it got
     children, False e.g. at the depth bound or when neither child needs training, and, for a node whose
@@ -210,9 +212,14 @@ def grow_tree(
         res.layers.append(rep)
         for j in new:
             out = runner.load_output(layer_dir, j)
+            res.stats[j] = dict(out.get("stats") or {})
+            if (res.stats[j].get("holdout") or {}).get("keep") is False:
+                # Held-out validation rejected the child: its parent renders its frames (a leaf, no children).
+                tree.remove_leaf(j)
+                res.rejected.append(j)
+                continue
             res.states[j] = NodeState.from_payload(out["state"])
             profiles[j] = out.get("profile")
-            res.stats[j] = dict(out.get("stats") or {})
             decisions[j] = res.stats[j].get("auto_split")
             measured[j] = out.get("measured")
     atomic_write_json(
@@ -223,6 +230,7 @@ def grow_tree(
             "splits": {str(j): {"point": c.point, "fallback": c.fallback} for j, c in res.splits.items()},
             "layers": [r.to_dict() for r in res.layers],
             "stats": {str(j): s for j, s in res.stats.items()},
+            "rejected": res.rejected,
             "auto": {str(j): dec for j, dec in res.decisions.items()} if cfg.auto is not None else None,
         },
     )

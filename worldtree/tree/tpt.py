@@ -295,6 +295,16 @@ class TemporalPartitionTree:
                 added.append(c)
         return tuple(added)
 
+    def remove_leaf(self, j: int) -> None:
+        """Drop leaf ``j`` (not the root): its parent renders its frames again (:meth:`own_frames`), e.g. a
+        child that did not beat its parent on held-out frames (:mod:`worldtree.tree.validate`)."""
+        if j == 1:
+            raise ValueError("the root cannot be removed")
+        self.interval(j)
+        if self.has_children(j):
+            raise ValueError(f"node {j} has children; only a leaf can be removed")
+        del self.intervals[j]
+
     def grow_layer(self, d: int, split: SplitFn | None = None) -> list[int]:
         """Add the children of every node of depth ``d`` that can be split; returns the new indices.
 
