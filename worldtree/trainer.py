@@ -1,6 +1,7 @@
 """A generic, seeded, resumable training loop; a method plugs in through the small :class:`Trainable` interface.
 
-The loop owns what every method shares: step counting (1-based), backward, the finite-loss guard, periodic
+The loop owns what every method shares: step counting (1-based), backward, the divergence guard (a non-finite
+loss or parameter, positions far outside the scene, a loss far above its early level: one-line error), periodic
 atomic checkpoints (:mod:`worldtree.checkpoint`) with the RNG states, resuming from the newest checkpoint, a
 progress display (step, loss, iterations/s, ETA) and optional TensorBoard scalars. The method owns its model,
 optimisers, density control and loss::
@@ -18,6 +19,7 @@ Methods with several stages run one Trainer per stage, each with its own checkpo
 
 from __future__ import annotations
 
+import math
 import sys
 import time
 from dataclasses import dataclass, field
@@ -159,8 +161,102 @@ class TrainSummary:
         return self.steps_run / self.wall_s if self.wall_s > 0 else 0.0
 
 
-class NonFiniteLossError(RuntimeError):
+class TrainingDivergedError(UserError, RuntimeError):
+    """The fit blew up (settings such as a huge learning rate or loss weight); the CLIs print it as one
+    ``error:`` line and the run is not marked finished."""
+
+
+class NonFiniteLossError(TrainingDivergedError):
     """The loss became NaN or Inf; the optimiser is not stepped with it."""
+
+
+# Positions (parameter groups of these names) further than this many scene extents from the origin mean the
+# fit has diverged: a scene is about one extent across, and a Gaussian that far away is never seen again.
+POSITION_GROUPS = ("means", "node_pos")
+DIVERGED_EXTENTS = 1e6
+# A training loss whose running mean climbs this many times above its early level (the median of the first
+# EARLY_STEPS steps of a session, at least LOSS_FLOOR) has diverged; photometric losses stay within a few x.
+LOSS_BLOWUP = 50.0
+EARLY_STEPS = 20
+LOSS_FLOOR = 1e-3
+# Parameters are checked every this many steps (and before every checkpoint): a reduction over every tensor.
+CHECK_EVERY = 10
+
+
+class DivergenceGuard:
+    """Detects a diverging fit from its losses and parameters (see the constants above).
+
+    The parameters are found in the task's optimisers (:class:`worldtree.optim.GroupedAdam` or
+    ``torch.optim.Optimizer`` attributes); the scale of positions is the task's ``extent`` attribute when it
+    has one, else the largest position before the first step.
+    """
+
+    def __init__(self, task: Any, description: str):
+        self.task = task
+        self.description = description
+        self.extent = getattr(task, "extent", None)
+        if self.extent is None:
+            far = [float(p.detach().abs().max()) for n, p in _positions(task) if p.numel()]
+            self.extent = max([*far, 1e-6]) if far else None
+        self.early: list[float] = []
+        self.running: float | None = None
+
+    def _fail(self, step: int, why: str) -> None:
+        raise TrainingDivergedError(
+            f"{self.description}: training diverged at step {step} ({why}); lower the learning rates or loss "
+            "weights you changed (--set ...) and re-run with --force"
+        )
+
+    def check_loss(self, step: int, loss: float) -> None:
+        """Refuse a non-finite loss, or a running mean far above the early level."""
+        if not math.isfinite(loss):
+            raise NonFiniteLossError(
+                f"{self.description}: training diverged at step {step} (loss is {loss}); lower the learning "
+                "rates or loss weights you changed (--set ...), or check the inputs, and re-run with --force"
+            )
+        if len(self.early) < EARLY_STEPS:
+            self.early.append(loss)
+            return
+        self.running = loss if self.running is None else 0.9 * self.running + 0.1 * loss
+        ref = max(sorted(self.early)[len(self.early) // 2], LOSS_FLOOR)
+        if self.running > LOSS_BLOWUP * ref:
+            self._fail(step, f"loss {self.running:.4g}, {self.running / ref:.0f}x its early level {ref:.4g}")
+
+    def check_parameters(self, step: int) -> None:
+        """Refuse non-finite parameters, and positions beyond ``DIVERGED_EXTENTS`` scene extents."""
+        for name, p in _parameters(self.task):
+            with torch.no_grad():
+                if p.numel() == 0:
+                    continue
+                if not bool(torch.isfinite(p).all()):
+                    self._fail(step, f"parameter {name} holds NaN or Inf")
+                if name.rsplit(".", 1)[-1] in POSITION_GROUPS:
+                    far = float(p.abs().max())
+                    if self.extent is None:
+                        self.extent = max(far, 1e-6)  # no extent given: the positions' first scale
+                    if far > DIVERGED_EXTENTS * self.extent:
+                        self._fail(
+                            step,
+                            f"{name} reached {far:.3g}, over {DIVERGED_EXTENTS:g} x the scene extent "
+                            f"{self.extent:.3g}",
+                        )
+
+
+def _positions(task: Any) -> list[tuple[str, torch.Tensor]]:
+    return [(n, p) for n, p in _parameters(task) if n.rsplit(".", 1)[-1] in POSITION_GROUPS]
+
+
+def _parameters(task: Any) -> list[tuple[str, torch.Tensor]]:
+    """``(optimiser attribute.group name, tensor)`` of every parameter the task's optimisers hold."""
+    out = []
+    for attr, value in vars(task).items():
+        opt = getattr(value, "optimizer", value)  # GroupedAdam wraps a torch optimiser
+        if not isinstance(opt, torch.optim.Optimizer):
+            continue
+        for i, group in enumerate(opt.param_groups):
+            for p in group["params"]:
+                out.append((f"{attr}.{group.get('name', i)}", p))
+    return out
 
 
 class Trainer:
@@ -241,15 +337,12 @@ class Trainer:
         step = start
         if self.stop is not None and self.stop.stopped_at is not None:
             total = start  # resumed after the plateau rule had stopped the fit: nothing left to do
+        guard = DivergenceGuard(self.task, self.description)
         try:
             for step in range(start + 1, total + 1):
                 out = self.task.training_step(step)
                 loss_value = float(out.loss.detach())
-                if not torch.isfinite(out.loss.detach()):
-                    raise NonFiniteLossError(
-                        f"loss is {loss_value} at step {step}; the last checkpoint is untouched "
-                        "(lower the learning rates or check the inputs)"
-                    )
+                guard.check_loss(step, loss_value)  # before backward: a non-finite loss never steps
                 out.loss.backward()
                 extra = self.task.optimizer_step(step, out) or {}
                 last_loss = loss_value
@@ -260,7 +353,10 @@ class Trainer:
                         writer.add_scalar(f"{self.description}/{k}", v, step)
                 every = self.cfg.checkpoint_every
                 done = self.stop is not None and self.stop.update(step, loss_value)
-                if done or step == total or (every > 0 and step % every == 0):
+                save = done or step == total or (every > 0 and step % every == 0)
+                if save or step % CHECK_EVERY == 0 or step == start + 1:
+                    guard.check_parameters(step)  # a diverged model is never checkpointed
+                if save:
                     self.save(step, self._prior_seconds + time.perf_counter() - t0)
                 if done:
                     break

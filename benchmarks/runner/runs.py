@@ -528,7 +528,10 @@ def _render_test(method, view: TestView, folder: RunFolder) -> None:
             continue
         img = method.render(view.K, view.w2c, view.width, view.height, t, test_view=True)
         if not torch.isfinite(img).all():
-            raise RuntimeError(f"render of test time {t} contains NaN/Inf; the model diverged")
+            raise UserError(
+                f"render of test time {t} contains NaN/Inf: the model diverged; lower the learning rates or "
+                "loss weights you changed (--set ...) and re-run with --force"
+            )
         arr = (img.detach().clamp(0, 1).cpu().numpy() * 255.0 + 0.5).astype(np.uint8)
         write_image(out, arr)
 
