@@ -30,7 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from nvidia_ls.raycast import cast
-from nvidia_ls.synth import SynthConfig, SynthScene, make_scene, pixel_rays
+from nvidia_ls.synth import TWIN_POSES, SynthConfig, SynthScene, make_scene, pixel_rays
 from nvidia_ls.undistort import scale_intrinsics
 from nvidia_ls.writer import save_image
 from worldtree import __version__
@@ -261,6 +261,8 @@ def load_inputs(raw_dir: str | Path, scene_dir: str | Path, cfg: GtPriorsConfig)
         raise UserError(f'{cam_path}: no generator "config"; {ONLY_GENERATED}')
     known = {f.name for f in fields(SynthConfig)}
     synth_cfg = SynthConfig(**{k: v for k, v in meta["config"].items() if k in known})
+    if synth_cfg.kind == "twin":  # the real rig as copied into the capture, wherever the original now is
+        synth_cfg.poses = gt / TWIN_POSES
     scene = make_scene(synth_cfg)
     Ks = np.asarray([c["K"] for c in meta["cameras"]], float)
     w2cs = np.asarray([c["w2c"] for c in meta["cameras"]], float)

@@ -56,6 +56,9 @@ TEXTURES = ("fine", "smooth")
 lowest octaves only, no shapes, sinusoidal instead of square stripes on the moving objects)."""
 CAMERA_ORDERS = ("spatial", "shuffled")
 """Camera ids: "spatial" (ids follow the rig positions) or "shuffled" (positions permuted by the seed)."""
+KINDS = ("room", "twin")
+"""Scene kinds: "room" (the textured room and its rigs) or "twin" (a generated twin of a real capture: its rig
+read from an LLFF ``poses_bounds.npy``, see :class:`TwinGeometry`)."""
 ARC_HALF_DEG = 40.0
 """Half the angle the "arc" rig spans around the scene centre (degrees)."""
 SCENE_CENTRE = (0.0, 0.2, 4.0)
@@ -64,6 +67,8 @@ RIG_RADIUS = 4.0
 """Distance from :data:`SCENE_CENTRE` to the cameras of the "rows" and "arc" rigs."""
 # Written into every raw capture this module makes: --force replaces only a folder holding it.
 SYNTH_MARKERS = ("gt/cameras.json",)
+TWIN_POSES = "twin_poses_bounds.npy"
+"""Name under ``gt/`` of the copy of the real rig a twin capture was made from."""
 
 
 @dataclass
@@ -111,6 +116,11 @@ class SynthConfig:
     camera_order: str = "spatial"
     """Camera ids: spatial (ids follow the rig positions) | shuffled (positions permuted by --seed, so
     consecutive ids jump across the rig)."""
+    kind: str = "room"
+    """Scene kind: room (the textured room) | twin (the rig of --poses, a wall at its far depth, a person-sized
+    box at half that depth and a textured ball held near the rig moving a quarter image width per step)."""
+    poses: Path | None = None
+    """LLFF poses_bounds.npy whose rig --kind twin reproduces (one row per camera; --cameras must match)."""
 
     def check(self) -> None:
         """Raise :class:`UserError` for values the generator cannot honour."""
@@ -141,6 +151,26 @@ class SynthConfig:
         ):
             if value not in choices:
                 raise UserError(f"{flag} {value!r}: choose one of {', '.join(choices)}")
+        if self.kind not in KINDS:
+            raise UserError(f"--kind {self.kind!r}: choose one of {', '.join(KINDS)}")
+        if self.kind == "twin":
+            if self.poses is None:
+                raise UserError("--kind twin: give the real rig with --poses PATH/poses_bounds.npy")
+            # The twin's rig and motion come from the real capture; these options shape the room only.
+            default = SynthConfig()
+            for flag, value, base in (
+                ("--rig", self.rig, default.rig),
+                ("--path", self.path, default.path),
+                ("--motion", self.motion, default.motion),
+            ):
+                if value != base:
+                    raise UserError(
+                        f"{flag} {value}: applies to --kind room; the twin's rig and motion are fixed"
+                    )
+        elif self.poses is not None:
+            raise UserError(
+                f"--poses {self.poses}: only --kind twin reads a rig; drop --poses or add --kind twin"
+            )
 
 
 @dataclass
@@ -155,6 +185,7 @@ class SynthScene:
         objects: the moving primitives (object ids 1..).
         rig_positions: ``[N]`` rig position (0-based, in rig order) of each camera; ``arange(N)`` unless
             ``cfg.camera_order`` is "shuffled".
+        twin: the twin's layout and motion (``cfg.kind == "twin"``), else None.
     """
 
     cfg: SynthConfig
@@ -163,6 +194,7 @@ class SynthScene:
     static: list[Primitive]
     objects: list[Primitive]
     rig_positions: np.ndarray | None = None
+    twin: TwinGeometry | None = None
 
     @property
     def width(self) -> int:
@@ -191,6 +223,8 @@ class SynthScene:
         all call it. Rotation follows the phase on every path; the centre follows ``cfg.path``."""
         if not 0 <= index < len(self.objects):
             raise IndexError(f"object {index}: the scene has {len(self.objects)} moving objects")
+        if self.twin is not None:
+            return self.twin.object_pose(index, time)
         phi = 2.0 * math.pi * self.phase(time)
         T = np.eye(4)
         if self.cfg.path != "loop":
@@ -383,9 +417,124 @@ def _camera_positions(n: int, order: str, seed: int) -> np.ndarray:
             return perm
 
 
+# The twin, in units of the wall's depth D (the median far bound of the real rig): a person-sized box at D / 2
+# standing on the floor, a ball held near the rig at 0.3 D. At D ~ 8 m the person is 2.4 m tall (from below the
+# image to near its top, as in Balloon1) and the ball 0.65 m across; at 0.3 D it shifts about half an image
+# between cameras 0 and 5 of Balloon1's rig, as the real balloon does.
+TWIN_FLOOR = 0.19
+"""Floor below the mean camera (y down), in units of D."""
+TWIN_PERSON = {"depth": 0.5, "x": 0.06, "half": (0.04, 0.15, 0.025), "sway": 0.015}
+"""Person box: depth, lateral position, half extents and (when it moves, ``objects == 2``) sway amplitude, in D."""
+TWIN_BALL = {"depth": 0.3, "radius": 0.04, "y": -0.02, "bob": 0.01, "u": -0.1}
+"""Ball: depth, radius, height and vertical bob amplitude in D; ``u``: the centre of its sweep in image widths
+of the mean camera (left of centre, so the test camera 1 at one end of a Balloon1-like rig keeps it in view)."""
+TWIN_SHIFT = 0.25
+"""Horizontal speed of the ball: image widths per time step, in the rig's mean camera."""
+TWIN_SWEEP = 0.7
+"""The ball runs back and forth over this fraction of the image width (turning between steps, so 12 steps
+do not repeat a position)."""
+
+
+@dataclass
+class TwinGeometry:
+    """Layout of a twin scene in its rig frame (origin at the mean camera centre, axes of the mean camera:
+    x right, y down, z forward; units of the real rig's poses).
+
+    Attributes:
+        rig_to_world: ``[4, 4]`` rigid transform from the rig frame to the world of the real poses.
+        wall: D, the depth of the back wall (median far bound of the real file).
+        width_per_depth: image width / focal length (the view's width per unit depth).
+        person_moves: the person box is moving object 2 (else it is part of the static set).
+    """
+
+    rig_to_world: np.ndarray
+    wall: float
+    width_per_depth: float
+    person_moves: bool
+
+    def ball_centre(self, time: float) -> np.ndarray:
+        """``[3]`` ball centre in the rig frame at (fractional) time step ``time``.
+
+        Its x runs at :data:`TWIN_SHIFT` image widths per step (a triangle wave over :data:`TWIN_SWEEP` of the
+        width, so the clip does not repeat with 12 steps) at the fixed depth ``0.3 D``."""
+        D, z = self.wall, TWIN_BALL["depth"] * self.wall
+        s = (TWIN_SHIFT * time) % (2 * TWIN_SWEEP)
+        u = TWIN_BALL["u"] + (s if s <= TWIN_SWEEP else 2 * TWIN_SWEEP - s) - TWIN_SWEEP / 2  # image widths
+        y = (TWIN_BALL["y"] + TWIN_BALL["bob"] * math.sin(2 * math.pi * time / 7.0)) * D
+        return np.array([u * self.width_per_depth * z, y, z])
+
+    def person_centre(self, time: float) -> np.ndarray:
+        """``[3]`` centre of the person box in the rig frame (swaying only when it moves)."""
+        D = self.wall
+        sway = TWIN_PERSON["sway"] * math.sin(2 * math.pi * time / 12.0) if self.person_moves else 0.0
+        return np.array([(TWIN_PERSON["x"] + sway) * D, (TWIN_FLOOR - TWIN_PERSON["half"][1]) * D,
+                         TWIN_PERSON["depth"] * D])  # fmt: skip
+
+    def object_pose(self, index: int, time: float) -> np.ndarray:
+        """``[4, 4]`` world-from-object transform of the ball (0) or the moving person (1) at ``time``."""
+        local = np.eye(4)
+        if index == 0:  # the ball spins slowly as it is carried
+            local[:3, :3] = _axis_angle([0.2, 1.0, 0.0], 0.4 * time)
+            local[:3, 3] = self.ball_centre(time)
+        else:  # the person turns a little as they sway
+            local[:3, :3] = _axis_angle([0.0, 1.0, 0.0], 0.15 * math.sin(2 * math.pi * time / 12.0))
+            local[:3, 3] = self.person_centre(time)
+        return self.rig_to_world @ local
+
+
+def _rig_frame(w2cs: np.ndarray) -> np.ndarray:
+    """``[4, 4]`` rig-to-world transform: origin at the mean camera centre, rotation the mean camera rotation."""
+    U, _, Vt = np.linalg.svd(np.asarray(w2cs)[:, :3, :3].mean(0))
+    R = U @ Vt  # world -> mean camera (nearest rotation to the mean of the world->camera rotations)
+    if np.linalg.det(R) < 0:
+        R = U @ np.diag([1.0, 1.0, -1.0]) @ Vt
+    M = np.eye(4)
+    M[:3, :3] = R.T
+    M[:3, 3] = np.stack([-w[:3, :3].T @ w[:3, 3] for w in w2cs]).mean(0)
+    return M
+
+
+def _make_twin(cfg: SynthConfig) -> SynthScene:
+    """The twin of a real capture (``cfg.kind == "twin"``): its rig, a wall, a floor, a person and a ball."""
+    Ks, w2cs, bounds = llff.load_poses_bounds(cfg.poses, cfg.cameras, cfg.width, cfg.height)
+    positions = _camera_positions(cfg.cameras, cfg.camera_order, cfg.seed)
+    M = _rig_frame(w2cs)
+    D = float(np.median(bounds[:, 1]))
+    geo = TwinGeometry(M, D, cfg.width / float(np.median(Ks[:, 0, 0])), cfg.objects >= 2)
+    rng = np.random.default_rng(cfg.seed)
+    smooth = cfg.texture == "smooth"
+    tpu = 64.0 * 8.0 / D  # the room's texture density relative to its back wall's depth
+    R_rw = M[:3, :3]
+
+    def place(kind, size, tex, object_id, R_local, c_local) -> Primitive:
+        c = M[:3, :3] @ np.asarray(c_local, float) + M[:3, 3]
+        return Primitive(kind, np.asarray(size, float), tex, tpu, object_id, R_rw @ R_local, c)
+
+    floor = TWIN_FLOOR * D
+    static = [
+        # The back wall and the floor reach past every camera's view, so every ray hits something.
+        place("plane", [2 * D, D + floor, 0], _texture(rng, 512, False, smooth), 0, np.eye(3), [-D, -D, D]),
+        place("plane", [2 * D, 1.3 * D, 0], _texture(rng, 512, False, smooth), 0,
+              np.array([[1.0, 0, 0], [0, 0, -1.0], [0, 1.0, 0]]), [-D, floor, -0.3 * D]),
+    ]  # fmt: skip
+    person_tex = _texture(rng, 256, False, smooth)
+    half = np.asarray(TWIN_PERSON["half"]) * D
+    if not geo.person_moves:
+        static.append(place("box", half, person_tex, 0, np.eye(3), geo.person_centre(0.0)))
+    objects = []
+    if cfg.objects >= 1:
+        objects.append(Primitive("sphere", np.array([TWIN_BALL["radius"] * D, 0, 0]),
+                                 _texture(rng, 256, True, smooth), tpu, 1))  # fmt: skip
+    if geo.person_moves:
+        objects.append(Primitive("box", half, person_tex, tpu, 2))
+    return SynthScene(cfg, Ks[positions], w2cs[positions], static, objects, positions, geo)
+
+
 def make_scene(cfg: SynthConfig) -> SynthScene:
     """Build the scene description (textures, rig, objects) for ``cfg``; deterministic in ``cfg.seed``."""
     cfg.check()
+    if cfg.kind == "twin":
+        return _make_twin(cfg)
     rng = np.random.default_rng(cfg.seed)
     Ks, w2cs, positions = _rig(cfg, rng)
     smooth = cfg.texture == "smooth"
@@ -617,6 +766,7 @@ def write_raw_scene(
         OUT/gt/masks/%05d/cam%02d.png       dynamic mask of every camera and time (0/255)
         OUT/gt/objects.json                 per-time world-from-object 4x4 of each moving object
         OUT/gt/depth/%05d/cam%02d.npy       float32 z-depth, world units (only with cfg.depth)
+        OUT/gt/twin_poses_bounds.npy        the real rig a twin was made from (only for cfg.kind "twin")
 
     Args:
         out_dir: the scene folder to create.
@@ -655,6 +805,8 @@ def write_raw_scene(
         with ThreadPoolExecutor(workers) as pool:
             bounds = np.asarray(list(pool.map(one, range(cfg.cameras))))
         _write_gt(tmp / "gt", scene, cfg, bounds)
+        if cfg.kind == "twin":  # the capture stays self-contained: gt-priors rebuilds the twin from this copy
+            np.save(tmp / "gt" / TWIN_POSES, np.load(cfg.poses, allow_pickle=False))
     return out_dir
 
 
