@@ -37,6 +37,7 @@ import torch
 import worldtree
 from benchmarks.runner.config_overrides import apply_overrides, sets_digest, split_assignment
 from worldtree.atomic import atomic_write_json, atomic_write_text
+from worldtree.config_ranges import check_config_ranges
 from worldtree.errors import UserError
 from worldtree.imageio import write_image
 from worldtree.losses import SSIM_WINDOW
@@ -277,6 +278,7 @@ def execute(req: RunRequest) -> RunResult:
         raise UserError(f"--scene {root}: no such folder; give a scene folder written by `nvls build`")
     view = native_test_view(root)
     cfg, sets = resolve_config(spec, req)
+    _check_downscale(cfg.downscale, view, root, req)
     folder = _run_folder(req, spec, sets)
     device = pick_device(req.device)
     check_output_folder(req.runs_dir, "--out")
@@ -307,6 +309,24 @@ def execute(req: RunRequest) -> RunResult:
     method = None if (folder.is_done() and not req.force) else build_method()
     with FolderLock(folder.root, "run folder"):
         return _execute_locked(req, spec, cfg, folder, root, view, device, timer, method, build_method)
+
+
+def _check_downscale(downscale: int, view: TestView, root: Path, req: RunRequest) -> None:
+    """Refuse a shrink that leaves training images smaller than the SSIM window, before the scene is loaded
+    (at load it is an OpenCV assertion, or work is done first): the images shrink by integer division."""
+    w, h = view.width // downscale, view.height // downscale
+    if min(w, h) < SSIM_WINDOW:
+        given = f"--downscale {downscale}" if "downscale" in req.overrides else f"--set downscale={downscale}"
+        if (
+            not any(split_assignment(i)[0] == "downscale" for i in req.sets)
+            and "downscale" not in req.overrides
+        ):
+            given = f"the preset's downscale {downscale}"
+        raise UserError(
+            f"{given}: the {view.width}x{view.height} images of {root} would shrink to {w}x{h}, smaller than the "
+            f"{SSIM_WINDOW}x{SSIM_WINDOW} SSIM window; use a downscale of at most "
+            f"{max(1, min(view.width, view.height) // SSIM_WINDOW)}"
+        )
 
 
 def _kernel_target(device: torch.device) -> str | None:
@@ -461,6 +481,10 @@ def resolve_config(spec, req: RunRequest) -> tuple[Any, list[str]]:
         v = getattr(cfg, k)
         if v < 1:
             raise UserError(f"{f'--{k} {v}' if k in req.overrides else f'--set {k}={v}'}: must be at least 1")
+    # Every setting within its declared range (worldtree.config_ranges), named as it was given.
+    given = {split_assignment(item)[0]: f"--set {item}" for item in req.sets}
+    given |= {k: f"{option_flag(k)} {v}" for k, v in (*req.overrides.items(), *req.options.items())}
+    check_config_ranges(cfg, given)
     return cfg, sets
 
 
