@@ -54,7 +54,7 @@ from methods.stages import Ablation, Stage
 from worldtree.atomic import atomic_write_json
 from worldtree.budget import BudgetConfig, inherited_prune_due, negligible
 from worldtree.config_json import read_config, write_config
-from worldtree.dynamic import gaussians_at
+from worldtree.dynamic import gaussians_at, halfway
 from worldtree.errors import UserError
 from worldtree.gaussians import GaussianSet, inverse_sigmoid
 from worldtree.optim import GroupedAdam, ScaledLR
@@ -493,8 +493,15 @@ def _validate(fit: NodeFit, parent_at, hold: list[int], hcfg: HoldoutConfig, rec
         d = _holdout_record(record)
         return Verdict(**{k: d[k] for k in Verdict.__dataclass_fields__})
     with torch.no_grad():
-        child = [fit.render_frame(i) for i in hold]
-        parent = [fit.render_frame(i, parent_at(fit.t0 + i)) for i in hold]
+        # Both models predict frame i from their states at i - 1 and i + 1 (the parent trained on frame i, so
+        # its own state at i would be a fit, not a prediction); the opacities are each model's at i.
+        child, parent = [], []
+        for i in hold:
+            mid = fit.gaussians_at(i)
+            child.append(fit.render_frame(i, halfway(fit.gaussians_at(i - 1), fit.gaussians_at(i + 1), mid[3])))
+            g = fit.t0 + i
+            pmid = parent_at(g)
+            parent.append(fit.render_frame(i, halfway(parent_at(g - 1), parent_at(g + 1), pmid[3])))
     target = [fit.images[i] for i in hold]
     verdict = keep_child(child, parent, target, hold, hcfg.margin)
     atomic_write_json(record, {**verdict.to_dict(), "end_step": summary.end_step})

@@ -155,3 +155,16 @@ def gaussians_at(
     if extra is not None:
         parts.append(extra)
     return tuple(torch.cat(xs) for xs in zip(*parts, strict=True))  # type: ignore[return-value]
+
+
+def halfway(ga: RenderList, gb: RenderList, opacities: torch.Tensor) -> RenderList:
+    """The render list halfway between two render lists ``ga``, ``gb`` of the same Gaussians (e.g. one model at
+    frames ``t - 1`` and ``t + 1``): means averaged, rotations nlerped (``gb``'s flipped into ``ga``'s
+    hemisphere first, so antipodal quaternions do not cancel), the given ``opacities`` ``[N]`` (the caller's,
+    at the middle time), log-scales and colours of ``ga``."""
+    ma, qa, ls, _, c = ga
+    mb, qb, _, _, _ = gb
+    qb = torch.where((qa * qb).sum(-1, keepdim=True) < 0, -qb, qb)
+    q = qa + qb
+    q = q / q.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+    return 0.5 * (ma + mb), q, ls, opacities, c

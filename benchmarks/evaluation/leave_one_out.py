@@ -45,6 +45,7 @@ import torch
 import worldtree
 from worldtree.atomic import atomic_write_json
 from worldtree.device import pick_device
+from worldtree.dynamic import halfway
 from worldtree.errors import UserError
 from worldtree.imageio import read_mask, write_image
 from worldtree.scene import Scene, load_scene
@@ -110,18 +111,6 @@ def masked_psnr_u8(a: np.ndarray, b: np.ndarray, mask: np.ndarray) -> float | No
     return psnr_u8(a[mask], b[mask])
 
 
-def _halfway(ga: tuple, gb: tuple, opacities: torch.Tensor) -> tuple:
-    """Render list halfway between two lists of the same Gaussians: means averaged, rotations nlerped (same
-    hemisphere first), the given ``opacities`` [N] (the caller's, at the half-frame time); log-scales and
-    colours of ``ga``."""
-    ma, qa, ls, _, c = ga
-    mb, qb, _, _, _ = gb
-    qb = torch.where((qa * qb).sum(-1, keepdim=True) < 0, -qb, qb)
-    q = qa + qb
-    q = q / q.norm(dim=-1, keepdim=True).clamp_min(1e-12)
-    return 0.5 * (ma + mb), q, ls, opacities, c
-
-
 @torch.no_grad()
 def render_between(
     method, K: torch.Tensor, w2c: torch.Tensor, width: int, height: int, a: int
@@ -137,7 +126,7 @@ def render_between(
     n_s, n_d = len(fit.static), len(fit.dynamic)
     if o.shape[0] == n_s + n_d:  # the dynamic opacities halfway too (they change only with temporal opacity)
         o = torch.cat([o[:n_s], fit.dynamic.opacities_at(a + 0.5)])
-    m, q, ls, o, c = _halfway(ga, fit.gaussians_at(a + 1), o)
+    m, q, ls, o, c = halfway(ga, fit.gaussians_at(a + 1), o)
     pose = method.state.sim3.apply_w2c(w2c.to(method.device, torch.float32))
     out = rasterize(m, q, ls, o, c, K.to(method.device, torch.float32), pose, width, height,
                     backend=fit.cfg.backend)  # fmt: skip
@@ -182,7 +171,7 @@ def render_between_tree(
         s.caches[j] = st.dynamic.attach(st.scaffold)
     ga = st.gaussians_at(a, s.cfg.chain_length, s.caches[j])
     gb = st.gaussians_at(a + 1, s.cfg.chain_length, s.caches[j])
-    m, q, ls, o, c = _halfway(ga, gb, node_opacities_halfway(st, a, s.cfg.chain_length))
+    m, q, ls, o, c = halfway(ga, gb, node_opacities_halfway(st, a, s.cfg.chain_length))
     pose = s.sim3.apply_w2c(w2c.to(method.device, torch.float32))
     out = rasterize(m, q, ls, o, c, K.to(method.device, torch.float32), pose, width, height,
                     backend=s.cfg.photometric.backend)  # fmt: skip

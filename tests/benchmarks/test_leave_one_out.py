@@ -90,7 +90,7 @@ def test_tree_node_between_walks_up_across_a_split():
 
 
 def test_halfway_means_and_antipodal_rotations():
-    from benchmarks.evaluation.leave_one_out import _halfway
+    from worldtree.dynamic import halfway as _halfway
 
     q = torch.tensor([[0.0, 0.0, 0.0, 1.0], [1.0, 0.0, 0.0, 0.0]])
     ga = (torch.zeros(2, 3), q, torch.zeros(2, 3), torch.tensor([0.2, 1.0]), torch.ones(2, 3))

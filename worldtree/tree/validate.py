@@ -4,8 +4,9 @@ than its parent, which did train on them.
 A child sees each of its times from one camera only, and every time from a different one; what it learns
 beyond its parent can be real (motion one canonical space could not hold) or over-fitting (detail that fits
 its own views and nothing else). Frames the child never trained on tell the two apart: a child that
-over-fits draws them worse. Its parent trained on them, so the test is conservative: the child must
-interpolate them better than the parent fits them.
+over-fits draws them worse. Its parent did train on them, so both models *predict* a held-out frame ``i``
+from their states at ``i - 1`` and ``i + 1`` (every Gaussian halfway, :func:`worldtree.dynamic.halfway`),
+seen from frame ``i``'s camera: the parent's own fit of frame ``i`` is not used.
 
 Rules:
 
