@@ -235,3 +235,28 @@ def test_interrupted_build_leaves_the_old_report(sweep, report, tmp_path, monkey
         site.build_report([runs], out, log=lambda s: None)
     assert (out / "index.html").read_text() == before
     assert [p.name for p in tmp_path.iterdir()] == ["report"]  # no temporary folder left behind
+
+
+def test_scenes_whose_names_slug_alike_get_a_page_each(sweep, tmp_path, no_plots):
+    """``A b`` and ``A_b`` (and ``a_b`` on a case-insensitive file system) would share one page, one image
+    folder and one set of viewer images if the file names were the slugs alone."""
+    runs, _ = sweep
+    mixed = tmp_path / "runs"
+    for src, dst in (("SceneA", "A b"), ("SceneB", "A_b"), ("SceneB", "a_b")):
+        shutil.copytree(runs / src, mixed / dst)
+    site.build_report([mixed], tmp_path / "r", log=lambda s: None)
+    index = (tmp_path / "r" / "index.html").read_text()
+    pages = sorted(p.name for p in (tmp_path / "r" / "scenes").iterdir())
+    assert len(pages) == 3, pages
+    assert "A_b.html" in pages  # a name that is already safe keeps it
+    for name in ("A b", "A_b", "a_b"):
+        page = next(p for p in (tmp_path / "r" / "scenes").iterdir() if f"<h1>{name}</h1>" in p.read_text())
+        assert f'href="scenes/{page.name}"' in index
+        for src in _parse(page, "scene-worldtree").imgs:
+            assert (page.parent / src).resolve().is_file(), src
+    assert len(list((tmp_path / "r" / "img").iterdir())) == 3
+    # Unique names: different texts never share one, safe texts keep theirs, hashed ones are stable.
+    names = site.unique_slugs(["A b", "A_b", "a_b", "A:b", "x" * 300])
+    assert len(set(n.lower() for n in names.values())) == 5 and names["A_b"] == "A_b"
+    assert names == site.unique_slugs(reversed(list(names)))
+    assert all(len(n) < 140 for n in names.values())

@@ -8,11 +8,12 @@ The site is written into a temporary sibling folder and renamed over ``out`` whe
 
 from __future__ import annotations
 
+import hashlib
 import math
 import re
 import shutil
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -59,8 +60,37 @@ class ReportOptions:
 
 
 def slug(text: str) -> str:
-    """``text`` as a safe file name part (letters, digits, ``._-``; anything else ``_``)."""
+    """``text`` as a safe file name part (letters, digits, ``._-``; anything else ``_``). Not one-to-one
+    (``A b`` and ``A_b`` give the same): file names of several texts come from :func:`unique_slugs`."""
     return re.sub(r"[^A-Za-z0-9._-]", "_", text) or "_"
+
+
+#: Longest slug kept before its hash suffix (a scene name may be up to 255 bytes; the page adds ``.html``).
+_SLUG_MAX = 120
+
+
+def unique_slugs(texts: Iterable[str]) -> dict[str, str]:
+    """Text -> file name part, different for different texts, also on a case-insensitive file system.
+
+    A text that is already a safe name (letters, digits, ``._-``, not too long) keeps it when no other text
+    took it first (safe names are served first, in sorted order); any other text gets its :func:`slug` plus
+    ``-`` and 10 hex digits of its sha256, so ``A b`` and ``A_b`` get two pages, and the same text gets the
+    same name in every report.
+    """
+    out: dict[str, str] = {}
+    taken: set[str] = set()
+    for text in sorted(set(texts), key=lambda t: (slug(t) != t or len(t) > _SLUG_MAX, t)):
+        base = slug(text)[:_SLUG_MAX]
+        name = base
+        if name != text or name.lower() in taken:
+            name = f"{base}-{hashlib.sha256(text.encode('utf-8', 'surrogateescape')).hexdigest()[:10]}"
+        n = 2
+        while name.lower() in taken:  # a safe name that happens to look like another's hashed one
+            name = f"{base}-{hashlib.sha256(text.encode('utf-8', 'surrogateescape')).hexdigest()[:10]}-{n}"
+            n += 1
+        taken.add(name.lower())
+        out[text] = name
+    return out
 
 
 def _key_text(v: Any) -> str:
@@ -244,10 +274,12 @@ def _pick(n: int, k: int) -> list[int]:
 
 
 def _viewer(
-    scene: str, runs: Sequence[RunEntry], labels: dict[str, str], root: Path, opts: ReportOptions
+    scene: str, runs: Sequence[RunEntry], labels: dict[str, str], root: Path, opts: ReportOptions,
+    scene_slug: str | None = None,
 ) -> tuple[list[dict[str, Any]], list[str]]:
-    """Write the viewer's images of ``scene`` under ``root/img/<scene>/`` and return (frames, notes); a frame
-    holds its name, ground truth, mask and one row per run (render, error map, scores)."""
+    """Write the viewer's images of ``scene`` under ``root/img/<scene_slug>/`` (default: its :func:`slug`)
+    and return (frames, notes); a frame holds its name, ground truth, mask and one row per run (render,
+    error map, scores)."""
     from benchmarks.reporting.webreport.images import error_map, fit_width, mask_view, write_jpeg
     from worldtree.imageio import read_image, read_mask
 
@@ -267,7 +299,8 @@ def _viewer(
     chosen = [names[i] for i in _pick(len(names), opts.viewer_frames)]
     if len(chosen) < len(names):
         notes.append(f"the viewer shows {len(chosen)} of {len(names)} test frames (--viewer-frames)")
-    folder = f"img/{slug(scene)}"
+    folder = f"img/{scene_slug or slug(scene)}"
+    stems = unique_slugs(chosen)  # frames "a b" and "a_b" keep their own images
     frames = []
     for name in chosen:
         gt = mask = None
@@ -281,10 +314,10 @@ def _viewer(
                 notes.append(str(e))
                 gt = mask = None
             if gt is not None:
-                frame["gt"] = f"{folder}/{slug(name)}_gt.jpg"
+                frame["gt"] = f"{folder}/{stems[name]}_gt.jpg"
                 write_jpeg(root / frame["gt"], fit_width(gt, opts.image_width))
             if gt is not None and mask is not None and mask.shape == gt.shape[:2]:
-                frame["mask"] = f"{folder}/{slug(name)}_mask.jpg"
+                frame["mask"] = f"{folder}/{stems[name]}_mask.jpg"
                 write_jpeg(root / frame["mask"], fit_width(mask_view(gt, mask), opts.image_width))
         for i, r in enumerate(runs):
             row: dict[str, Any] = {
@@ -301,10 +334,10 @@ def _viewer(
                     notes.append(str(e))
                     pred = None
                 if pred is not None:
-                    row["render"] = f"{folder}/{slug(name)}_r{i}.jpg"
+                    row["render"] = f"{folder}/{stems[name]}_r{i}.jpg"
                     write_jpeg(root / row["render"], fit_width(pred, opts.image_width))
                     if gt is not None and gt.shape == pred.shape:
-                        row["error"] = f"{folder}/{slug(name)}_e{i}.jpg"
+                        row["error"] = f"{folder}/{stems[name]}_e{i}.jpg"
                         write_jpeg(root / row["error"], error_map(pred, gt, width=opts.image_width))
             if r.frames is not None and name in r.frames.index:
                 for m in CURVE_METRICS:
@@ -400,7 +433,8 @@ def build_report(
         )
     by_run = {str(e.folder): e for e in entries}
     scenes = sorted({e.scene for e in entries})
-    scene_page = {s: f"scenes/{slug(s)}.html" for s in scenes}
+    scene_slug = unique_slugs(scenes)  # scenes "A b" and "A_b" get a page each
+    scene_page = {s: f"scenes/{scene_slug[s]}.html" for s in scenes}
     links = {str(e.folder): scene_page[e.scene] for e in entries}
     labels = {str(e.folder): _run_label(e, opts.group_by) for e in entries}
     env = _environment()
@@ -421,12 +455,13 @@ def build_report(
                     f"--protocol {opts.protocol}: no finished run uses it; the runs use {', '.join(protocols)}"
                 )
             protocols = [opts.protocol]
+        proto_slug = unique_slugs(protocols)
         for proto in protocols:
             plong = select(long, proto)
             table = build_wide(plong, opts.group_by)
             tables[proto] = (table, plong)
             notes += [f"{proto}: {n}" for n in table.notes]
-            stem = slug(proto)
+            stem = proto_slug[proto]
             atomic_write_text(tmp / "data" / f"{stem}_wide.csv", to_csv(table))
             atomic_write_text(
                 tmp / "data" / f"{stem}_long.csv", plong.to_csv(index=False, na_rep="", float_format="%.10g")
@@ -453,13 +488,13 @@ def build_report(
             runs = [e for e in entries if e.scene == s]
             done = [e for e in runs if e.state == "done"]
             log(f"scene {k + 1}/{len(scenes)} {s}: {len(done)} finished run(s) of {len(runs)}")
-            frames, scene_notes = _viewer(s, done, labels, tmp, opts) if done else ([], [])
-            curves = f"plots/curves_{slug(s)}.png"
+            frames, scene_notes = _viewer(s, done, labels, tmp, opts, scene_slug[s]) if done else ([], [])
+            curves = f"plots/curves_{scene_slug[s]}.png"
             has_curves = bool(done) and _curves(done, labels, tmp / curves)
             scene_tables = [
                 {
                     "protocol": proto,
-                    "id": f"scene-{slug(proto)}",
+                    "id": f"scene-{proto_slug[proto]}",
                     "table": _table_model(table, plong, by_run, scenes=[s]),
                     "metrics": list(table.metrics),
                 }
@@ -469,7 +504,7 @@ def build_report(
             videos = []
             for i, e in enumerate(done):
                 if e.video is not None:
-                    videos.append(_video(e, labels[str(e.folder)], tmp, f"videos/{slug(s)}_{i}", scene_notes))
+                    videos.append(_video(e, labels[str(e.folder)], tmp, f"videos/{scene_slug[s]}_{i}", scene_notes))
             page = env.get_template("scene.html").render(
                 **common,
                 root="../",
