@@ -274,7 +274,11 @@ def _pick(n: int, k: int) -> list[int]:
 
 
 def _viewer(
-    scene: str, runs: Sequence[RunEntry], labels: dict[str, str], root: Path, opts: ReportOptions,
+    scene: str,
+    runs: Sequence[RunEntry],
+    labels: dict[str, str],
+    root: Path,
+    opts: ReportOptions,
     scene_slug: str | None = None,
 ) -> tuple[list[dict[str, Any]], list[str]]:
     """Write the viewer's images of ``scene`` under ``root/img/<scene_slug>/`` (default: its :func:`slug`)
@@ -504,7 +508,9 @@ def build_report(
             videos = []
             for i, e in enumerate(done):
                 if e.video is not None:
-                    videos.append(_video(e, labels[str(e.folder)], tmp, f"videos/{scene_slug[s]}_{i}", scene_notes))
+                    videos.append(
+                        _video(e, labels[str(e.folder)], tmp, f"videos/{scene_slug[s]}_{i}", scene_notes)
+                    )
             page = env.get_template("scene.html").render(
                 **common,
                 root="../",
