@@ -157,3 +157,27 @@ def test_truth_recasts_the_captures_ground_truth(tmp_path):
         np.testing.assert_allclose(half_d[same], gt.reshape(18, 2, 32, 2)[:, 0, :, 0][same], rtol=1e-3)
     d1, ids1 = truth.view(1, 5, 64, 36)
     np.testing.assert_array_equal(ids1 > 0, read_mask(raw / "gt" / "masks" / "00005" / "cam01.png"))
+
+
+def test_smoothness_curve_sees_the_constant_velocity_ambiguity():
+    """Cameras on a line at constant speed and a point at constant velocity: every depth scale k gives a
+    straight path (0 for all k). A point swinging back and forth before a still camera: the path's
+    acceleration scales with k, so the curve is k^2 times its value at 1 (its minimum at the smallest k)."""
+    from benchmarks.speed.twin_depth_stages import smoothness_curve
+
+    T = 6
+    Ks = np.stack([K] * T)
+    ks = np.array([0.5, 1.0, 2.0])
+    cams = np.stack([_cam([0.3 * t, 0, 0]) for t in range(T)])
+    X = np.stack([[1.0 - 0.2 * t, 0.1, 5.0 + 0.1 * t] for t in range(T)])
+    uv, z = zip(*[project(X[t : t + 1], K, cams[t]) for t in range(T)], strict=True)
+    tracks, depth = np.stack(uv), np.stack(z)
+    vis = np.ones((T, 1), bool)
+    np.testing.assert_allclose(smoothness_curve(tracks, vis, depth, Ks, cams, ks), 0.0, atol=1e-18)
+    still = np.stack([_cam([0, 0, 0])] * T)
+    Xs = np.stack([[0.4 * (-1) ** t, 0.0, 5.0] for t in range(T)])
+    uv, z = zip(*[project(Xs[t : t + 1], K, still[t]) for t in range(T)], strict=True)
+    c = smoothness_curve(np.stack(uv), vis, np.stack(z), Ks, still, ks)
+    np.testing.assert_allclose(c / c[1], ks**2)
+    vis[2] = False  # no run of three consecutive frames through frame 2: only frames 3, 4, 5 count
+    assert smoothness_curve(np.stack(uv), vis, np.stack(z), Ks, still, ks)[1] == pytest.approx(c[1] / 4)
