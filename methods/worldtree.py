@@ -180,11 +180,9 @@ class WorldTreeConfig(BaseConfig):
         return self.layer_steps[min(depth, len(self.layer_steps)) - 1]
 
     def holdout_on(self) -> bool:
-        """Whether children are validated on held-out frames (``holdout.enabled``; None: with ``--depth
-        auto``). Never under ``ablate sac``: a child without ancestors has no parent render to compare with."""
-        if "sac" in self.ablate:
-            return False
-        return self.auto_depth if self.holdout.enabled is None else bool(self.holdout.enabled)
+        """Whether children are validated on held-out frames (``holdout.enabled``). Never under ``ablate
+        sac``: a child without ancestors has no parent render to compare with."""
+        return bool(self.holdout.enabled) and "sac" not in self.ablate
 
     def node_steps_per_frame_on(self) -> bool:
         """Whether children's steps follow their frame count (``node_steps_per_frame``)."""
@@ -197,6 +195,8 @@ class WorldTreeConfig(BaseConfig):
         out = super().ignored_settings()
         if not self.auto_depth:
             out.update(settings_of("auto_split", self.auto_split, "the tree's depth is fixed; --depth auto", ()))
+        if not self.holdout_on():
+            out.update(settings_of("holdout", self.holdout, "held-out validation is off; --set holdout.enabled=true"))
         if self.budget_on():
             out["inherit_caps"] = "the Gaussian budget replaces the caps; --set budget.enabled=false"
         if self.tree_depth == 0:

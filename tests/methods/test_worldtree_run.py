@@ -307,3 +307,59 @@ def test_node_training_with_neighbour_coupling_moves_its_scaffold_differently(ru
     off, on = train(0.0), train(1.0)
     assert torch.isfinite(on.scaffold.pos).all()
     assert not torch.equal(on.scaffold.pos, off.scaffold.pos)
+
+
+def test_node_with_holdout_never_trains_on_its_held_out_frames_and_judges_them(runs, tmp_path):
+    """Node 3 ([12, 25], 14 frames) retrained with held-out validation and no refit: the held-out frames get
+    no step (the node's per-frame visit count, checkpointed with its gradient profile, is 0 there and not
+    elsewhere), and
+    the verdict's errors are the halfway predictions of the child and of its parent as it was handed over,
+    recomputed here from the saved states."""
+    import dataclasses
+
+    from methods.worldtree import _parent_view, train_node
+    from worldtree.dynamic import halfway
+    from worldtree.tree.build import read_node_input
+    from worldtree.tree.validate import HoldoutConfig, holdout_frames
+
+    src = runs["default"] / "checkpoints" / "tree"
+    tree = tmp_path / "tree"
+    folder = tree / "layer1" / "node3"
+    folder.mkdir(parents=True)
+    shutil.copy(src / "context.pt", tree / "context.pt")
+    cfg = read_config(src / "node_config.json", NodeTrainConfig)
+    hcfg = HoldoutConfig(enabled=True, frac=0.2, refit=False)
+    write_config(tree / "node_config.json", dataclasses.replace(cfg, layer_steps=(60, 60), holdout=hcfg))
+    payload = load_payload(src / "layer1" / "node3" / "input.pt")
+    torch.manual_seed(3)
+    out = train_node(payload, NodeContext(3, 3, "cpu", 1, str(folder)))
+    hold = holdout_frames(14, 0.2)
+    assert len(hold) == 3  # round(14 * 0.2) = 3 interior frames
+    v = out["stats"]["holdout"]
+    assert v["frames"] == hold and out["stats"]["steps_refit"] == 0
+    from worldtree.checkpoint import latest_checkpoint, load_checkpoint
+
+    visits = load_checkpoint(latest_checkpoint(folder / "checkpoints"))["task"]["profile"]["count"]
+    others = [i for i in range(14) if i not in hold]
+    assert bool((visits[hold] == 0).all()) and bool((visits[others] > 0).all())
+    # Recompute both models' held-out errors from the saved states.
+    ctx = torch.load(tree / "context.pt", weights_only=True)
+    start, _ = read_node_input(payload)
+    child = NodeState.from_payload(out["state"])
+    parent_at = _parent_view(start)
+    cache = child.dynamic.attach(child.scaffold)
+    H, W = ctx["images"].shape[1:3]
+    l1c, l1p = [], []
+    for i in hold:
+        g = 12 + i
+        c = halfway(child.gaussians_at(g - 1, None, cache), child.gaussians_at(g + 1, None, cache),
+                    child.gaussians_at(g, None, cache)[3])  # fmt: skip
+        p = halfway(parent_at(g - 1), parent_at(g + 1), parent_at(g)[3])
+        with torch.no_grad():
+            rc = rasterize(*c, ctx["Ks"][g], child.w2cs[i], W, H).rgb.clamp(0, 1)
+            rp = rasterize(*p, ctx["Ks"][g], child.w2cs[i], W, H).rgb.clamp(0, 1)
+        l1c.append(float((rc - ctx["images"][g]).abs().mean()))
+        l1p.append(float((rp - ctx["images"][g]).abs().mean()))
+    assert v["child_l1"] == pytest.approx(np.mean(l1c), rel=1e-4)
+    assert v["parent_l1"] == pytest.approx(np.mean(l1p), rel=1e-4)
+    assert v["keep"] == (np.mean(l1c) < np.mean(l1p))

@@ -29,9 +29,11 @@ __all__ = ["HoldoutConfig", "Verdict", "holdout_frames", "keep_child"]
 class HoldoutConfig:
     """Held-out validation of the children (one source of defaults)."""
 
-    enabled: bool | None = None
-    """Hold out frames of every child and keep it only where it beats its parent on them (None: on with
-    ``--depth auto``, off for fixed depths, whose tree is the paper's)."""
+    enabled: bool = False
+    """Hold out frames of every child and keep it only where it beats its parent on them. Off by default:
+    measured to reject children that raise the test views' mPSNR (docs/worldtree_method.md, "The tree
+    against its root"): a held-out frame is a new time as well as a new camera, and the test views are new
+    cameras at trained times."""
     frac: float = 0.2
     """Share of a child's frames held out (at least one when it has three or more frames)."""
     margin: float = 0.0
