@@ -8,13 +8,14 @@ import typer
 
 from benchmarks.commands import run_options as opt
 from benchmarks.commands.run_options import RunOptions
+from benchmarks.runner.sweep import GRIDS
 
 
 def register(app: typer.Typer) -> None:
     @app.command(
         "sweep",
         help=(
-            "Run a grid of configurations (paper-ablation, depth, chain, split) over scenes; skips finished "
+            f"Run a grid of configurations ({', '.join(GRIDS)}) over scenes; skips finished "
             "runs, goes on past a failed one and reports it."
         ),
     )
@@ -23,7 +24,7 @@ def register(app: typer.Typer) -> None:
             None, "--scenes", help="Scene folders, or folders of scene folders (repeatable)."
         ),
         grid: str = typer.Option(
-            "paper-ablation", "--grid", help="paper-ablation, depth, chain, split or seeds."
+            "paper-ablation", "--grid", help=f"One of: {', '.join(GRIDS)} (docs/running.md)."
         ),
         method: str = typer.Option("worldtree", "--method", "-m", help="Registered method to sweep."),
         runs_dir: Path = opt.OUT,
