@@ -21,8 +21,10 @@ capture leaves 11 training frames and the tree splits a node only when it has at
 frames, so by default the tree is the root alone (the Base stages); ``--set min_len=11`` gives the one split
 the full 12 frames would get (two children of 5 and 6 frames).
 
-Usage (results appended to OUT/loo.json; finished (k, method) pairs are skipped, so an interrupted run
-resumes)::
+Usage (results appended to OUT/loo.json; a finished (label, k, method) result is reused only when it was
+computed with the same configuration -- preset, steps, seed, downscale, every ``--set``, the depth options,
+the scene and the prior folders, hashed into its ``config_key`` -- so an interrupted run resumes and a changed
+one computes again; ``--set`` keys are checked like ``wtbench run``'s, before any work)::
 
     nice python -m benchmarks.evaluation.leave_one_out SCENE --frames 3,6,9 --methods static,base -o runs/loo \\
         [--preset quick] [--steps N] [--depth-maps DIR --depth-kind disparity --depth-fit] [--flow DIR]
@@ -31,11 +33,15 @@ resumes)::
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
+import hashlib
 import json
 import shutil
+import signal
 import sys
 import tempfile
+import threading
 import time
 from pathlib import Path
 
@@ -207,7 +213,8 @@ def run_one(args, spec, cfg, scene: Scene, k: int, device, prior_dirs: dict[str,
     from worldtree.trainer import TrainContext
 
     sub = drop_frame(scene, k)
-    with tempfile.TemporaryDirectory(dir=out) as tmp:
+    # Inside OUT, named for the cleanup of a killed run's leftovers (main), removed on any exit here.
+    with tempfile.TemporaryDirectory(dir=out, prefix=TMP_PREFIX) as tmp:
         if prior_dirs and hasattr(cfg, "priors"):
             dirs = subset_priors(prior_dirs, k, scene.num_frames, Path(tmp))
             rep = {"depth": "depth_source", "flow": "flow_source", "masks": "masks_source"}
@@ -293,7 +300,8 @@ def main(argv: list[str] | None = None) -> None:
     )
     ap.add_argument(
         "--set", dest="sets", action="append", default=[], metavar="KEY=VALUE",
-        help="Change a config field of the methods that have it (as wtbench run --set); repeatable.",
+        help="Change a config field of the methods that have it (as wtbench run --set); repeatable. A key "
+        "no method of --methods has is an error.",
     )  # fmt: skip
     ap.add_argument(
         "--label", default="", help="Name of this configuration in the results (e.g. before/after)."
@@ -301,58 +309,196 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--progress", action="store_true")
     args = ap.parse_args(argv)
 
-    from methods.registry import get_method
+    from worldtree.folder_lock import FolderLock
+    from worldtree.output_paths import check_output_folder
 
     try:
         frames = [int(v) for v in args.frames.split(",") if v.strip()]
     except ValueError:
         raise UserError(f"--frames {args.frames!r}: expected comma-separated frame indices") from None
-    device = pick_device(args.device)
+    if not frames:
+        raise UserError(f"--frames {args.frames!r}: give at least one frame index")
+    if not args.scene.is_dir():
+        raise UserError(f"SCENE {args.scene}: no such folder; give a scene folder (docs/scene_format.md)")
     out = args.out
-    out.mkdir(parents=True, exist_ok=True)
-    res_path = out / "loo.json"
-    results = json.loads(res_path.read_text()) if res_path.is_file() else {"runs": []}
-    done = {(r["label"], r["k"], r["method"]) for r in results["runs"]}
+    check_output_folder(out, "-o")
     prior_dirs = {
         n: p for n, p in (("depth", args.depth_maps), ("flow", args.flow), ("masks", args.masks)) if p
     }
-    for name in args.methods.split(","):
-        spec = get_method(name.strip())
-        cfg = spec.config(args.preset)
-        for field_, v in (("steps", args.steps), ("seed", args.seed), ("downscale", args.downscale)):
-            if v is not None:
-                cfg = dataclasses.replace(cfg, **{field_: v})
-        mine = [item for item in args.sets if _has_field(cfg, item.split("=", 1)[0])]
-        if mine:
-            from benchmarks.runner.config_overrides import apply_overrides
+    for n, p in prior_dirs.items():
+        if not p.is_dir():
+            flag = {"depth": "--depth-maps", "flow": "--flow", "masks": "--masks"}[n]
+            raise UserError(f"{flag} {p}: no such folder; give the folder of per-frame files")
+    # Every method's config resolved and checked (--set keys, ranges) before any work.
+    plans = [
+        (spec, cfg, _config_key(spec.name, cfg, args, prior_dirs)) for spec, cfg in resolve_configs(args)
+    ]
+    scenes: dict[int, Scene] = {}
+    for _, cfg, _ in plans:  # every held-out frame checked before any training
+        if cfg.downscale not in scenes:
+            scenes[cfg.downscale] = load_scene(args.scene, downscale=cfg.downscale, load_masks=False)
+        n = scenes[cfg.downscale].num_frames
+        for k in frames:
+            if not 1 <= k <= n - 2:
+                raise UserError(f"--frames: {k} needs a frame on each side (1..{n - 2})")
+    device = pick_device(args.device)
+    out.mkdir(parents=True, exist_ok=True)
+    # One writer of OUT (loo.json and the temporary prior folders): every temporary folder found while
+    # holding the lock is a leftover of a killed run.
+    with FolderLock(out, "leave-one-out folder"), _signals_raise():
+        for stale in sorted(out.glob(f"{TMP_PREFIX}*")):
+            shutil.rmtree(stale, ignore_errors=True)
+        _run_all(args, plans, scenes, frames, device, prior_dirs, out)
 
+
+#: Prefix of the temporary folders (the priors without the held-out frame) inside OUT.
+TMP_PREFIX = ".loo-tmp-"
+#: ``--set`` keys that have their own option (refused with it).
+_OWN_OPTIONS = {"steps": "--steps", "seed": "--seed", "downscale": "--downscale",
+                "priors.depth_source": "--depth-maps", "priors.flow_source": "--flow",
+                "priors.masks_source": "--masks"}  # fmt: skip
+
+
+def resolve_configs(args) -> list[tuple]:
+    """``(spec, config)`` of every method of ``--methods``: the preset, ``--steps``/``--seed``/
+    ``--downscale``, the ``--set`` assignments of the fields each method has, ``--static-steps`` and the
+    depth import options. Like ``wtbench run``: a ``--set`` key that no method has, a malformed or repeated
+    one, one that has its own option, a value that does not parse or a setting outside its range
+    (:mod:`worldtree.config_ranges`) is a one-line :class:`UserError`, before any work."""
+    from benchmarks.runner.config_overrides import apply_overrides, canonical_sets, split_assignment
+    from methods.registry import get_method
+    from worldtree.config_ranges import check_config_ranges
+
+    canonical_sets(args.sets)  # malformed items, keys given twice
+    own = {"steps": args.steps, "seed": args.seed, "downscale": args.downscale,
+           "priors.depth_source": args.depth_maps, "priors.flow_source": args.flow,
+           "priors.masks_source": args.masks}  # fmt: skip
+    for item in args.sets:
+        key, _ = split_assignment(item)
+        if own.get(key) is not None:
+            raise UserError(f"--set {item}: {key} is also given by {_OWN_OPTIONS[key]}; keep one of them")
+    names = [n.strip() for n in args.methods.split(",") if n.strip()]
+    if not names:
+        raise UserError(f"--methods {args.methods!r}: give method names, e.g. static,base")
+    options = {"steps": args.steps, "seed": args.seed, "downscale": args.downscale}
+    plans, owned = [], set()
+    for name in names:
+        spec = get_method(name)
+        cfg = spec.config(args.preset)
+        cfg = dataclasses.replace(cfg, **{k: v for k, v in options.items() if v is not None})
+        mine = [item for item in args.sets if _has_field(cfg, split_assignment(item)[0])]
+        owned |= set(mine)
+        if mine:
             cfg = apply_overrides(cfg, mine)
+        given = {split_assignment(item)[0]: f"--set {item}" for item in mine}
+        given |= {k: f"--{k} {v}" for k, v in options.items() if v is not None}
         if spec.name == "static" and args.static_steps is not None:
             cfg = dataclasses.replace(cfg, steps=args.static_steps)
+            given["steps"] = f"--static-steps {args.static_steps}"
         if hasattr(cfg, "priors"):
             cfg = dataclasses.replace(
                 cfg, priors=dataclasses.replace(cfg.priors, depth_import=dataclasses.replace(
                     cfg.priors.depth_import, kind=args.depth_kind, fit_scale_shift=args.depth_fit)))  # fmt: skip
-        scene = load_scene(args.scene, downscale=cfg.downscale, load_masks=False)
+        for k in ("steps", "downscale"):
+            if getattr(cfg, k) < 1:
+                raise UserError(f"{given.get(k, f'setting {k}')}: must be at least 1")
+        check_config_ranges(cfg, given)
+        plans.append((spec, cfg))
+    for item in args.sets:
+        if item not in owned:
+            try:  # the first method's message names its fields and the closest one
+                apply_overrides(plans[0][1], [item])
+            except UserError as e:
+                raise UserError(f"{e} (no method of --methods {','.join(names)} has it)") from None
+            raise UserError(f"--set {item}: no method of --methods {','.join(names)} has this setting")
+    return plans
+
+
+def _folder_fingerprint(folder: Path) -> dict:
+    """A prior folder as the results key sees it: its absolute path and each file's name and sha256."""
+    from worldtree.hashing import sha256_file
+
+    files = sorted(p for p in folder.iterdir() if p.is_file()) if folder.is_dir() else []
+    return {"path": str(folder.resolve()), "files": [(p.name, sha256_file(p)) for p in files]}
+
+
+def _config_key(method: str, cfg, args, prior_dirs: dict[str, Path]) -> str:
+    """16 hex digits of the sha256 of everything a result depends on: the method, its whole resolved config
+    (preset, --steps/--seed/--downscale, every --set, the depth import options), the scene and the imported
+    prior folders (their files). A finished result is reused only under the same key."""
+    record = {
+        "method": method,
+        "config": dataclasses.asdict(cfg),
+        "scene": str(args.scene.resolve()),
+        "priors": {n: _folder_fingerprint(p) for n, p in sorted(prior_dirs.items())},
+    }
+    text = json.dumps(record, sort_keys=True, default=str)
+    return hashlib.sha256(text.encode("utf-8")).hexdigest()[:16]
+
+
+class Terminated(BaseException):
+    """SIGTERM, raised in the main thread so that ``finally`` blocks (temporary folders, the lock) run."""
+
+
+@contextlib.contextmanager
+def _signals_raise():
+    """While running: SIGINT raises KeyboardInterrupt and SIGTERM :class:`Terminated` at once, even when the
+    process was started with SIGINT ignored (a shell's background job), so a stop never waits for the end
+    of a training and never leaves a temporary folder. Handlers are put back on exit."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def on_term(signum, frame):
+        raise Terminated
+
+    old = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
+    signal.signal(signal.SIGINT, signal.default_int_handler)
+    signal.signal(signal.SIGTERM, on_term)
+    try:
+        yield
+    finally:
+        for sig, handler in old.items():
+            signal.signal(sig, handler if handler is not None else signal.SIG_DFL)
+
+
+def _run_all(
+    args, plans, scenes: dict[int, Scene], frames: list[int], device, prior_dirs: dict[str, Path], out: Path
+) -> None:
+    res_path = out / "loo.json"
+    try:
+        results = json.loads(res_path.read_text()) if res_path.is_file() else {"runs": []}
+        if not isinstance(results, dict) or not isinstance(results.get("runs"), list):
+            raise ValueError("no 'runs' list")
+    except (OSError, UnicodeDecodeError, ValueError) as e:
+        raise UserError(f"{res_path}: unreadable ({e}); move it away to start a new results file") from None
+    done = {(r.get("label"), r.get("k"), r.get("method"), r.get("config_key")) for r in results["runs"]
+            if isinstance(r, dict)}  # fmt: skip
+    for spec, cfg, key in plans:
+        scene = scenes[cfg.downscale]
         for k in frames:
-            if not 1 <= k <= scene.num_frames - 2:
-                raise UserError(f"--frames: {k} needs a frame on each side (1..{scene.num_frames - 2})")
-            if (args.label, k, spec.name) in done:
+            if (args.label, k, spec.name, key) in done:
                 continue
+            if any((r.get("label"), r.get("k"), r.get("method")) == (args.label, k, spec.name)
+                   for r in results["runs"] if isinstance(r, dict)):  # fmt: skip
+                print(f"[loo] {args.label or '-'} k={k} {spec.name}: {res_path} holds a result computed with "
+                      "other settings; computing this configuration's", file=sys.stderr, flush=True)  # fmt: skip
             print(f"[loo] {args.label or '-'} k={k} {spec.name}: training on {scene.num_frames - 1} frames",
                   file=sys.stderr, flush=True)  # fmt: skip
             row = run_one(
                 args, spec, cfg, scene, k, device, prior_dirs if hasattr(cfg, "priors") else {}, out
             )
             row.update(label=args.label, preset=args.preset, seed=cfg.seed, steps=cfg.steps,
-                       downscale=cfg.downscale, version=worldtree.__version__, command=" ".join(sys.argv))  # fmt: skip
+                       downscale=cfg.downscale, version=worldtree.__version__, command=" ".join(sys.argv),
+                       config_key=key, sets=sorted(args.sets),
+                       priors={n: str(p.resolve()) for n, p in prior_dirs.items()})  # fmt: skip
             results["runs"].append(row)
             atomic_write_json(res_path, results)
             mp = f" mPSNR {row['mpsnr']:.2f}" if row.get("mpsnr") is not None else ""
             nb = row["psnr_train_neighbours"]
             print(f"[loo] k={k} {spec.name}: PSNR {row['psnr']:.2f}{mp} (kept neighbours fitted at "
                   f"{nb['prev']:.2f} / {nb['next']:.2f}; {row['train_s']:.0f} s)", flush=True)  # fmt: skip
-    _summary(results, args.label)
+    _summary(results, args.label, {key for _, _, key in plans})
 
 
 def _has_field(cfg, dotted: str) -> bool:
@@ -364,8 +510,11 @@ def _has_field(cfg, dotted: str) -> bool:
     return True
 
 
-def _summary(results: dict, label: str) -> None:
-    rows = [r for r in results["runs"] if r["label"] == label]
+def _summary(results: dict, label: str, keys: set[str] | None = None) -> None:
+    """Mean scores per method of the rows of ``label`` (and, given ``keys``, of these configurations only)."""
+    rows = [
+        r for r in results["runs"] if r["label"] == label and (keys is None or r.get("config_key") in keys)
+    ]
     by = {}
     for r in rows:
         by.setdefault(r["method"], []).append(r)
@@ -376,9 +525,21 @@ def _summary(results: dict, label: str) -> None:
               f"(kept neighbours fitted at {kept:.2f})")  # fmt: skip
 
 
+INTERRUPTED = (
+    "interrupted: finished (k, method) results are in OUT/loo.json; re-run the same command to compute the "
+    "rest (the interrupted training starts again)"
+)
+
+
 if __name__ == "__main__":
     try:
         main()
     except UserError as e:
         print(f"error: {e}", file=sys.stderr)
         raise SystemExit(2) from None
+    except KeyboardInterrupt:
+        print(INTERRUPTED, file=sys.stderr)
+        raise SystemExit(130) from None
+    except Terminated:
+        print(INTERRUPTED.replace("interrupted", "terminated", 1), file=sys.stderr)
+        raise SystemExit(143) from None

@@ -137,3 +137,167 @@ def test_node_opacities_halfway_use_each_sets_local_time():
     want = [0.3, expect(0.0, 1.0, 1.0, 1.5), expect(2.0, 2.0, 0.5, 1.5), expect(1.0, 6.0, 2.0, 6.5)]
     np.testing.assert_allclose(got.detach().numpy(), want, rtol=1e-5)
     assert node_opacities_halfway(st, 6, 0).shape == (3,)  # chain_length 0: no ancestor
+
+
+# ---------------------------------------------------------------------------------------------- the command
+
+
+def _tiny_scene(root):
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).parent.parent / "methods" / "scene_fixture.py"
+    spec = importlib.util.spec_from_file_location("wt_tests_scene_fixture_loo", path)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod.write_tiny_scene(root, width=32, height=18, frames=5)
+
+
+def test_set_keys_and_ranges_are_checked_before_any_work(tmp_path):
+    import pytest
+
+    from benchmarks.evaluation import leave_one_out as loo
+    from worldtree.errors import UserError
+
+    scene = _tiny_scene(tmp_path / "scene")
+    out = tmp_path / "out"
+    base = [str(scene), "--frames", "2", "--methods", "static,base", "-o", str(out)]
+    cases = [
+        (["--set", "nope=1"], "no method of --methods static,base has it"),
+        (["--set", "lambda_dsim=0.1"], "did you mean 'lambda_dssim'"),
+        (["--set", "photometric.lambda_depth=-1"], "must be at least 0"),
+        (["--set", "seed=1", "--seed", "2"], "also given by --seed"),
+        (["--steps", "0"], "--steps 0"),
+        (["--seed", "1" * 20], "--seed"),
+        (["--frames", "4"], "needs a frame on each side"),
+    ]
+    for extra, match in cases:
+        argv = base + extra if extra[0] != "--frames" else [str(scene), *extra, "-o", str(out)]
+        with pytest.raises(UserError, match=match) as e:
+            loo.main(argv)
+        assert "\n" not in str(e.value)
+        assert not out.exists()  # refused before anything is written
+
+
+def test_finished_results_are_keyed_by_their_whole_configuration(tmp_path, monkeypatch, capsys):
+    """A result is reused only for the same preset, steps, --set and priors; a changed configuration computes
+    again (the old row is kept, the summary shows the current configuration's)."""
+    import json
+
+    from benchmarks.evaluation import leave_one_out as loo
+
+    scene = _tiny_scene(tmp_path / "scene")
+    out = tmp_path / "out"
+    calls = []
+
+    def fake_run_one(args, spec, cfg, scene, k, device, prior_dirs, out_):
+        calls.append((spec.name, k, cfg.steps, cfg.lambda_dssim))
+        return {"k": k, "method": spec.name, "psnr": 20.0 + len(calls), "train_s": 0.0,
+                "psnr_train_neighbours": {"prev": 1.0, "next": 1.0}}  # fmt: skip
+
+    monkeypatch.setattr(loo, "run_one", fake_run_one)
+    argv = [str(scene), "--frames", "1,2", "--methods", "static", "-o", str(out), "--steps", "5"]
+    loo.main(argv)
+    assert len(calls) == 2
+    loo.main(argv)  # the same configuration: both results reused
+    assert len(calls) == 2
+    loo.main(argv[:-1] + ["6"])  # other steps
+    assert calls[-1][2] == 6 and len(calls) == 4
+    loo.main(argv + ["--set", "lambda_dssim=0.5"])  # another setting
+    assert calls[-1][3] == 0.5 and len(calls) == 6
+    loo.main(argv + ["--set", "lambda_dssim=0.5"])
+    assert len(calls) == 6
+    rows = json.loads((out / "loo.json").read_text())["runs"]
+    assert len(rows) == 6 and len({r["config_key"] for r in rows}) == 3
+    # The summary of the last command is over its own configuration's rows (PSNR 25 and 26), not all six.
+    assert "mean PSNR 25.50" in capsys.readouterr().out.strip().splitlines()[-1]
+    # A killed run's temporary folder is removed by the next run (it holds OUT's lock, so it is stale).
+    (out / f"{loo.TMP_PREFIX}abc123").mkdir()
+    loo.main(argv)
+    assert not list(out.glob(f"{loo.TMP_PREFIX}*"))
+
+
+def test_priors_are_part_of_the_key(tmp_path, monkeypatch):
+    import numpy as np
+
+    from benchmarks.evaluation import leave_one_out as loo
+
+    scene = _tiny_scene(tmp_path / "scene")
+    calls = []
+    monkeypatch.setattr(loo, "run_one", lambda *a: calls.append(a[1].name) or {
+        "k": a[4], "method": a[1].name, "psnr": 1.0, "train_s": 0.0,
+        "psnr_train_neighbours": {"prev": 1.0, "next": 1.0}})  # fmt: skip
+    disp = tmp_path / "disp"
+    disp.mkdir()
+    for t in range(5):
+        np.save(disp / f"{t:03d}.npy", np.ones((18, 32), np.float32))
+    argv = [
+        str(scene),
+        "--frames",
+        "2",
+        "--methods",
+        "base",
+        "-o",
+        str(tmp_path / "out"),
+        "--preset",
+        "smoke",
+    ]
+    loo.main(argv)
+    loo.main(argv + ["--depth-maps", str(disp)])
+    loo.main(argv + ["--depth-maps", str(disp)])
+    np.save(disp / "004.npy", np.full((18, 32), 2.0, np.float32))  # another prior: computed again
+    loo.main(argv + ["--depth-maps", str(disp)])
+    assert len(calls) == 3
+
+
+def _stop_with(signum, tmp_path):
+    """Start a leave-one-out training that would run for minutes, with SIGINT ignored as a shell's background
+    job inherits it, send ``signum`` once its temporary folder exists; return (exit code, stderr, OUT)."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    from benchmarks.evaluation import leave_one_out as loo
+
+    scene = _tiny_scene(tmp_path / "scene")
+    out = tmp_path / "out"
+    cmd = [sys.executable, "-m", "benchmarks.evaluation.leave_one_out", str(scene), "--frames", "2",
+           "--methods", "static", "--steps", "1000000", "--device", "cpu", "-o", str(out)]  # fmt: skip
+    proc = subprocess.Popen(
+        cmd, stderr=subprocess.PIPE, stdout=subprocess.DEVNULL, text=True,
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN),
+    )  # fmt: skip
+    try:
+        for _ in range(1200):
+            if out.is_dir() and list(out.glob(f"{loo.TMP_PREFIX}*")) or proc.poll() is not None:
+                break
+            time.sleep(0.1)
+        assert proc.poll() is None, proc.stderr.read()
+        assert list(out.glob(f"{loo.TMP_PREFIX}*"))
+        os.kill(proc.pid, signum)
+        _, err = proc.communicate(timeout=120)  # a lost signal fails here, not a timing assert
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    return proc.returncode, err, out
+
+
+def test_sigint_stops_at_once_and_leaves_no_temporary_folder(tmp_path):
+    import signal
+
+    rc, err, out = _stop_with(signal.SIGINT, tmp_path)
+    assert rc == 130, err
+    assert "Traceback" not in err and err.strip().splitlines()[-1].startswith("interrupted:")
+    assert sorted(p.name for p in out.iterdir()) == []
+
+
+def test_sigterm_leaves_no_temporary_folder(tmp_path):
+    import signal
+
+    rc, err, out = _stop_with(signal.SIGTERM, tmp_path)
+    assert rc == 143, err
+    assert "Traceback" not in err and err.strip().splitlines()[-1].startswith("terminated:")
+    assert sorted(p.name for p in out.iterdir()) == []
