@@ -1,0 +1,98 @@
+"""Does the tree beat its root? One markdown row per scene from the run folders of `wtbench sweep --grid tree`
+(the root alone, depths 1 and 2, ``--depth auto``): mPSNR, PSNR, CPU seconds and Gaussians of each (as
+`wtbench table` counts them, :func:`benchmarks.reporting.results.cost_metrics`), the gains
+over the root and auto's share of depth 2's CPU time, then the means over scenes.
+
+Usage::
+
+    python -m benchmarks.speed.tree_vs_root RUNS_DIR [RUNS_DIR ...] [--noise DB]
+
+A run folder counts as ``depth D`` from its recorded options (``config.json``); several runs of one scene and
+depth (e.g. seeds) are averaged. ``--noise`` marks a gain below minus that many dB as a loss beyond noise.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from collections import defaultdict
+from pathlib import Path
+
+import numpy as np
+
+from benchmarks.reporting.results import cost_metrics
+
+DEPTHS = ("0", "1", "2", "auto")
+
+
+def collect(roots: list[Path]) -> dict[str, dict[str, list[dict]]]:
+    """``{scene: {depth: [run, ...]}}`` with each run's mean scores, CPU seconds and Gaussian count."""
+    out: dict[str, dict[str, list[dict]]] = defaultdict(lambda: defaultdict(list))
+    for root in roots:
+        for cfg_path in sorted(root.glob("*/worldtree/*/config.json")):
+            run = cfg_path.parent
+            if not (run / "DONE").exists():
+                continue
+            cfg = json.loads(cfg_path.read_text())
+            depth = str(cfg["config"].get("depth"))
+            if "tpt" in cfg["config"].get("ablate", []):
+                depth = "0"
+            if depth not in DEPTHS:
+                continue
+            mean = json.loads((run / "metrics.json").read_text())["mean"]
+            timing = json.loads((run / "timing.json").read_text())
+            model = run / "model" / "model.json"
+            cost = cost_metrics(timing, json.loads(model.read_text()) if model.exists() else None)
+            out[run.parent.parent.name][depth].append({
+                "mpsnr": float(mean["mpsnr"]), "psnr": float(mean["psnr"]), "cpu_s": cost["cpu_time_s"],
+                "gaussians": cost["n_gaussians"],
+            })  # fmt: skip
+    return out
+
+
+def _avg(runs: list[dict], key: str) -> float:
+    return float(np.mean([r[key] for r in runs])) if runs else float("nan")
+
+
+def table(data: dict[str, dict[str, list[dict]]], noise: float = 0.0) -> str:
+    """The markdown table (see the module docstring)."""
+    head = ("| scene | root mPSNR | d1 | d2 | auto | d1 - root | d2 - root | auto - best fixed | PSNR root / d2 | "
+            "CPU s root / d1 / d2 / auto | auto CPU / d2 | Gaussians root / d2 / auto |")  # fmt: skip
+    rows = [head, "|" + "|".join([" --- "] * 12) + "|"]
+    gains: dict[str, list[float]] = defaultdict(list)
+    for scene in sorted(data):
+        d = data[scene]
+        m = {k: _avg(d.get(k, []), "mpsnr") for k in DEPTHS}
+        p = {k: _avg(d.get(k, []), "psnr") for k in DEPTHS}
+        c = {k: _avg(d.get(k, []), "cpu_s") for k in DEPTHS}
+        g = {k: _avg(d.get(k, []), "gaussians") for k in DEPTHS}
+        best = max(m["0"], m["1"], m["2"])
+        g1, g2, ga = m["1"] - m["0"], m["2"] - m["0"], m["auto"] - best
+        for k, v in (("d1", g1), ("d2", g2), ("auto_best", ga), ("auto_cpu", c["auto"] / c["2"])):
+            if v == v:
+                gains[k].append(v)
+        flag = " (below)" if g2 < -noise else ""
+        rows.append(
+            f"| {scene} | {m['0']:.2f} | {m['1']:.2f} | {m['2']:.2f} | {m['auto']:.2f} | {g1:+.2f} | "
+            f"{g2:+.2f}{flag} | {ga:+.2f} | {p['0']:.2f} / {p['2']:.2f} | {c['0']:.0f} / {c['1']:.0f} / "
+            f"{c['2']:.0f} / {c['auto']:.0f} | {c['auto'] / c['2']:.0%} | {g['0']:.0f} / {g['2']:.0f} / "
+            f"{g['auto']:.0f} |"
+        )
+    if gains:
+        rows.append(
+            f"| **mean of {len(data)}** | | | | | {np.mean(gains['d1']):+.2f} | {np.mean(gains['d2']):+.2f} | "
+            f"{np.mean(gains['auto_best']):+.2f} | | | {np.mean(gains['auto_cpu']):.0%} | |"
+        )
+    return "\n".join(rows)
+
+
+def main(argv: list[str] | None = None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("runs", type=Path, nargs="+")
+    ap.add_argument("--noise", type=float, default=0.0, help="dB: a depth-2 loss beyond this is flagged")
+    a = ap.parse_args(argv)
+    print(table(collect(a.runs), a.noise))
+
+
+if __name__ == "__main__":
+    main()
