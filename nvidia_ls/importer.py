@@ -38,13 +38,20 @@ from nvidia_ls import llff
 from nvidia_ls.manifest import hash_files, write_manifest
 from nvidia_ls.preview import contact_sheet
 from nvidia_ls.sampling import pingpong
+from nvidia_ls.scene_checks import (
+    camera_problem,
+    depth_map_problem,
+    flow_problem,
+    read_pose_rows,
+    rotation_problem,
+)
 from nvidia_ls.world_frame import apply_similarity, rig_similarity
 from nvidia_ls.writer import cameras_document, frame_file, mask_file, save_image, test_file
 from worldtree import __version__
 from worldtree.atomic import atomic_dir, atomic_write_bytes, atomic_write_json
 from worldtree.errors import UserError
 from worldtree.imageio import read_image, read_mask
-from worldtree.output_paths import check_name, check_replaceable
+from worldtree.output_paths import check_name, check_output_folder, check_replaceable
 from worldtree.priors.imported import _load_array, read_flo, resize_flow
 
 LAYOUTS = ("auto", "dynamicnerf", "nvidia-ls")
@@ -163,14 +170,7 @@ def scan_source(root: Path, cfg: ImportConfig) -> _Source:
         raise UserError(
             f"{pb_path}: missing; the LLFF poses of the frames are needed (a clip without poses: --no-poses)"
         )
-    try:
-        pb = np.load(pb_path, allow_pickle=False)
-    except (ValueError, OSError) as e:
-        raise UserError(f"{pb_path}: not a readable .npy array ({e}); give an LLFF poses_bounds.npy") from e
-    if pb.ndim != 2 or pb.shape[1] != 17 or not np.isfinite(pb).all():
-        raise UserError(
-            f"{pb_path}: shape {pb.shape} or non-finite values; expected finite (N, 17) LLFF rows"
-        )
+    pb = read_pose_rows(pb_path)
 
     if cfg.test_images is not None:
         views = _views(Path(cfg.test_images))
@@ -234,12 +234,13 @@ def _cameras(src: _Source, T: int, test_row: int | None, pb_path: Path):
 
 
 def _read_flow_file(p: Path) -> np.ndarray:
-    f = read_flo(p) if p.suffix.lower() == ".flo" else np.asarray(_load_array(p, ("flow",)), np.float32)
+    f = read_flo(p) if p.suffix.lower() == ".flo" else np.asarray(_load_array(p, ("flow",)))
     f = np.squeeze(f)
     if f.ndim == 3 and f.shape[0] == 2 and f.shape[-1] != 2:
         f = np.moveaxis(f, 0, -1)
-    if f.ndim != 3 or f.shape[-1] != 2 or not np.isfinite(f).all():
-        raise UserError(f"{p}: flow of shape {f.shape} (or non-finite); expected finite [H, W, 2]")
+    why = flow_problem(f)
+    if why is not None:
+        raise UserError(f"{p}: {why}; re-export the flow")
     return f.astype(np.float32)
 
 
@@ -294,6 +295,7 @@ def import_scene(
     # The name first: a bad one is refused before the source is read and before anything is deleted.
     name = check_name(cfg.name if cfg.name is not None else root.resolve().name, "--name")
     final = Path(out_dir) / name
+    check_output_folder(out_dir, "-o")  # -o FILE/sub: one line, not a traceback after the work
     if cfg.force:
         check_replaceable(final, "--force", "scene folder", SCENE_MARKERS)
     src = scan_source(root, cfg)
@@ -344,17 +346,22 @@ def _geometry(root: Path, src: _Source, cfg: ImportConfig) -> _Geometry:
     if bad.any() or (pb[:, 16] <= pb[:, 15]).any():
         raise UserError(f"{pb_path}: near/far bounds must satisfy 0 < near < far")
     ids = sorted(rows)
+    for r in sorted(set(rows.values())):  # before inverting: a zero or non-rotation is refused, not inverted
+        why = rotation_problem(mat[r, :, :3])
+        if why is not None:
+            raise UserError(f"{pb_path}: row {r}: {why}; check the file")
     Ks, w2cs, bounds = llff.llff_to_opencv(pb[[rows[c] for c in ids]], W, H)
-    for k, c in enumerate(ids):
-        R = w2cs[k, :3, :3]
-        if np.abs(R @ R.T - np.eye(3)).max() > 1e-3 or np.linalg.det(R) < 0:
-            raise UserError(f"{pb_path}: row {rows[c]} is not a rotation; check the file")
     mode = cfg.normalize if cfg.normalize != "auto" else ("none" if cfg.no_poses else "rig")
     if mode == "rig":
         s, R, t = rig_similarity(w2cs, np.sqrt(bounds[:, 0] * bounds[:, 1]))
         w2cs, bounds = apply_similarity(w2cs, s, R, t), bounds * s
     else:
         s, R, t = 1.0, np.eye(3), np.zeros(3)
+    # The cameras as written to cameras.json pass the very check `nvls verify` applies to them.
+    for k, c in enumerate(ids):
+        why = camera_problem(Ks[k], w2cs[k], W, H)
+        if why is not None:
+            raise UserError(f"{pb_path}: row {rows[c]} (camera {c}): {why}; check the file")
     world = {"scale": s, "R": R.tolist(), "t": t.tolist(), "mode": mode,
              "note": "world = scale * R @ source + t (source: the LLFF frame of poses_bounds.npy)"}  # fmt: skip
     return _Geometry((W0, H0), (W, H), ids, Ks, w2cs, bounds, frame_cams, test_cam, pose_note, world)
@@ -440,9 +447,11 @@ def _write_priors(
         sub = "disp" if src.depth_kind == "disparity" else "depth"
         ddir = _mkdir(tmp / IMPORTED / sub)
         for t, p in enumerate(depth_files):
-            a = np.squeeze(np.asarray(_load_array(p, ("disp", "disparity", "depth", "pred")), np.float32))
-            if a.ndim != 2 or not np.isfinite(a).all():
-                raise UserError(f"{p}: map of shape {a.shape} (or non-finite); expected finite [H, W]")
+            a = np.squeeze(np.asarray(_load_array(p, ("disp", "disparity", "depth", "pred"))))
+            why = depth_map_problem(a, src.depth_kind)
+            if why is not None:
+                raise UserError(f"{p}: {why}; re-export the maps")
+            a = a.astype(np.float32)
             _check_aspect(a.shape, W, H, p, "the map")
             if src.depth_kind == "depth":
                 a = a * np.float32(world_scale)
@@ -508,14 +517,23 @@ def _manifest(root: Path, src: _Source, cfg: ImportConfig, geo: _Geometry, times
         "tool": "nvls import",
         "tool_version": __version__,
         "created_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
-        "source": {"path": str(root.resolve()), "layout": src.layout, "time_steps": T,
-                   "width": geo.size0[0], "height": geo.size0[1]},  # fmt: skip
+        "source": {
+            "path": str(root.resolve()),
+            "layout": src.layout,
+            "time_steps": T,
+            "width": geo.size0[0],
+            "height": geo.size0[1],
+        },  # fmt: skip
         "source_times": list(range(T)),
         "image_size": list(geo.size),
         "test_camera": geo.test_cam,
         "camera_order": geo.frame_cams,
-        "counts": {"frames": T, "test_frames": len(times), "masks": len(times) if has_tmasks else 0,
-                   "cameras": len(geo.ids)},  # fmt: skip
+        "counts": {
+            "frames": T,
+            "test_frames": len(times),
+            "masks": len(times) if has_tmasks else 0,
+            "cameras": len(geo.ids),
+        },  # fmt: skip
         "poses": {"method": "none", "note": "identity poses, focal guessed (--no-poses)"}
         if cfg.no_poses
         else {"method": "file", "rows": geo.pose_note},

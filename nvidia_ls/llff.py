@@ -84,18 +84,10 @@ def load_poses_bounds(path: str | Path, n_cameras: int, width: int, height: int)
     path = Path(path)
     if not path.is_file():
         raise UserError(f"--poses {path}: no such file; give an LLFF poses_bounds.npy")
-    try:
-        pb = np.load(path, allow_pickle=False)
-    except (ValueError, OSError) as e:
-        raise UserError(
-            f"--poses {path}: not a readable .npy array ({e}); give an LLFF poses_bounds.npy"
-        ) from e
-    if pb.ndim != 2 or pb.shape != (n_cameras, 17):
-        raise UserError(
-            f"--poses {path}: shape {tuple(pb.shape)}, expected ({n_cameras}, 17) for the {n_cameras} rig cameras"
-        )
-    if not np.isfinite(pb).all():
-        raise UserError(f"--poses {path}: contains NaN or Inf; regenerate the file")
+    from nvidia_ls.scene_checks import read_pose_rows
+
+    # Empty, damaged, non-numeric, complex, wrong shape, NaN: one line.
+    pb = read_pose_rows(path, "--poses", rows=n_cameras).astype(np.float64)
     mat = pb[:, :15].reshape(n_cameras, 3, 5)
     h_file, w_file, f = mat[:, 0, 4], mat[:, 1, 4], mat[:, 2, 4]
     if (h_file <= 0).any() or (w_file <= 0).any() or (f <= 0).any():
@@ -105,10 +97,17 @@ def load_poses_bounds(path: str | Path, n_cameras: int, width: int, height: int)
             f"--poses {path}: stored size {int(w_file[0])}x{int(h_file[0])} does not match the aspect of the "
             f"{width}x{height} images; give the poses of these images"
         )
-    rot = mat[:, :, :3]
-    err = np.abs(np.einsum("nij,nik->njk", rot, rot) - np.eye(3)).max()
-    if err > 1e-3:
-        raise UserError(f"--poses {path}: rotations are not orthonormal (error {err:.2g}); check the file")
+    from nvidia_ls.scene_checks import camera_problem, rotation_problem
+
+    for r in range(n_cameras):  # the checks `nvls verify` applies (nvidia_ls.scene_checks), before inverting
+        why = rotation_problem(mat[r, :, :3])
+        if why is not None:
+            raise UserError(f"--poses {path}: row {r}: {why}; check the file")
     if (pb[:, 15] <= 0).any() or (pb[:, 16] <= pb[:, 15]).any():
         raise UserError(f"--poses {path}: near/far bounds must satisfy 0 < near < far")
-    return llff_to_opencv(pb, width, height)
+    Ks, w2cs, bounds = llff_to_opencv(pb, width, height)
+    for r in range(n_cameras):
+        why = camera_problem(Ks[r], w2cs[r], width, height)
+        if why is not None:
+            raise UserError(f"--poses {path}: row {r}: {why}; check the file")
+    return Ks, w2cs, bounds

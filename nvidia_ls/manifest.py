@@ -9,6 +9,14 @@ import numpy as np
 
 from nvidia_ls import llff
 from nvidia_ls.sampling import pingpong
+from nvidia_ls.scene_checks import (
+    ROTATION_TOL,
+    camera_problem,
+    depth_map_problem,
+    flow_problem,
+    pose_rows_problem,
+    rotation_problem,
+)
 from worldtree.atomic import atomic_write_json
 from worldtree.hashing import sha256_file
 
@@ -44,13 +52,9 @@ def write_manifest(scene: str | Path, record: dict, files: dict[str, str] | None
     return record
 
 
-def _rotation_problem(R: np.ndarray, tol: float = 1e-4) -> str | None:
-    err = float(np.abs(R @ R.T - np.eye(3)).max())
-    if not np.isfinite(R).all() or err > tol:
-        return f"rotation not orthonormal (|R R^T - I| = {err:.2g})"
-    if np.linalg.det(R) < 0:
-        return "rotation is a reflection (det < 0)"
-    return None
+def _rotation_problem(R: np.ndarray, tol: float = ROTATION_TOL) -> str | None:
+    """:func:`nvidia_ls.scene_checks.rotation_problem` (kept under its old name)."""
+    return rotation_problem(R, tol)
 
 
 def verify_scene(scene: str | Path, check_hashes: bool = True) -> list[str]:
@@ -93,7 +97,25 @@ def verify_scene(scene: str | Path, check_hashes: bool = True) -> list[str]:
     read_cameras(scene)
     problems += _count_problems(scene, man, cams)
     cam_problems, by_id = _camera_problems(cams)
-    problems += cam_problems + _poses_bounds_problems(scene, by_id)
+    problems += cam_problems + _poses_bounds_problems(scene, by_id) + _imported_problems(scene)
+    return problems
+
+
+def _imported_problems(scene: Path) -> list[str]:
+    """The priors `nvls import` wrote under ``imported/`` (depth or disparity maps, flow), with the checks
+    import applied to them (:mod:`nvidia_ls.scene_checks`)."""
+    problems: list[str] = []
+    for sub, kind in (("disp", "disparity"), ("depth", "depth"), ("flow", "flow")):
+        folder = scene / "imported" / sub
+        for p in sorted(folder.glob("*.npy")) if folder.is_dir() else []:
+            try:
+                a = np.load(p, allow_pickle=False)
+            except (ValueError, OSError, EOFError) as e:
+                problems.append(f"{p.relative_to(scene).as_posix()}: unreadable ({e})")
+                continue
+            why = flow_problem(a) if kind == "flow" else depth_map_problem(a, kind)
+            if why is not None:
+                problems.append(f"{p.relative_to(scene).as_posix()}: {why}")
     return problems
 
 
@@ -134,17 +156,21 @@ def _camera_problems(cams: dict) -> tuple[list[str], dict]:
     problems: list[str] = []
     frames, tests = cams.get("frames", []), cams.get("test_frames", [])
     by_id: dict = {}
+    width, height = cams.get("width"), cams.get("height")
+    if not all(isinstance(v, int) and not isinstance(v, bool) and v > 0 for v in (width, height)):
+        problems.append(f"cameras.json: width/height must be positive integers (got {width}, {height})")
+        width = height = 1
     for c in cams.get("cameras", []):
         cid = c.get("id")
         by_id[cid] = c
-        K = np.asarray(c.get("K"), float)
-        w2c = np.asarray(c.get("w2c"), float)
-        if K.shape != (3, 3) or not np.isfinite(K).all() or K[0, 0] <= 0 or K[1, 1] <= 0:
-            problems.append(f"camera {cid}: bad intrinsics K")
-        if w2c.shape != (4, 4) or not np.isfinite(w2c).all():
-            problems.append(f"camera {cid}: w2c is not a finite 4x4 matrix")
+        try:
+            K = np.asarray(c.get("K"), float)
+            w2c = np.asarray(c.get("w2c"), float)
+        except (TypeError, ValueError):
+            problems.append(f"camera {cid}: K or w2c is not a matrix of numbers")
             continue
-        msg = _rotation_problem(w2c[:3, :3])
+        # The same check `nvls import` and `nvls build` apply before writing (nvidia_ls.scene_checks).
+        msg = camera_problem(K, w2c, width, height)
         if msg:
             problems.append(f"camera {cid}: {msg}")
     for f in frames + tests:
@@ -163,11 +189,14 @@ def _poses_bounds_problems(scene: Path, by_id: dict) -> list[str]:
     if pb_path.is_file():
         try:
             pb = np.load(pb_path, allow_pickle=False)
-        except (ValueError, OSError) as e:
+        except (ValueError, OSError, EOFError) as e:
             problems.append(f"poses_bounds.npy: unreadable ({e})")
         else:
             ids = sorted(by_id)
-            if pb.shape != (len(ids), 17):
+            why = pose_rows_problem(pb) if isinstance(pb, np.ndarray) else "not one array"
+            if why is not None:
+                problems.append(f"poses_bounds.npy: {why}")
+            elif pb.shape != (len(ids), 17):
                 problems.append(f"poses_bounds.npy: shape {pb.shape}, expected ({len(ids)}, 17)")
             elif ids:
                 _, w2cs, _ = llff.llff_to_opencv(pb)

@@ -248,3 +248,115 @@ def test_clip_without_poses(exported, tmp_path):
     np.testing.assert_allclose(sc.Ks[0, 0, 0].item(), 1.2 * CFG.width, rtol=1e-6)
     assert json.loads((out / "manifest.json").read_text())["poses"]["method"] == "none"
     assert verify_scene(out) == []
+
+
+def _pb_rot(pb, f):
+    m = pb[:, :15].reshape(-1, 3, 5).copy()
+    m[:, :, :3] = f(m[:, :, :3])
+    out = pb.copy()
+    out[:, :15] = m.reshape(-1, 15)
+    return out
+
+
+# (name, mutation of the source folder, expected message): every one was imported (or a traceback) before.
+_BAD_SOURCES = [
+    (
+        "rotation verify rejects",
+        lambda d: np.save(
+            d / "poses_bounds.npy", _pb_rot(np.load(d / "poses_bounds.npy"), lambda r: r * 1.0003)
+        ),
+        "rotation not orthonormal",
+    ),  # fmt: skip
+    (
+        "zero rotation",
+        lambda d: np.save(d / "poses_bounds.npy", _pb_rot(np.load(d / "poses_bounds.npy"), lambda r: 0 * r)),
+        "rotation not orthonormal",
+    ),  # fmt: skip
+    (
+        "focal 1e300",
+        lambda d: np.save(
+            d / "poses_bounds.npy", np.load(d / "poses_bounds.npy") * np.r_[[1] * 14, [1e300], [1, 1]]
+        ),
+        "bad intrinsics K: fx = [0-9.]+e\\+30[01] px outside",
+    ),  # fmt: skip
+    (
+        "complex poses",
+        lambda d: np.save(d / "poses_bounds.npy", np.load(d / "poses_bounds.npy") + 1j),
+        "complex128 values",
+    ),  # fmt: skip
+    (
+        "string poses",
+        lambda d: np.save(d / "poses_bounds.npy", np.load(d / "poses_bounds.npy").astype(str)),
+        "<U32 values",
+    ),  # fmt: skip
+    ("empty poses file", lambda d: (d / "poses_bounds.npy").write_bytes(b""), "empty file"),
+    (
+        "truncated poses file",
+        lambda d: (d / "poses_bounds.npy").write_bytes((d / "poses_bounds.npy").read_bytes()[:90]),
+        "not a readable .npy",
+    ),  # fmt: skip
+    ("no pose rows", lambda d: np.save(d / "poses_bounds.npy", np.zeros((0, 17))), "shape \\(0, 17\\)"),
+    (
+        "negative disparity",
+        lambda d: [np.save(p, -np.abs(np.load(p))) for p in (d / "disp").iterdir()],
+        "positive at only 0%",
+    ),  # fmt: skip
+    (
+        "3e38 px flow",
+        lambda d: [np.savez(p, flow=np.full_like(np.load(p)["flow"], 3e38)) for p in (d / "flow").iterdir()],
+        "flow of 3e\\+38 px",
+    ),  # fmt: skip
+]
+
+
+@pytest.mark.parametrize("name,mutate,match", _BAD_SOURCES, ids=[c[0] for c in _BAD_SOURCES])
+def test_import_refuses_what_verify_rejects_in_one_line(exported, tmp_path, name, mutate, match):
+    root, _ = exported
+    src = tmp_path / "src"
+    shutil.copytree(root, src)
+    mutate(src)
+    with pytest.raises(UserError, match=match) as e:
+        import_scene(src, tmp_path / "o", ImportConfig(), log=lambda m: None)
+    assert "\n" not in str(e.value)
+    assert not (tmp_path / "o").exists() or not any((tmp_path / "o").iterdir())
+
+
+def test_verify_applies_the_checks_import_applies(imported, tmp_path):
+    """One function per check (nvidia_ls.scene_checks): a scene changed after import to hold what import
+    refuses is rejected by verify with the same words."""
+    from nvidia_ls import scene_checks
+
+    scene = tmp_path / "scene"
+    shutil.copytree(imported, scene)
+    cams = json.loads((scene / "cameras.json").read_text())
+    w2c = np.array(cams["cameras"][0]["w2c"])
+    w2c[:3, :3] *= 1.0003  # inside the old import tolerance (1e-3), outside verify's (1e-4)
+    cams["cameras"][0]["w2c"] = w2c.tolist()
+    cams["cameras"][1]["K"][0][0] = 1e300
+    (scene / "cameras.json").write_text(json.dumps(cams))
+    disp = sorted((scene / "imported" / "disp").iterdir())[0]
+    np.save(disp, -np.abs(np.load(disp)))
+    problems = verify_scene(scene, check_hashes=False)
+    assert any("rotation not orthonormal" in p for p in problems), problems
+    assert any("fx = 1e+300 px outside" in p for p in problems), problems
+    assert any(p.startswith("imported/disp/") and "positive at only 0%" in p for p in problems), problems
+    assert scene_checks.rotation_problem(w2c[:3, :3]) is not None
+    assert scene_checks.rotation_problem(np.eye(3)) is None
+    assert scene_checks.flow_problem(np.zeros((4, 5, 2), complex)) is not None
+    assert scene_checks.depth_map_problem(np.ones((4, 5)), "depth") is None
+
+
+def test_integer_poses_are_read_as_numbers(exported, tmp_path):
+    """An LLFF file of integers (identity rotations, whole-number bounds) is a valid file, not a traceback."""
+    root, _ = exported
+    src = tmp_path / "src"
+    shutil.copytree(root, src)
+    rot = np.array([[0, 1, 0], [1, 0, 0], [0, 0, -1]])  # OpenCV identity in LLFF's [down, right, back]
+    rows = np.zeros((T, 17), np.int64)
+    for t in range(T):
+        m = np.concatenate([rot, [[t], [0], [0]], [[CFG.height], [CFG.width], [CFG.width]]], axis=1)
+        rows[t, :15] = m.reshape(15)
+        rows[t, 15:] = (1, 8)
+    np.save(src / "poses_bounds.npy", rows)
+    out = import_scene(src, tmp_path / "o", ImportConfig(normalize="none"), log=lambda m: None)
+    assert verify_scene(out) == []
