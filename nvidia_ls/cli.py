@@ -91,7 +91,9 @@ def synth(
     cfg=None,  # the SynthConfig made from the generated options (ConfigCommand)
 ) -> None:
     from nvidia_ls.synth import write_raw_scene
+    from worldtree.output_paths import check_output_folder
 
+    check_output_folder(out_dir, "OUT_DIR")  # OUT_DIR under a file: one line before rendering
     console = _console()
     with console.status("rendering") as status:
         path = write_raw_scene(
@@ -122,7 +124,10 @@ def gt_priors(
     from rich.progress import Progress
 
     from nvidia_ls.gt_priors import GtPriorsConfig, write_gt_priors
+    from worldtree.output_paths import check_output_folder
 
+    if out is not None:
+        check_output_folder(out, "--out")
     cfg = GtPriorsConfig(track_stride=track_stride, seed_every=seed_every, force=force)
     console = _console()
     with Progress(console=console, transient=True) as prog:

@@ -7,6 +7,7 @@ from __future__ import annotations
 from worldtree.errors import UserError
 
 INTERRUPTED = "interrupted: re-run the same command to resume from the last checkpoint"
+NOT_A_FOLDER = "a part of this path is a file, not a folder; choose another path"
 
 
 def run_cli(app) -> None:
@@ -22,6 +23,10 @@ def run_cli(app) -> None:
     except KeyboardInterrupt:
         print(INTERRUPTED, file=sys.stderr)
         raise SystemExit(130) from None
+    except NotADirectoryError as e:
+        # An output path running through a file (-o FILE/sub) that a command's own check did not catch.
+        print(f"error: {e.filename}: {NOT_A_FOLDER}", file=sys.stderr)
+        raise SystemExit(2) from None
     except Exception as e:
         # Usage errors arrive here with standalone_mode=False. Recent typer releases vendor their own copy of
         # click, so the exception classes are matched by behaviour, not by click's class objects.

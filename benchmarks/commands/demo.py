@@ -43,6 +43,9 @@ def register(app: typer.Typer) -> None:
             "frames need it) or a fixed depth, e.g. 2 (the paper's).",
         ),
     ) -> None:
+        from worldtree.output_paths import check_output_folder
+
+        check_output_folder(out, "-o")
         run_demo(out, methods, steps, size, device, preset, gt_priors=gt_priors, depth=depth)
 
 

@@ -53,7 +53,9 @@ def register(app: typer.Typer) -> None:
         )
         from benchmarks.reporting.results import GROUP_KEYS, collect_runs, select
         from benchmarks.reporting.tables import parse_list
+        from worldtree.output_paths import check_output_file
 
+        check_output_file(out, "-o")
         keys = parse_list(group_by, "--group-by", GROUP_KEYS)
         wanted = parse_list(y, "--y", AXIS_METRICS)
         xs = parse_list(x, "--x", AXIS_METRICS)

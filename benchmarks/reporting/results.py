@@ -29,7 +29,14 @@ from worldtree.errors import UserError
 #: Columns of the evaluation harness (benchmarks.evaluation.evaluate.COLUMNS without ``frame``).
 HARNESS_METRICS = ("psnr", "ssim", "lpips", "avge", "mpsnr", "mssim", "mlpips", "mavge")
 #: Cost of a run: wall seconds, CPU seconds (every process of the run), peak memory (MiB), model size.
-COST_METRICS = ("wall_time_s", "cpu_time_s", "peak_memory_mb", "n_gaussians", "n_scaffold_nodes", "n_tree_nodes")
+COST_METRICS = (
+    "wall_time_s",
+    "cpu_time_s",
+    "peak_memory_mb",
+    "n_gaussians",
+    "n_scaffold_nodes",
+    "n_tree_nodes",
+)
 METRICS = HARNESS_METRICS + COST_METRICS
 #: Long-table metric name prefix of a stage's seconds, e.g. ``stage_s:train``, ``stage_s:method.tree``.
 STAGE_PREFIX = "stage_s:"
@@ -59,6 +66,36 @@ _SIZE_KEYS = {
     "n_scaffold_nodes": ("num_scaffold_nodes", "n_scaffold_nodes", "scaffold_nodes"),
     "n_tree_nodes": ("num_tree_nodes", "n_tree_nodes", "tree_nodes"),
 }
+
+
+#: Metrics that may be +inf for a good reason: the PSNR of a render identical to its ground truth.
+INFINITE_OK = ("psnr", "mpsnr")
+
+
+def unusable_value(metric: str, v: float) -> bool:
+    """Whether ``v`` cannot be a value of ``metric``: infinite (except +inf PSNR, :data:`INFINITE_OK`). Such a
+    value is shown as missing, with one note (:func:`collect_runs`), never ranked or averaged."""
+    return math.isinf(v) and not (metric in INFINITE_OK and v > 0)
+
+
+def written_nonfinite(csv: Path) -> set[str]:
+    """Metrics whose ``mean`` row cell in the run's ``metrics.csv`` holds text that is no value of the metric
+    (``nan``, ``abc``, ``inf`` except for PSNR): written so, not merely empty (the harness leaves a metric it
+    did not compute empty)."""
+    try:
+        raw = pd.read_csv(csv, dtype=str, keep_default_na=False)
+    except (OSError, ValueError, pd.errors.ParserError):
+        return set()
+    if "frame" not in raw.columns:
+        return set()
+    out = set()
+    for _, row in raw[raw["frame"] == "mean"].iterrows():
+        for m in HARNESS_METRICS:
+            text = str(row.get(m, "")).strip()
+            v = _number(text)
+            if text and (math.isnan(v) or unusable_value(m, v)):  # +inf PSNR is a value
+                out.add(m)
+    return out
 
 
 def higher_is_better(metric: str) -> bool:
@@ -296,6 +333,7 @@ def collect_runs(runs_dirs: Sequence[str | Path]) -> Collection:
     notes: list[str] = []
     unfinished: list[str] = []
     skipped_bad: list[str] = []
+    nonfinite: list[str] = []
     seen: set[Path] = set()
     for d in runs_dirs:
         d = Path(d)
@@ -342,6 +380,14 @@ def collect_runs(runs_dirs: Sequence[str | Path]) -> Collection:
                 **mean,
                 **cost_metrics(timing, read_json(run / "model" / "model.json")),
             }
+            # Values no metric can take (NaN or inf written into metrics.csv, an infinite time or size): shown
+            # as missing, never ranked or averaged, and said once for all runs below.
+            bad = sorted({m for m, v in values.items() if unusable_value(m, v)} | written_nonfinite(run / "metrics.csv"),
+                         key=list(values).index)  # fmt: skip
+            for m in bad:
+                values[m] = math.nan
+            if bad:
+                nonfinite.append(f"{rel} ({', '.join(bad)})")
             inf = [m for m, v in values.items() if math.isinf(v)]
             if inf:
                 notes.append(f"{run}: infinite {', '.join(inf)} (renders identical to the ground truth?)")
@@ -358,6 +404,12 @@ def collect_runs(runs_dirs: Sequence[str | Path]) -> Collection:
             }
             rows += [{**base, "metric": m, "value": values[m]} for m in METRICS]
             rows += [{**base, "metric": m, "value": v} for m, v in stage_times(timing).items()]
+    if nonfinite:
+        shown = "; ".join(nonfinite[:5]) + (f" and {len(nonfinite) - 5} more" if len(nonfinite) > 5 else "")
+        notes.append(
+            f"{len(nonfinite)} run(s) hold NaN or infinite values, shown as missing: {shown}; "
+            "re-score them (`wtbench eval`) or re-run them"
+        )
     if unfinished:
         shown = ", ".join(unfinished[:5]) + (
             f" and {len(unfinished) - 5} more" if len(unfinished) > 5 else ""

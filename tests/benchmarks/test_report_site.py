@@ -260,3 +260,39 @@ def test_scenes_whose_names_slug_alike_get_a_page_each(sweep, tmp_path, no_plots
     assert len(set(n.lower() for n in names.values())) == 5 and names["A_b"] == "A_b"
     assert names == site.unique_slugs(reversed(list(names)))
     assert all(len(n) < 140 for n in names.values())
+
+
+def test_nan_and_infinite_metrics_are_missing_and_said_once(sweep, tmp_path, no_plots):
+    """NaN or infinite values written into runs (an infinite SSIM, a -inf wall time) are shown as missing,
+    never ranked, with one note naming the runs; +inf PSNR (a render equal to its ground truth) stays."""
+    import csv
+
+    from benchmarks.reporting.results import collect_runs
+
+    runs, _ = sweep
+    bad = tmp_path / "runs"
+    shutil.copytree(runs, bad)
+    for scene in fx.SCENES:
+        run = bad / scene / "static" / "quick"
+        rows = list(csv.reader((run / "metrics.csv").open()))
+        head = rows[0]
+        for r in rows[1:]:
+            r[head.index("psnr")], r[head.index("ssim")], r[head.index("mpsnr")] = "inf", "inf", "nan"
+        with (run / "metrics.csv").open("w", newline="") as f:
+            csv.writer(f).writerows(rows)
+        timing = json.loads((run / "timing.json").read_text())
+        timing.update(total_s=float("-inf"), sessions_s=[1.0])
+        (run / "timing.json").write_text(json.dumps(timing))
+    found = collect_runs([bad])
+    v = found.long.set_index(["run", "metric"])["value"]
+    run_a = str(bad / "SceneA" / "static" / "quick")
+    assert v[(run_a, "psnr")] == float("inf")
+    assert np.isnan(v[(run_a, "ssim")]) and np.isnan(v[(run_a, "mpsnr")]) and np.isnan(v[(run_a, "wall_time_s")])
+    notes = site.build_report([bad], tmp_path / "r", log=lambda s: None)
+    said = [n for n in notes if "NaN or infinite" in n]
+    assert len(said) == 1 and "SceneA/static/quick (ssim, mpsnr, wall_time_s)" in said[0], notes
+    # In the static row only the three PSNR cells (two scenes and the mean) are infinite; SSIM, mPSNR and
+    # the wall time are missing ("-"), not inf or -inf.
+    rows = _parse(tmp_path / "r" / "index.html", "results-worldtree").rows
+    cells = next(r for r in rows if r[0] == "static")
+    assert [c.lower() for c in cells].count("inf") == 3 and "-inf" not in [c.lower() for c in cells], cells

@@ -31,6 +31,7 @@ from benchmarks.reporting.results import (
     find_run_folders,
     read_json,
     read_metrics_table,
+    unusable_value,
 )
 
 STATES = ("done", "running", "queued", "failed", "unfinished", "damaged")
@@ -44,7 +45,11 @@ def read_frame_scores(csv: Path) -> pd.DataFrame | None:
         return None
     table = table[table["frame"] != "mean"].set_index("frame")
     cols = [m for m in HARNESS_METRICS if m in table.columns]
-    return table[cols].apply(pd.to_numeric, errors="coerce")
+    table = table[cols].apply(pd.to_numeric, errors="coerce")
+    # As in the tables (benchmarks.reporting.results.unusable_value): an impossible value is a missing one.
+    for m in cols:
+        table[m] = table[m].mask(table[m].map(lambda v, m=m: unusable_value(m, float(v))))
+    return table
 
 
 @dataclass

@@ -381,12 +381,15 @@ def _environment():
 
 
 def _check_out(out: Path) -> None:
+    from worldtree.output_paths import check_output_folder
+
     if out.exists() and not out.is_dir():
         raise UserError(f"-o {out}: is a file; give a folder for the report")
     if out.is_dir() and any(out.iterdir()) and not (out / MARKER).is_file():
         raise UserError(
             f"-o {out}: the folder exists and is not a wtbench report; give a new or empty folder"
         )
+    check_output_folder(out, "-o")  # -o FILE/sub, an unwritable parent
 
 
 def _run_label(e: RunEntry, keys: Sequence[str]) -> str:
