@@ -58,6 +58,25 @@ SBATCH_OWN = {
 }  # fmt: skip
 # Seconds a Slurm job may be gone from the queue before its result file shows up (shared file systems lag).
 RESULT_GRACE_S = 10.0
+# squeue reasons (%r) of a pending job that the cluster, as configured, will never start: the job asks for
+# more than a node or partition has (CPUs, GPUs, memory, time), for nodes that are not available, or under
+# an account/QOS that does not allow it. Slurm keeps such a job pending for ever; the sweep stops instead.
+NEVER_RUNS = {
+    "PartitionConfig": "the job asks for more than the partition's nodes have (CPUs, GPUs or memory)",
+    "ReqNodeNotAvail": "the nodes the job needs are not available (down, drained or too small)",
+    "PartitionNodeLimit": "the job asks for more nodes than the partition allows",
+    "PartitionTimeLimit": "the job's time limit is above the partition's",
+    "BadConstraints": "no node satisfies the job's constraints",
+    "InvalidAccount": "the account is not valid",
+    "InvalidQOS": "the QOS is not valid",
+    "QOSMaxCpuPerJobLimit": "the job asks for more CPUs than its QOS allows",
+    "QOSMaxGRESPerJob": "the job asks for more GPUs than its QOS allows",
+    "QOSMaxMemoryPerJob": "the job asks for more memory than its QOS allows",
+    "QOSMaxWallDurationPerJobLimit": "the job's time limit is above its QOS's",
+}
+# Seconds a job may show one of NEVER_RUNS before the sweep gives up on it (Slurm may show a reason briefly
+# while a node comes back).
+NEVER_RUNS_GRACE_S = 60.0
 
 
 @dataclass(frozen=True)
@@ -294,21 +313,87 @@ def _update_last_job(folder: RunFolder, **fields: Any) -> None:
 def slurm_states(job_ids: Sequence[str]) -> dict[str, str] | None:
     """squeue's state of each job still known to Slurm (jobs it has forgotten are absent); None when
     squeue could not be asked."""
+    jobs = slurm_jobs(job_ids)
+    return None if jobs is None else {jid: state for jid, (state, _) in jobs.items()}
+
+
+def slurm_jobs(job_ids: Sequence[str]) -> dict[str, tuple[str, str]] | None:
+    """squeue's ``(state, reason)`` of each job still known to Slurm (jobs it has forgotten are absent);
+    None when squeue could not be asked."""
     if not job_ids:
         return {}
-    cmd = ["squeue", "-h", "-o", "%i|%T", "--states=all", "-j", ",".join(job_ids)]
+    cmd = ["squeue", "-h", "-o", "%i|%T|%r", "--states=all", "-j", ",".join(job_ids)]
     try:
         out = subprocess.run(cmd, capture_output=True, text=True, timeout=60)
     except (OSError, subprocess.TimeoutExpired):
         return None
     if out.returncode != 0 and "invalid job id" not in out.stderr.lower():
         return None
-    states = {}
+    jobs = {}
     for line in out.stdout.splitlines():
-        jid, _, state = line.strip().partition("|")
+        jid, _, rest = line.strip().partition("|")
+        state, _, reason = rest.partition("|")
         if jid:
-            states[jid] = state.split()[0] if state else "UNKNOWN"
-    return states
+            jobs[jid] = (state.split()[0] if state.strip() else "UNKNOWN", reason.strip())
+    return jobs
+
+
+def never_runs(reason: str) -> str | None:
+    """Why a pending job with squeue reason ``reason`` will never start (:data:`NEVER_RUNS`), or None.
+    squeue may append details: ``ReqNodeNotAvail, UnavailableNodes:n1``."""
+    key = re.split(r"[,\s(]", reason.strip(), maxsplit=1)[0]
+    return NEVER_RUNS.get(key)
+
+
+def _resources(s: SlurmOptions, device: str) -> str:
+    """What each job asks for, as the options that set it."""
+    gpus = s.gpus_per_job if device != "cpu" else 0
+    parts = [f"--slurm-gpus-per-job {gpus}", f"--slurm-cpus-per-job {s.cpus_per_job}",
+             f"--slurm-time {s.time_min} (minutes)"]  # fmt: skip
+    if s.mem:
+        parts.append(f"--slurm-mem {s.mem}")
+    if s.partition:
+        parts.append(f"--slurm-partition {s.partition}")
+    return ", ".join(parts)
+
+
+def _fix_hint(text: str, s: SlurmOptions, device: str) -> str:
+    """The option that most likely fixes what sbatch or squeue said (``text``)."""
+    low = text.lower()
+    gpus = s.gpus_per_job if device != "cpu" else 0
+    if gpus and any(w in low for w in ("gres", "gpu", "tres")):
+        return "on a cluster without GPUs pass --device cpu (or --slurm-gpus-per-job 0)"
+    if "partition" in low and ("invalid" in low or "not" in low and "available" not in low):
+        return "name an existing partition with --slurm-partition (see `sinfo`)"
+    if "memory" in low or "mem" in low.split():
+        return "lower --slurm-mem (see `sinfo -o '%P %m'`)"
+    if "time limit" in low or "timelimit" in low:
+        return "lower --slurm-time (see `sinfo -o '%P %l'`)"
+    if "account" in low or "qos" in low:
+        return "give a valid --slurm-arg account=... / --slurm-arg qos=..."
+    if gpus:
+        return (
+            "ask for what a node has: --device cpu (or --slurm-gpus-per-job 0) where nodes have no GPU, "
+            "and --slurm-cpus-per-job at most the node's CPUs (see `sinfo -o '%P %c %G %m'`)"
+        )
+    return "ask for what a node has: --slurm-cpus-per-job at most the node's CPUs (see `sinfo -o '%P %c %m'`)"
+
+
+def _sbatch_refusal(e: BaseException) -> str:
+    """The first line sbatch wrote about a refused submission (submitit's FailedJobError holds its stderr)."""
+    lines = [ln.strip() for ln in str(e).splitlines() if ln.strip()]
+    said = next((ln for ln in lines if "error" in ln.lower()), lines[0] if lines else type(e).__name__)
+    return said.removeprefix("sbatch: error: ").removeprefix("sbatch: ")
+
+
+def _cancel_slurm(job_ids: Sequence[str]) -> None:
+    """``scancel`` the jobs (best effort: a job already gone, or no scancel, is fine)."""
+    if not job_ids:
+        return
+    try:
+        subprocess.run(["scancel", *job_ids], capture_output=True, timeout=60)
+    except (OSError, subprocess.TimeoutExpired):
+        pass
 
 
 def _pid_alive(pid: int) -> bool:
@@ -427,6 +512,7 @@ def run_tasks(
     free_gpus = list(gpus)
     running: dict[int, tuple[Any, int | None, float]] = {}  # task index -> (job, gpu, submitted time)
     gone_since: dict[int, float] = {}
+    stuck_since: dict[str, float] = {}  # Slurm job id -> first seen pending for a NEVER_RUNS reason
     pending = list(todo)
     last_squeue = 0.0
     squeue: dict[str, str] | None = None
@@ -444,7 +530,19 @@ def run_tasks(
                 else:
                     executor.update_parameters(job_name=slurm_job_name(t.scene, t.folder.root.name))
                 submitted = time.time()
-                job = executor.submit(RunJob(t.request, threads))
+                try:
+                    job = executor.submit(RunJob(t.request, threads))
+                except (submitit.core.utils.FailedJobError, subprocess.CalledProcessError, OSError) as e:
+                    if cfg.kind != "slurm":
+                        raise
+                    said = _sbatch_refusal(e)
+                    device = t.request.device
+                    others = [str(j.job_id) for j, _, _ in running.values()]
+                    tail = f"; jobs {', '.join(others)} already queued go on" if others else ""
+                    raise UserError(
+                        f"sbatch refused the job of {t.scene}: {t.label}: {said} (asked for "
+                        f"{_resources(cfg.slurm, device)}); {_fix_hint(said, cfg.slurm, device)}{tail}"
+                    ) from None
                 running[i] = (job, gpu, submitted)
                 entry = {
                     "executor": cfg.kind,
@@ -464,8 +562,10 @@ def run_tasks(
                 log(f"[{i + 1}/{total}] {t.scene}: {t.label}: {cfg.kind} job {job.job_id}{where}")
 
             if cfg.kind == "slurm" and running and time.time() - last_squeue > 5 * cfg.poll_s:
-                squeue = slurm_states([str(j.job_id) for j, _, _ in running.values()])
+                queue = slurm_jobs([str(j.job_id) for j, _, _ in running.values()])
+                squeue = None if queue is None else {jid: st for jid, (st, _) in queue.items()}
                 last_squeue = time.time()
+                _stop_if_never_runs(queue or {}, running, tasks, cfg, stuck_since)
             for i in list(running):
                 job, gpu, submitted = running[i]
                 finished = _job_finished(job, cfg.kind, squeue, gone_since, i)
@@ -488,6 +588,52 @@ def run_tasks(
             log(f"interrupted: Slurm jobs {ids} go on; `wtbench sweep --status RUNS_DIR` follows them")
         raise
     return [o for o in outcomes if o is not None]
+
+
+def _stop_if_never_runs(
+    queue: dict[str, tuple[str, str]],
+    running: dict[int, tuple[Any, int | None, float]],
+    tasks: Sequence[Task],
+    cfg: ExecutorConfig,
+    stuck_since: dict[str, float],
+) -> None:
+    """Raise a one-line :class:`UserError` once a job has been pending for a :data:`NEVER_RUNS` reason for
+    :data:`NEVER_RUNS_GRACE_S`: the sweep's pending jobs (all ask for the same resources) are cancelled and
+    recorded failed, with the reason and the option that fixes it; running jobs go on."""
+    now = time.time()
+    stuck = None
+    for i, (job, _, _) in running.items():
+        jid = str(job.job_id)
+        state, reason = queue.get(jid, ("", ""))
+        why = never_runs(reason) if state == "PENDING" else None
+        if why is None:
+            stuck_since.pop(jid, None)
+            continue
+        first = stuck_since.setdefault(jid, now)
+        if stuck is None and now - first >= NEVER_RUNS_GRACE_S:
+            stuck = (i, jid, reason, why)
+    if stuck is None:
+        return
+    i, jid, reason, why = stuck
+    pending = {
+        k: str(j.job_id)
+        for k, (j, _, _) in running.items()
+        if queue.get(str(j.job_id), ("",))[0] == "PENDING"
+    }
+    _cancel_slurm(list(pending.values()))
+    for k in pending:
+        msg = f"cancelled: Slurm would never start it (pending for {reason})"
+        _update_last_job(tasks[k].folder, state="failed", error=msg, ended=now)
+        running.pop(k, None)
+    t = tasks[i]
+    device = t.request.device
+    left = [str(j.job_id) for j, _, _ in running.values()]
+    tail = f"; running jobs {', '.join(left)} go on" if left else ""
+    raise UserError(
+        f"Slurm will never start job {jid} ({t.scene}: {t.label}): pending for {reason}: {why} (asked for "
+        f"{_resources(cfg.slurm, device)}); cancelled {len(pending)} pending job(s); "
+        f"{_fix_hint(reason + ' ' + why, cfg.slurm, device)}{tail}"
+    )
 
 
 def logging_quiet() -> None:
