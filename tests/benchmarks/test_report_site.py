@@ -296,3 +296,37 @@ def test_nan_and_infinite_metrics_are_missing_and_said_once(sweep, tmp_path, no_
     rows = _parse(tmp_path / "r" / "index.html", "results-worldtree").rows
     cells = next(r for r in rows if r[0] == "static")
     assert [c.lower() for c in cells].count("inf") == 3 and "-inf" not in [c.lower() for c in cells], cells
+
+
+def test_partial_folders_of_a_killed_report_are_removed_next_time(sweep, tmp_path, no_plots):
+    """A report killed while writing leaves ``.OUT.XXXXXXXX.partial``; the next report removes it once its
+    writer (named in the folder's marker) is gone, and keeps a live writer's, an unmarked recent one and
+    folders not named like its own."""
+    import os
+    import socket
+    import subprocess
+    import sys
+
+    runs, _ = sweep
+    out = tmp_path / "report"
+    dead = subprocess.Popen([sys.executable, "-c", "pass"])
+    dead.wait()
+
+    def partial(name: str, pid: int | None) -> Path:
+        p = tmp_path / name
+        (p / "scenes").mkdir(parents=True)
+        if pid is not None:
+            doc = {"pid": pid, "host": socket.gethostname(), "since": 0}
+            (p / site.PARTIAL_MARKER).write_text(json.dumps(doc))
+        return p
+
+    killed = partial(".report.abcd1234.partial", dead.pid)
+    live = partial(".report.live5678.partial", os.getpid())
+    unmarked = partial(".report.zzzz0000.partial", None)
+    other = partial(".report2.abcd1234.partial", dead.pid)
+    old_unmarked = partial(".report.old00000.partial", None)
+    os.utime(old_unmarked, (0, 0))
+    site.build_report([runs], out, log=lambda s: None)
+    assert not killed.exists() and not old_unmarked.exists()
+    assert live.exists() and unmarked.exists() and other.exists()
+    assert not (out / site.PARTIAL_MARKER).exists() and (out / site.MARKER).is_file()

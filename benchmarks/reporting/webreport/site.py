@@ -36,6 +36,12 @@ from worldtree.errors import UserError
 
 #: A file every report holds; an existing ``-o`` folder without it is never replaced.
 MARKER = ".wtbench-report"
+#: A file in the temporary folder of a report being written: who writes it (PID, host, start time), so that a
+#: later `wtbench report` removes the folder once that process is gone (killed before it could clean up).
+PARTIAL_MARKER = ".wtbench-report-partial"
+#: Age after which a temporary report folder is removed even when its writer cannot be checked (another
+#: host, or no marker: killed in the instant between creating it and marking it).
+PARTIAL_MAX_AGE_S = 24 * 3600.0
 #: Metrics drawn over time on the scene pages.
 CURVE_METRICS = ("psnr", "mpsnr")
 #: Cells of a run shown in a hover text before "and N more".
@@ -448,7 +454,10 @@ def build_report(
     now = time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime())
     common = {"title": opts.title, "generated": now, "version": worldtree.__version__, "labels": LABELS}
 
+    for stale in remove_stale_report_partials(out):
+        log(f"removed {stale}: the temporary folder of a report that was killed")
     with atomic_dir(out, force=True) as tmp:
+        _mark_partial(tmp)
         (tmp / "plots").mkdir()
         (tmp / "scenes").mkdir()
         (tmp / "data").mkdir()
@@ -550,7 +559,62 @@ def build_report(
         )
         atomic_write_text(tmp / "index.html", index)
         (tmp / MARKER).write_text(f"wtbench report {worldtree.__version__} {now}\n")
+        (tmp / PARTIAL_MARKER).unlink()
     return notes
+
+
+def _mark_partial(tmp: Path) -> None:
+    import json
+    import os
+    import socket
+
+    doc = {"pid": os.getpid(), "host": socket.gethostname(), "since": time.time()}
+    (tmp / PARTIAL_MARKER).write_text(json.dumps(doc))
+
+
+def _writer_gone(folder: Path, now: float) -> bool:
+    """Whether the report writer that made the temporary ``folder`` is gone: its marker names a process of
+    this host that no longer runs, or the folder is older than :data:`PARTIAL_MAX_AGE_S`."""
+    import json
+    import os
+    import socket
+
+    try:
+        age = now - folder.stat().st_mtime
+    except OSError:
+        return False
+    try:
+        doc = json.loads((folder / PARTIAL_MARKER).read_text())
+        pid, host = int(doc["pid"]), str(doc["host"])
+    except (OSError, ValueError, KeyError, TypeError):
+        return age > PARTIAL_MAX_AGE_S
+    if host != socket.gethostname():
+        return age > PARTIAL_MAX_AGE_S
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return True
+    except PermissionError:
+        return False
+    return False
+
+
+def remove_stale_report_partials(out: Path) -> list[Path]:
+    """Remove the temporary folders ``.OUT.XXXXXXXX.partial`` beside ``out`` (the name
+    :func:`worldtree.atomic.atomic_dir` gives them) whose writer is gone (:func:`_writer_gone`): a report
+    killed while being written (SIGKILL, a lost node) leaves one. A folder of a live writer, or one not
+    named like ours, is kept. Returns the folders removed."""
+    out = Path(out)
+    if not out.parent.is_dir():
+        return []
+    pattern = re.compile(rf"\.{re.escape(out.name)}\.[a-z0-9_]{{8}}\.partial")
+    now = time.time()
+    removed = []
+    for p in sorted(out.parent.iterdir()):
+        if pattern.fullmatch(p.name) and p.is_dir() and not p.is_symlink() and _writer_gone(p, now):
+            shutil.rmtree(p, ignore_errors=True)
+            removed.append(p)
+    return removed
 
 
 def _error_vmax() -> float:
