@@ -12,7 +12,7 @@ from pathlib import Path
 import typer
 
 from nvidia_ls.config_options import ConfigCommand, Shown, config_options
-from worldtree.cli_runner import run_cli
+from worldtree.cli_runner import INTERRUPTED_NO_CHECKPOINT, run_cli
 
 app = typer.Typer(
     name="nvls",
@@ -175,19 +175,24 @@ def import_(
         test_masks=test_masks, name=name, no_poses=no_poses, normalize=normalize, force=force,
     )  # fmt: skip
     console = _console()
-    path = import_scene(source, out_dir, cfg, log=lambda m: console.print(f"[yellow]{m}[/yellow]"))
-    console.print(f"wrote {path}", highlight=False)
+    path = import_scene(
+        source, out_dir, cfg, log=lambda m: console.print(m, style="yellow", markup=False, soft_wrap=True)
+    )
+    console.print(f"wrote {path}", highlight=False, markup=False, soft_wrap=True)
     if no_poses:
         console.print(
-            f"2D priors without poses: wtbench prep {path} --epi-from-flow --preview", highlight=False
-        )
+            f"2D priors without poses: wtbench prep {path} --epi-from-flow --preview", highlight=False,
+            soft_wrap=True,
+        )  # fmt: skip
     args = run_args(path)
     if args:
         import shlex
 
+        # One line whatever the terminal's width (soft_wrap: no line breaks inserted), so that the command
+        # copied from a log runs as it is.
         console.print(
             "run with its priors: " + shlex.join(["wtbench", "run", "--scene", str(path), "--method", "base"] + args),
-            highlight=False, markup=False,
+            highlight=False, markup=False, soft_wrap=True,
         )  # fmt: skip
 
 
@@ -226,7 +231,8 @@ def main() -> None:
     from worldtree import openmp_policy
 
     openmp_policy.configure()  # before torch is imported: OpenMP threads sleep on an oversubscribed machine
-    run_cli(app)
+    # nvls keeps no checkpoints: every command writes its folder whole (atomic_dir) or removes it.
+    run_cli(app, interrupted=INTERRUPTED_NO_CHECKPOINT)
 
 
 if __name__ == "__main__":

@@ -7,11 +7,14 @@ from __future__ import annotations
 from worldtree.errors import UserError
 
 INTERRUPTED = "interrupted: re-run the same command to resume from the last checkpoint"
+#: Ctrl-C of a command that keeps no checkpoint (nvls): its output appears whole or not at all.
+INTERRUPTED_NO_CHECKPOINT = "interrupted: nothing was written (the unfinished output is removed); run the same command again"
 NOT_A_FOLDER = "a part of this path is a file, not a folder; choose another path"
 
 
-def run_cli(app) -> None:
-    """Run a typer/click ``app``; print a :class:`UserError` as one line (exit 2) and Ctrl-C as exit 130."""
+def run_cli(app, interrupted: str = INTERRUPTED) -> None:
+    """Run a typer/click ``app``; print a :class:`UserError` as one line (exit 2) and Ctrl-C as exit 130 with
+    the line ``interrupted`` (what a re-run does: resume from a checkpoint, or start again)."""
     import sys
 
     try:
@@ -21,7 +24,7 @@ def run_cli(app) -> None:
         print(f"error: {e}", file=sys.stderr)
         raise SystemExit(2) from None
     except KeyboardInterrupt:
-        print(INTERRUPTED, file=sys.stderr)
+        print(interrupted, file=sys.stderr)
         raise SystemExit(130) from None
     except NotADirectoryError as e:
         # An output path running through a file (-o FILE/sub) that a command's own check did not catch.
@@ -33,7 +36,7 @@ def run_cli(app) -> None:
         exit_code = getattr(e, "exit_code", None)
         # Ctrl-C: typer turns it into Exit(130), click into Abort; both keep the KeyboardInterrupt as cause.
         if isinstance(e.__cause__ or e.__context__, KeyboardInterrupt):
-            print(INTERRUPTED, file=sys.stderr)
+            print(interrupted, file=sys.stderr)
             raise SystemExit(130) from None
         if callable(getattr(e, "show", None)) and isinstance(exit_code, int):
             e.show()
@@ -46,6 +49,6 @@ def run_cli(app) -> None:
         raise
     if code == 130:
         # typer turns Ctrl-C into Exit(130), which click (standalone_mode=False) returns as this code.
-        print(INTERRUPTED, file=sys.stderr)
+        print(interrupted, file=sys.stderr)
     if isinstance(code, int) and code != 0:
         raise SystemExit(code)
