@@ -14,6 +14,8 @@ files (pickled job, stdout/stderr logs) live in ``RUNS_DIR/.sweep-jobs/``.
 
 from __future__ import annotations
 
+import contextlib
+import io
 import json
 import os
 import re
@@ -531,7 +533,9 @@ def run_tasks(
                     executor.update_parameters(job_name=slurm_job_name(t.scene, t.folder.root.name))
                 submitted = time.time()
                 try:
-                    job = executor.submit(RunJob(t.request, threads))
+                    # submitit prints a refusing sbatch's stderr itself; the error below says it once.
+                    with contextlib.redirect_stderr(io.StringIO()):
+                        job = executor.submit(RunJob(t.request, threads))
                 except (submitit.core.utils.FailedJobError, subprocess.CalledProcessError, OSError) as e:
                     if cfg.kind != "slurm":
                         raise

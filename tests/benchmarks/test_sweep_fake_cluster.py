@@ -73,6 +73,7 @@ def test_a_refused_submission_says_what_sbatch_said_and_the_fix(fake, tmp_path, 
     assert "\n" not in msg
     assert "sbatch refused" in msg and "Requested node configuration is not available" in msg
     assert "--slurm-gpus-per-job 1" in msg and "--device cpu" in msg  # what was asked, and the fix
+    assert "sbatch: error" not in res.output  # sbatch's words once, in the error line, not printed before it
     (fake / "refuse").write_text("Batch job submission failed: Invalid generic resource (gres) specification")
     res = _sweep(scene, tmp_path / "runs")
     assert "Invalid generic resource" in str(res.exception) and "--device cpu" in str(res.exception)
