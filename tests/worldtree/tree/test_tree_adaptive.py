@@ -280,3 +280,23 @@ def test_assess_fit_measures_once_for_the_split_and_the_children():
                                              test_cpu_s=a.decision.test_cpu_s)  # fmt: skip
     payload = a.to_payload()
     assert payload["sums"].dtype == torch.float64 and payload["image_size"] == [H, W]
+
+
+@pytest.mark.parametrize(
+    ("static_err", "dynamic_err", "split"),
+    [
+        (0.004, 0.009, True),  # smooth texture: excess 0.005 < 0.01 but >= half the static error (0.002)
+        (0.004, 0.0055, False),  # excess 0.0015 < the 0.002 floor
+        (0.030, 0.039, False),  # fine texture: excess 0.009 < min(0.01, 0.015)
+        (0.030, 0.041, True),  # excess 0.011 >= 0.01
+        (0.0, 0.0, False),  # an exact fit never splits
+    ],
+)
+def test_excess_bar_is_relative_to_the_static_error_with_a_floor(static_err, dynamic_err, split):
+    # Residuals constant per region: the pooled statistics are the given errors exactly.
+    mask = torch.zeros(T, H, W, dtype=torch.bool)
+    mask[:, 4:10, 4:20] = True
+    residual = torch.where(mask, torch.tensor(dynamic_err), torch.tensor(static_err))
+    d = decide_split(residual, mask, min_len=12, motion_px=100.0)
+    assert d.split == split, d.reason
+    assert abs(d.excess - (dynamic_err - static_err)) < 1e-6
