@@ -167,6 +167,26 @@ class Built:
     """Time spent building or loading it in this process."""
 
 
+def _import_finished(name: str, folder: Path):
+    """The extension module of a finished build in ``folder`` (None when there is none or it does not
+    import, e.g. a build killed while linking: then it is rebuilt)."""
+    import importlib.util
+
+    import torch  # noqa: F401  (the extension links against libtorch)
+
+    for path in sorted(folder.glob(f"{name}*.so")) + sorted(folder.glob(f"{name}*.pyd")):
+        try:
+            spec = importlib.util.spec_from_file_location(name, path)
+            if spec is None or spec.loader is None:
+                continue
+            module = importlib.util.module_from_spec(spec)
+            spec.loader.exec_module(module)
+            return module
+        except ImportError as e:
+            log.info("cached rasterizer build %s does not import (%s); rebuilding", path, e)
+    return None
+
+
 def build(target: str, *, verbose: bool = False) -> Built:
     """Build ``target`` (or load its cached build) and import it; raises whatever the build raises.
 
@@ -182,12 +202,18 @@ def build(target: str, *, verbose: bool = False) -> Built:
         raise RuntimeError(
             f"this CPU lacks the instruction sets of the {target} target ({', '.join(_NEEDS[target])})"
         )
-    verify_ninja_availability()
     t0 = time.perf_counter()
     name = module_name(target)
     folder = cache_root() / name
     folder.mkdir(parents=True, exist_ok=True)
     with FileLock(str(folder.parent / f"{name}.lock")):
+        # The build key names the source and flags, so a finished build is imported directly: torch's load()
+        # would run whichever ninja is first on PATH, and pip's and Debian's ninja each read the other's log
+        # as stale and rebuild (a venv started with and without its bin on PATH).
+        module = _import_finished(name, folder)
+        if module is not None:
+            return Built(module, target, name, time.perf_counter() - t0)
+        verify_ninja_availability()
         # torch's own lock file inside the folder is left behind by a build that was killed; under our lock
         # nobody else is building, so one found now is stale and would make torch wait for ever.
         (folder / "lock").unlink(missing_ok=True)

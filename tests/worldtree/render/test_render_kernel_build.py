@@ -141,3 +141,42 @@ def test_concurrent_processes_share_one_build(tmp_path):
     ran = [ln for ln in (folder / ".ninja_log").read_text().splitlines() if not ln.startswith("#")]
     assert len(ran) == 2, ran
     assert (folder / src.name).read_text() == src.read_text()  # the build compiled its own copy of the source
+
+
+def test_a_finished_build_is_loaded_whatever_ninja_is_on_path(tmp_path):
+    """A process started with another PATH (the venv's bin first or not: pip's ninja or Debian's, or none at
+    all) loads the finished build as it is: nothing is compiled again, ninja is not even run."""
+    pytest.importorskip("ninja")
+    src = tmp_path / "tiny.cpp"
+    src.write_text(
+        "#include <pybind11/pybind11.h>\n"
+        'PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) { m.def("value", [] { return 7; }); }\n'
+    )
+    env = {**os.environ, "TORCH_EXTENSIONS_DIR": str(tmp_path / "ext"), "PYTHONPATH": str(REPO)}
+
+    def run(path: str) -> dict:
+        p = subprocess.run([sys.executable, "-c", _BUILD_ONE, str(src)], env={**env, "PATH": path},
+                           capture_output=True, text=True, timeout=600)  # fmt: skip
+        if p.returncode != 0 and "compiler" in p.stderr.lower():
+            pytest.skip("no C++ compiler here")
+        assert p.returncode == 0, p.stderr
+        return json.loads(p.stdout.strip().splitlines()[-1])
+
+    first = run(os.environ.get("PATH", ""))
+    folder = tmp_path / "ext" / "worldtree" / first["name"]
+    log_before = (folder / ".ninja_log").read_text()
+    so = sorted(folder.glob(f"{first['name']}*.so"))
+    stamps = [p.stat().st_mtime_ns for p in so]
+    # Another ninja first on PATH (as pip's and Debian's swap places when a venv is or is not activated); it
+    # leaves a mark if anything runs it. The compiler stays the same: it is part of the build key.
+    other = tmp_path / "other-ninja"
+    other.mkdir()
+    mark = tmp_path / "ninja-ran"
+    fake = other / "ninja"
+    fake.write_text(f"#!/bin/sh\ntouch {mark}\nexit 1\n")
+    fake.chmod(0o755)
+    second = run(os.pathsep.join([str(other), os.environ.get("PATH", "")]))
+    assert not mark.exists()
+    assert second == first and second["value"] == 7
+    assert (folder / ".ninja_log").read_text() == log_before
+    assert [p.stat().st_mtime_ns for p in so] == stamps
