@@ -483,18 +483,14 @@ def _parent_view(state: NodeState):
     return at
 
 
-def _holdout_record(path: Path) -> dict:
-    return json.loads(path.read_text())
-
-
 def _validate(fit: NodeFit, parent_at, hold: list[int], hcfg: HoldoutConfig, record: Path,
-              summary: TrainSummary) -> Verdict:  # fmt: skip
-    """The node's verdict on its held-out frames against its parent (:func:`keep_child`). Written to
-    ``record`` once with the step it was taken at, so a node resumed after it (while refitting on every frame)
-    reuses it instead of judging a model that has seen the held-out frames."""
+              summary: TrainSummary) -> tuple[Verdict, int]:  # fmt: skip
+    """The node's verdict on its held-out frames against its parent (:func:`keep_child`) and the step it was
+    taken at. Written to ``record`` once, so a node resumed after it (while refitting on every frame) reuses it
+    instead of judging a model that has seen the held-out frames."""
     if record.exists():
-        d = _holdout_record(record)
-        return Verdict(**{k: d[k] for k in Verdict.__dataclass_fields__})
+        d = json.loads(record.read_text())
+        return Verdict(**{k: d[k] for k in Verdict.__dataclass_fields__}), int(d["end_step"])
     with torch.no_grad():
         # Both models predict frame i from their states at i - 1 and i + 1 (the parent trained on frame i, so
         # its own state at i would be a fit, not a prediction); the opacities are each model's at i.
@@ -508,7 +504,7 @@ def _validate(fit: NodeFit, parent_at, hold: list[int], hcfg: HoldoutConfig, rec
     target = [fit.images[i] for i in hold]
     verdict = keep_child(child, parent, target, hold, hcfg.margin)
     atomic_write_json(record, {**verdict.to_dict(), "end_step": summary.end_step})
-    return verdict
+    return verdict, summary.end_step
 
 
 def train_node(payload: dict, ctx: NodeContext) -> dict:
@@ -549,12 +545,12 @@ def train_node(payload: dict, ctx: NodeContext) -> dict:
         adaptive["early_stop"] = stop.report()
     verdict, refit_steps = None, 0
     if hold:
-        verdict = _validate(fit, parent_at, hold, cfg.holdout, Path(ctx.folder) / "holdout.json", summary)
+        verdict, judged = _validate(fit, parent_at, hold, cfg.holdout, Path(ctx.folder) / "holdout.json",
+                                    summary)  # fmt: skip
         if verdict.keep and cfg.holdout.refit:
             # The kept child now also trains on the frames it was judged on (at the schedule's final rates).
             fit.holdout = frozenset()
             fit.queue = []
-            judged = int(_holdout_record(Path(ctx.folder) / "holdout.json")["end_step"])
             refit_steps = math.ceil(judged * cfg.holdout.frac)
             summary = train(judged + refit_steps, None)
     if cfg.budget is not None:

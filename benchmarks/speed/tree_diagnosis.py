@@ -81,13 +81,14 @@ def diagnose(tree_run: Path, root_run: Path, scene_dir: Path) -> list[dict]:
     root = NodeState.load(root_run / "model" / "tree" / "node1.pt")
     test_files = sorted(p.stem for p in (tree_run / "renders").glob("*.png"))
     test_times = dict(zip(test_files, [int(t) for t in scene.test_times.tolist()], strict=False))
+    root_train = _node_train_psnr(root, scene, backend)  # every frame once, sliced per node below
     rows = []
     for path in sorted((tree_run / "model" / "tree").glob("node*.pt"), key=lambda p: int(p.stem[4:])):
         st = NodeState.load(path)
         j = st.index
         own = _node_train_psnr(st, scene, backend)
         sl = slice(st.interval.start, st.interval.end + 1)
-        ref = _node_train_psnr(root, scene, backend)[sl] if j != 1 else own
+        ref = root_train[sl] if j != 1 else own
         frames = [f for f in test_files
                   if any(a <= test_times[f] <= b for a, b in renders.get(j, []))]  # fmt: skip
         bg_t, dyn_t = _test_psnr(tree_run, scene_dir, frames)
