@@ -37,6 +37,7 @@ import contextlib
 import dataclasses
 import hashlib
 import json
+import os
 import shutil
 import signal
 import sys
@@ -537,9 +538,12 @@ if __name__ == "__main__":
     except UserError as e:
         print(f"error: {e}", file=sys.stderr)
         raise SystemExit(2) from None
-    except KeyboardInterrupt:
-        print(INTERRUPTED, file=sys.stderr)
-        raise SystemExit(130) from None
-    except Terminated:
-        print(INTERRUPTED.replace("interrupted", "terminated", 1), file=sys.stderr)
-        raise SystemExit(143) from None
+    except (KeyboardInterrupt, Terminated) as e:
+        # The temporary folder and the lock were released by the finally blocks on the way here. Leave without
+        # interpreter shutdown: a SIGINT arriving during it (CI saw one) ends the process as killed by the
+        # signal instead of with the documented status.
+        term = isinstance(e, Terminated)
+        print(INTERRUPTED.replace("interrupted", "terminated", 1) if term else INTERRUPTED, file=sys.stderr)
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(143 if term else 130)
