@@ -36,16 +36,18 @@ from typing import Any, ClassVar
 import numpy as np
 import torch
 
+from methods.model_folder import read_model_json
 from methods.registry import CommonConfig, MethodSpec, register_method, settings_of
 from methods.stages import Ablation, Stage, run_stages, with_ablations
 from methods.static3dgs import scene_extent
 from worldtree.atomic import atomic_write_bytes, atomic_write_json
 from worldtree.budget import node_budget
-from worldtree.dynamic import DynamicGaussians
+from worldtree.dynamic import DynamicGaussians, gaussians_at
 from worldtree.errors import UserError
+from worldtree.gaussian_frame import GaussianFrame, RenderMode, render_frame
 from worldtree.gaussians import GaussianSet
 from worldtree.motion.lift import lift_tracks, sample_depth
-from worldtree.motion.scaffold import Scaffold, ScaffoldConfig, build_scaffold
+from worldtree.motion.scaffold import Scaffold, ScaffoldConfig, SkinCache, build_scaffold
 from worldtree.motion.track_completion import complete_trajectories
 from worldtree.motion.track_depth import ratio_map, smooth_trajectory_depths
 from worldtree.plateau import PlateauDetector
@@ -56,6 +58,7 @@ from worldtree.priors.epipolar import label_dynamic_tracks
 from worldtree.render import rasterize
 from worldtree.scene import Scene
 from worldtree.stages.bundle_adjust import BAResult, BundleAdjustConfig, bundle_adjust
+from worldtree.stages.cameras import Sim3
 from worldtree.stages.photometric import PhotometricConfig, PhotometricFit, quick_photometric_config
 from worldtree.stages.scaffold_fit import ScaffoldFitConfig, fit_scaffold
 from worldtree.stages.static_warmup import (
@@ -576,6 +579,19 @@ BASE_ABLATIONS: dict[str, Ablation] = {
 }
 
 
+@dataclass
+class LoadedModel:
+    """A saved Base model read back (:meth:`BaseMethod.load_model`), on the method's device."""
+
+    static: GaussianSet
+    dynamic: DynamicGaussians
+    scaffold: Scaffold
+    cache: SkinCache
+    """The skinning neighbourhoods of ``dynamic`` the run rendered with."""
+    w2cs: torch.Tensor
+    """``[T, 4, 4]`` fitted training cameras (model frame)."""
+
+
 class BaseMethod:
     """The Base method for one scene; implements :class:`methods.registry.Method`.
 
@@ -585,6 +601,8 @@ class BaseMethod:
     STAGES: ClassVar[tuple[Stage, ...]] = BASE_STAGES
     ABLATIONS: ClassVar[dict[str, Ablation]] = BASE_ABLATIONS
     STATE: ClassVar[type[BaseState]] = BaseState
+    MODEL_NAME: ClassVar[str] = "base"
+    """``method`` of the ``model.json`` that :meth:`save_model` writes (and :meth:`load_model` reads)."""
 
     def __init__(self, cfg: BaseConfig, scene: Scene, device: torch.device):
         if scene.num_frames < 2:
@@ -596,6 +614,8 @@ class BaseMethod:
         self.state = self.STATE(cfg, scene.to(device), device)
         self.clock = StageClock()
         """Times each stage of this session (``stats()["stages_s"]``)."""
+        self._loaded: LoadedModel | None = None
+        """The model read by :meth:`load_model` (None while it is trained by :meth:`fit`)."""
 
     def stages(self) -> list[Stage]:
         """The stages this config runs, in order (ablations applied; ``prune`` only with the budget on)."""
@@ -619,17 +639,114 @@ class BaseMethod:
         """``[height, width, 3]`` of camera ``K``/``w2c`` (given frame) at frame ``time``. ``test_view``: the
         camera is the scene's test camera, rendered from its refined pose at that time; any other camera
         (or a time without a refined pose) goes through the Sim(3) alignment."""
+        return self.render_mode(K, w2c, width, height, time, "rgb", test_view)
+
+    def model_w2c(
+        self, w2c: torch.Tensor, time: int, test_view: bool = False, frame: int | None = None
+    ) -> torch.Tensor:
+        """``[4, 4]`` model-frame pose of the given ``w2c``: the refined test pose at ``time`` (``test_view``),
+        training frame ``frame``'s fitted pose, or the Sim(3) from the given poses to the fitted ones."""
         s = self.state
-        if s.renderer is None:
-            raise RuntimeError("render before fit")
-        K = K.to(self.device, torch.float32)
         w2c = w2c.to(self.device, torch.float32)
         if test_view and int(time) in s.test_poses:
-            pose = s.test_poses[int(time)]
-        else:
-            pose = s.sim3.apply_w2c(w2c)
+            return s.test_poses[int(time)]
+        if frame is not None:
+            return self._train_w2c(int(frame))
+        return s.sim3.apply_w2c(w2c)
+
+    @torch.no_grad()
+    def render_mode(
+        self, K: torch.Tensor, w2c: torch.Tensor, width: int, height: int, time: int,
+        mode: RenderMode = "rgb", test_view: bool = False, frame: int | None = None,
+    ) -> torch.Tensor:  # fmt: skip
+        """:meth:`render` as ``mode`` (:data:`worldtree.gaussian_frame.RenderMode`), the camera placed by
+        :meth:`model_w2c`."""
+        s = self.state
+        if s.renderer is None:
+            raise RuntimeError("render before fit (or load_model)")
+        K = K.to(self.device, torch.float32)
+        pose = self.model_w2c(w2c, time, test_view, frame)
         t = min(max(int(time), 0), s.scene.num_frames - 1)
-        return s.renderer(K, pose, width, height, t).rgb.clamp(0.0, 1.0)
+        if mode == "rgb":
+            return s.renderer(K, pose, width, height, t).rgb.clamp(0.0, 1.0)
+        return render_frame(self.gaussians_at(t), K, pose, width, height, mode, self.cfg.photometric.backend)
+
+    @torch.no_grad()
+    def gaussians_at(self, time: int) -> GaussianFrame:
+        """What :meth:`render` rasterizes at ``time`` (clamped to the training frames): the static Gaussians
+        first, then the dynamic ones carried to ``time`` (a tree node's ancestors after them), in the model's
+        frame (``scene_to_model``: the run's Sim(3))."""
+        s = self.state
+        if s.gaussians_at is None:
+            raise RuntimeError("gaussians_at before fit (or load_model)")
+        t = min(max(int(time), 0), s.scene.num_frames - 1)
+        m, q, ls, o, _ = s.gaussians_at(t)
+        sh0, n_static, node = self._frame_colours(t)
+        if sh0.shape[0] != m.shape[0]:
+            raise RuntimeError(f"frame {t}: {m.shape[0]} Gaussians drawn but {sh0.shape[0]} colours")
+        dyn = torch.arange(m.shape[0], device=m.device) >= n_static
+        sim3 = s.sim3 if s.sim3 is not None else Sim3.identity(device=m.device)
+        return GaussianFrame(
+            t, m.detach(), q.detach(), ls.detach(), o.detach(), sh0.detach(), dyn, sim3, node=node
+        )
+
+    def node_at(self, time: int) -> int | None:
+        return None
+
+    def _model_sets(self) -> tuple[GaussianSet, DynamicGaussians]:
+        """The fitted (or loaded) static and dynamic sets."""
+        if self.state.fit is not None:
+            return self.state.fit.static, self.state.fit.dynamic
+        if self._loaded is None:
+            raise RuntimeError("no model: fit or load_model first")
+        return self._loaded.static, self._loaded.dynamic
+
+    def _frame_colours(self, t: int) -> tuple[torch.Tensor, int, int | None]:
+        """``(sh0 [N, 3], number of static Gaussians first, tree node)`` of what frame ``t`` draws, in the
+        order of ``state.gaussians_at(t)``."""
+        static, dynamic = self._model_sets()
+        return torch.cat([static.params["sh0"], dynamic.params["sh0"]]), len(static), None
+
+    def _train_w2c(self, frame: int) -> torch.Tensor:
+        """``[4, 4]`` fitted pose of training frame ``frame`` (model frame)."""
+        s = self.state
+        w2cs = s.fit.cameras() if s.fit is not None else self._loaded.w2cs
+        return w2cs[min(max(frame, 0), w2cs.shape[0] - 1)]
+
+    def load_model(self, folder: Path) -> None:
+        """Read what :meth:`save_model` wrote: the static and dynamic Gaussians, the scaffold with the skinning
+        cache the run rendered with (recomputed from the means for a model saved without one), the fitted
+        cameras, the refined test poses and the Sim(3)."""
+        folder = Path(folder)
+        s, dev = self.state, self.device
+        info = read_model_json(folder, self.MODEL_NAME)
+        static = GaussianSet.load(folder / "static_gaussians.pt", dev)
+        dynamic = DynamicGaussians.load(folder / "dynamic_gaussians.pt", dev)
+        extra = load_torch(
+            folder / "scaffold_cameras.pt", dev, missing="missing; finish the run with `wtbench run` first",
+            unreadable="unreadable ({error}); re-run with `wtbench run --force`",
+        )  # fmt: skip
+        scaffold = Scaffold.from_state(extra["scaffold"], dev)
+        cache = SkinCache.from_state(extra["cache"], dev) if "cache" in extra else dynamic.attach(scaffold)
+        self._loaded = LoadedModel(static, dynamic, scaffold, cache, extra["w2cs"].to(dev, torch.float32))
+        s.test_poses = {int(k): v for k, v in extra.get("test_poses", {}).items()}
+        sim = info.get("sim3_given_to_optimised")
+        s.sim3 = (
+            Sim3(float(sim["scale"]), torch.tensor(sim["R"], dtype=torch.float32, device=dev),
+                 torch.tensor(sim["t"], dtype=torch.float32, device=dev))
+            if sim else Sim3.identity(device=dev)
+        )  # fmt: skip
+        loaded, backend = self._loaded, self.cfg.photometric.backend
+
+        def at(t: int, cache: SkinCache | None = None):
+            return gaussians_at(loaded.static, loaded.dynamic, loaded.scaffold, t,
+                                loaded.cache if cache is None else cache)  # fmt: skip
+
+        def render(K: torch.Tensor, w2c: torch.Tensor, width: int, height: int, t: int):
+            m, q, ls, o, c = at(t)  # as PhotometricFit.render
+            return rasterize(m, q, ls, o, c, K, w2c, width, height, backend=backend)
+
+        s.gaussians_at, s.renderer = at, render
 
     def save_model(self, folder: Path) -> None:
         folder = Path(folder)
@@ -641,7 +758,10 @@ class BaseMethod:
         save_torch(
             folder / "scaffold_cameras.pt",
             {"scaffold": fit.scaffold.to_state(), "w2cs": fit.cameras().cpu(),
-             "test_poses": {k: v.cpu() for k, v in s.test_poses.items()}},
+             "test_poses": {k: v.cpu() for k, v in s.test_poses.items()},
+             # The skinning neighbourhoods the fit renders with (re-attached only every few steps, so not
+             # what attaching the final means gives): load_model renders exactly what the run rendered.
+             "cache": fit.cache.to_state()},
         )  # fmt: skip
         atomic_write_json(
             folder / "model.json",
@@ -656,7 +776,8 @@ class BaseMethod:
                     "static_gaussians.pt": "worldtree.gaussians.GaussianSet.load",
                     "static_gaussians.ply": "3DGS viewer PLY (background only)",
                     "dynamic_gaussians.pt": "worldtree.dynamic.DynamicGaussians.load (means at t_ref)",
-                    "scaffold_cameras.pt": "torch.load: scaffold (Scaffold.from_state), w2cs [T,4,4], test_poses",
+                    "scaffold_cameras.pt": "torch.load: scaffold (Scaffold.from_state), w2cs [T,4,4], test_poses, "
+                    "cache (SkinCache.from_state)",
                 },
             },
         )

@@ -20,6 +20,7 @@ import torch
 
 from worldtree.budget import BudgetConfig
 from worldtree.errors import UserError
+from worldtree.gaussian_frame import GaussianFrame, RenderMode
 from worldtree.plateau import PlateauRule
 from worldtree.scene import Scene
 from worldtree.trainer import TrainContext, TrainSummary
@@ -91,6 +92,39 @@ class Method(Protocol):
 
     def save_model(self, folder: Path) -> None:
         """Write the final model (loadable) into ``folder``."""
+        ...
+
+    # Loading a finished run (benchmarks.api.load_run, `wtbench export`, `wtbench view`; docs/python_api.md). A
+    # method without these still runs and is scored; only loading its runs is refused.
+    def load_model(self, folder: Path) -> None:
+        """The inverse of :meth:`save_model`: on a method built from the run's recorded config and scene, read
+        ``folder`` so that :meth:`render` draws exactly what the run drew (test views from its refined poses)."""
+        ...
+
+    def gaussians_at(self, time: int) -> GaussianFrame:
+        """Every Gaussian drawn at time index ``time`` (:class:`worldtree.gaussian_frame.GaussianFrame`: model
+        world frame, activated opacities, log scales, SH DC colour, a dynamic flag, the scene->model Sim(3))."""
+        ...
+
+    def model_w2c(
+        self, w2c: torch.Tensor, time: int, test_view: bool = False, frame: int | None = None
+    ) -> torch.Tensor:
+        """``[4, 4]`` pose in the model's world frame that :meth:`render` uses for the given ``w2c`` (scene
+        frame): the refined test pose (``test_view``), training frame ``frame``'s own fitted pose, or else the
+        scene->model Sim(3) applied to ``w2c``."""
+        ...
+
+    def render_mode(
+        self, K: torch.Tensor, w2c: torch.Tensor, width: int, height: int, time: int,
+        mode: RenderMode = "rgb", test_view: bool = False, frame: int | None = None,
+    ) -> torch.Tensor:  # fmt: skip
+        """:meth:`render` as ``mode`` (``rgb`` [H, W, 3] as :meth:`render`; ``depth`` [H, W] scene units, NaN
+        where nothing is drawn; ``alpha`` [H, W]; ``dynamic`` [H, W, 3] the dynamic Gaussians alone), the
+        camera placed by :meth:`model_w2c`."""
+        ...
+
+    def node_at(self, time: int) -> int | None:
+        """The tree node that draws ``time`` (WorldTree; 1 = root), None for a method without a tree."""
         ...
 
     def stats(self) -> dict[str, Any]:

@@ -19,15 +19,18 @@ from typing import Any
 import numpy as np
 import torch
 
+from methods.model_folder import read_model_json
 from methods.registry import CommonConfig, MethodSpec, register_method
 from worldtree.atomic import atomic_write_json
 from worldtree.budget import growth_cap, negligible, node_budget, render_contributions
 from worldtree.errors import UserError
+from worldtree.gaussian_frame import GaussianFrame, RenderMode, render_frame
 from worldtree.gaussians import GaussianSet
 from worldtree.losses import photometric_loss
 from worldtree.optim import ConstantLR, GroupedAdam, gaussian_schedules
 from worldtree.render import rasterize
 from worldtree.scene import Scene
+from worldtree.stages.cameras import Sim3
 from worldtree.strategy import DensifyStrategy, remove
 from worldtree.trainer import (
     DensifiedGaussianTrainable,
@@ -334,6 +337,47 @@ class StaticGaussians(DensifiedGaussianTrainable):
                 "files": {"gaussians.pt": "GaussianSet.load", "gaussians.ply": "3DGS viewer PLY"},
             },
         )
+
+    def load_model(self, folder: Path) -> None:
+        """Read ``folder/gaussians.pt`` written by :meth:`save_model` (the config's background and backend are
+        the run's, from its recorded config)."""
+        folder = Path(folder)
+        read_model_json(folder, "static")
+        self.gaussians = GaussianSet.load(folder / "gaussians.pt", self.device)
+        self._render_cache = None
+
+    @torch.no_grad()
+    def gaussians_at(self, time: int) -> GaussianFrame:
+        """The whole set at any time (the scene's own frame: the Sim(3) is the identity; nothing is dynamic)."""
+        gs = self.gaussians
+        n = len(gs)
+        return GaussianFrame(
+            time=int(time), means=gs.means.detach(), quats=gs.quats.detach(), log_scales=gs.log_scales.detach(),
+            opacities=gs.opacities.detach(), sh0=gs.params["sh0"].detach(),
+            dynamic=torch.zeros(n, dtype=torch.bool, device=gs.device),
+            scene_to_model=Sim3.identity(device=gs.device),
+            shN=gs.params["shN"].detach() if "shN" in gs.params else None,
+        )  # fmt: skip
+
+    def model_w2c(
+        self, w2c: torch.Tensor, time: int, test_view: bool = False, frame: int | None = None
+    ) -> torch.Tensor:
+        """``w2c`` itself: the model lives in the scene's frame and never moves a camera."""
+        return w2c.to(self.device, torch.float32)
+
+    @torch.no_grad()
+    def render_mode(
+        self, K: torch.Tensor, w2c: torch.Tensor, width: int, height: int, time: int,
+        mode: RenderMode = "rgb", test_view: bool = False, frame: int | None = None,
+    ) -> torch.Tensor:  # fmt: skip
+        """:meth:`render` for ``rgb``; the other modes rasterize :meth:`gaussians_at` (``dynamic``: black)."""
+        if mode == "rgb":
+            return self.render(K, w2c, width, height, time, test_view)
+        return render_frame(self.gaussians_at(time), K, self.model_w2c(w2c, time), width, height, mode,
+                            self.cfg.backend, self.background)  # fmt: skip
+
+    def node_at(self, time: int) -> int | None:
+        return None
 
     def stats(self) -> dict[str, Any]:
         return {

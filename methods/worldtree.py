@@ -49,6 +49,7 @@ from methods.base import (
     quick_config,
     smoke_config,
 )
+from methods.model_folder import read_model_json
 from methods.registry import MethodSpec, register_method, settings_of
 from methods.stages import Ablation, Stage
 from worldtree.atomic import atomic_write_json
@@ -76,6 +77,7 @@ from worldtree.tree.sac import (
     chain_cache_states,
     chain_gaussians_at,
     restore_chain_caches,
+    truncate_chain,
 )
 from worldtree.tree.split import SPLIT_STRATEGIES, ProfileAccumulator, flow_profile
 from worldtree.tree.tpt import Interval, TemporalPartitionTree, depth_of
@@ -625,12 +627,22 @@ def _root_state(s: WorldTreeState) -> NodeState:
     return NodeState(1, Interval(0, T - 1), fit.scaffold, fit.dynamic, fit.static, fit.cameras(), [])
 
 
+def _node_at(s: WorldTreeState, t: int) -> int:
+    """The node that renders frame ``t``: the deepest covering it (a child without a trained state, which an
+    older run's model may lack, hands its frames to its parent)."""
+    t = min(max(int(t), 0), s.scene.num_frames - 1)
+    j = s.tree.covering(t) if s.tree is not None else 1
+    while j > 1 and j not in s.states:
+        j //= 2
+    return j
+
+
 def _tree_gaussians(s: WorldTreeState):
     """``gaussians_at(t)``: the deepest node covering frame ``t`` with its chain (``chain_length``)."""
 
     def gaussians_at(t: int):
         t = min(max(int(t), 0), s.scene.num_frames - 1)
-        j = s.tree.covering(t) if s.tree is not None else 1
+        j = _node_at(s, t)
         st = s.states[j]
         if j not in s.caches:
             s.caches[j] = st.dynamic.attach(st.scaffold)
@@ -802,6 +814,7 @@ class WorldTreeMethod(BaseMethod):
     STAGES = WORLDTREE_STAGES
     ABLATIONS = WORLDTREE_ABLATIONS
     STATE = WorldTreeState
+    MODEL_NAME = "worldtree"
     cfg: WorldTreeConfig
     state: WorldTreeState
 
@@ -819,6 +832,40 @@ class WorldTreeMethod(BaseMethod):
                 self.state.runner = None
 
     # ------------------------------------------------------------------ outputs
+    def node_at(self, time: int) -> int | None:
+        """The tree node (1 = root) that renders ``time`` (clamped to the training frames)."""
+        return _node_at(self.state, time)
+
+    def _frame_colours(self, t: int) -> tuple[torch.Tensor, int, int | None]:
+        s = self.state
+        j = _node_at(s, t)
+        st = s.states[j]
+        chain = truncate_chain(st.chain, self.cfg.chain_length)  # as NodeState.gaussians_at
+        sh0 = [st.static.params["sh0"], st.dynamic.params["sh0"], *[a.dynamic.params["sh0"] for a in chain]]
+        return torch.cat(sh0), len(st.static), j
+
+    def _train_w2c(self, frame: int) -> torch.Tensor:
+        """The pose of training frame ``frame`` in the node that renders it (children keep their cameras)."""
+        st = self.state.states[_node_at(self.state, frame)]
+        return st.w2cs[st.local_time(min(max(frame, st.interval.start), st.interval.end))]
+
+    def load_model(self, folder: Path) -> None:
+        """The Base method's files (the root, the refined test poses, the Sim(3)), then every node's state from
+        ``tree/node<j>.pt`` and the tree from ``model.json``; frames render through the tree as in the run."""
+        folder = Path(folder)
+        super().load_model(folder)
+        s = self.state
+        info = read_model_json(folder, self.MODEL_NAME)
+        s.tree = TemporalPartitionTree.from_dict(info["tree"]) if info.get("tree") else None
+        nodes = sorted((folder / "tree").glob("node*.pt"))
+        if not nodes:
+            raise UserError(f"{folder / 'tree'}: no node states; finish the run with `wtbench run` first")
+        s.states = {int(p.stem[4:]): _frozen(NodeState.load(p, self.device)) for p in nodes}
+        if 1 not in s.states:
+            raise UserError(f"{folder / 'tree' / 'node1.pt'}: missing; re-run with `wtbench run --force`")
+        s.caches = {}
+        s.renderer = _tree_renderer(s)
+
     def save_model(self, folder: Path) -> None:
         folder = Path(folder)
         s = self.state
