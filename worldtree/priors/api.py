@@ -6,6 +6,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import cv2
 import numpy as np
 import torch
 
@@ -197,7 +198,8 @@ def _with_notes(source: str, notes: list[str]) -> str:
 
 def _depth(imgs, Ks, w2cs, scene, cfg: PriorsConfig, cache, fp, progress, notes=None):
     """(depth [T,H,W], conf [T,H,W], source, key of the metric depth or None when it is not metric, the
-    fitted imported depth [T,H,W] under ``merge="fill"`` or None)."""
+    function ``dynamic mask [T,H,W] or None -> fitted imported depth [T,H,W]`` under ``merge="fill"``, or
+    None)."""
     T, H, W = imgs.shape[:3]
     if cfg.depth_source == "classical":
         d, c, key = _classical_depth(imgs, Ks, w2cs, scene.near, scene.far, cfg, cache, fp, progress)
@@ -225,8 +227,19 @@ def _depth(imgs, Ks, w2cs, scene, cfg: PriorsConfig, cache, fp, progress, notes=
         keep = ref_conf >= di.fill_min_conf
         depth = np.where(keep, ref, d).astype(np.float32)
         conf = np.where(keep, ref_conf, di.fill_conf).astype(np.float32)
-        # The fitted import is kept aside: dynamic pixels get it once the masks are known (_fill_dynamic).
-        return depth, conf, f"classical, filled from {src} where unconfident and on dynamic pixels", key, d
+
+        def fill(mask: np.ndarray | None) -> np.ndarray:
+            # Dynamic pixels get the import once the masks are known, refitted without them.
+            if mask is None or not di.fit_exclude_dynamic:
+                return d
+            return imported.imported_to_depth(
+                raw, di, ref, ref_conf, exclude=_dilate(mask, di.fit_exclude_px)
+            )
+
+        note = "where unconfident and on dynamic pixels"
+        if di.fit_exclude_dynamic:
+            note += " (refitted without them)"
+        return depth, conf, f"classical, filled from {src} {note}", key, fill
     # Network depth carries no confidence of its own: trust it everywhere.
     return d, np.ones_like(d), src, key, None
 
@@ -295,6 +308,14 @@ def _epi_errors(flows, Ks, w2cs, T, cfg: PriorsConfig, cache, flow_key: str, pro
         entry.save("all", error=err.astype(np.float16))
         entry.mark_complete()
     return err
+
+
+def _dilate(mask: np.ndarray, px: int) -> np.ndarray:
+    """``mask`` [T,H,W] (bool) grown by ``px`` pixels in every frame."""
+    if px <= 0:
+        return mask.astype(bool)
+    k = np.ones((2 * px + 1, 2 * px + 1), np.uint8)
+    return np.stack([cv2.dilate(m.astype(np.uint8), k) > 0 for m in mask])
 
 
 def _refill_dynamic(depth, conf, mask, imgs, cfg: PriorsConfig) -> tuple[np.ndarray, np.ndarray]:
@@ -421,7 +442,7 @@ def compute_priors(
         depth, depth_conf = _refill_dynamic(depth, depth_conf, mask, imgs, cfg)
     elif fill is not None:
         # Stereo on moving objects is noise even where it looks confident: the network depth replaces it.
-        depth = np.where(mask, fill, depth).astype(np.float32)
+        depth = np.where(mask, fill(mask), depth).astype(np.float32)
         depth_conf = np.where(mask, cfg.depth_import.fill_conf, depth_conf).astype(np.float32)
     n_chained, pieces = 0, None
     links: dict[str, int] = {}

@@ -226,6 +226,16 @@ class DepthImportConfig:
     """Robust fit: after the weighted least squares, pixels whose residual exceeds this many robust standard
     deviations (1.4826 MAD) are dropped and the fit repeated (3 rounds); None keeps the plain fit. Multi-view
     stereo has gross errors (occlusions, repeated texture) that would otherwise tilt the line."""
+    fit_balance_bins: int = 10
+    """Scale/shift fit: the weights are rebalanced so that each of this many equal ranges of the imported
+    values weighs the same (``imported.balanced_weights``: the far wall would otherwise pin the line and leave
+    the slope, which sets every nearer depth, to a few pixels); 0 or 1: the confidence weights as they are."""
+    fit_exclude_dynamic: bool = True
+    """Under ``merge="fill"``: once the dynamic masks are known, refit each frame without their pixels
+    (dilated by ``fit_exclude_px``) before the fitted depth fills them. The first fit, made before there are
+    masks, includes the moving objects, whose reference depth is the static fill behind them."""
+    fit_exclude_px: int = 3
+    """Dilation (px) of the dynamic masks left out of the refit."""
     merge: Literal["replace", "fill"] = "replace"
     """"replace": the imported depth is the depth prior. "fill": keep the classical depth where it is a
     measurement (confidence >= ``fill_min_conf``, outside dynamic masks) and use the fitted imported depth only

@@ -202,18 +202,43 @@ def fit_scale_shift_robust(
     return a, b
 
 
+def balanced_weights(x: np.ndarray, weight: np.ndarray, bins: int) -> np.ndarray:
+    """``weight`` [...] rescaled so that each of ``bins`` equal-width bins of the value ``x`` [...] (between its
+    1st and 99th weighted-in percentiles) carries the same total weight; ``bins <= 1`` returns ``weight``.
+
+    A scale-and-shift fit of relative depth is a line through (imported, reference) pairs; a frame is mostly
+    one far wall, so an unweighted fit is pinned at one end and the slope, which sets every nearer depth (a
+    moving object close to the camera is an extrapolation), comes from a few pixels. Equal weight per value
+    range spreads the leverage over the whole depth range seen."""
+    w = np.asarray(weight, np.float64)
+    use = w > 0
+    if bins <= 1 or use.sum() < 2 * bins:
+        return w
+    lo, hi = np.percentile(x[use], [1.0, 99.0])
+    if not hi > lo:
+        return w
+    idx = np.clip(((x - lo) / (hi - lo) * bins).astype(np.int64), 0, bins - 1)
+    mass = np.bincount(idx[use], weights=w[use], minlength=bins)
+    # Empty bins get no weight (nothing to spread); the others share the total mass equally.
+    share = np.where(mass > 0, w.sum() / max(int((mass > 0).sum()), 1) / np.maximum(mass, 1e-300), 0.0)
+    return w * share[idx]
+
+
 def imported_to_depth(
     raw: np.ndarray,
     cfg: DepthImportConfig,
     ref_depth: np.ndarray | None = None,
     ref_conf: np.ndarray | None = None,
     min_depth: float = 1e-3,
+    exclude: np.ndarray | None = None,
 ) -> np.ndarray:
     """Turn imported maps ``[T,H,W]`` into depth ``[T,H,W]``.
 
-    With ``fit_scale_shift`` each frame is fitted to ``ref_depth`` (weights ``ref_conf``) in the file's own
-    space (disparity against 1/ref_depth, depth against ref_depth) before any inversion. Disparity 0 means
-    infinitely far and is clamped to the largest finite depth of the frame.
+    With ``fit_scale_shift`` each frame is fitted to ``ref_depth`` (weights ``ref_conf``, rebalanced over the
+    imported values' range by ``cfg.fit_balance_bins``) in the file's own space (disparity against
+    1/ref_depth, depth against ref_depth) before any inversion; pixels where ``exclude`` [T,H,W] (bool) is set
+    take no part in the fit (moving objects: the reference is the static world's depth, wrong there).
+    Disparity 0 means infinitely far and is clamped to the largest finite depth of the frame.
     """
     out = np.empty_like(raw, dtype=np.float32)
     for t in range(raw.shape[0]):
@@ -223,6 +248,9 @@ def imported_to_depth(
                 raise ValueError("fit_scale_shift needs the classical depth")
             target = 1.0 / np.maximum(ref_depth[t], 1e-9) if cfg.kind == "disparity" else ref_depth[t]
             w = (ref_conf[t] if ref_conf is not None else np.ones_like(x)) * (x > 0)
+            if exclude is not None:
+                w = w * ~exclude[t]
+            w = balanced_weights(x, w, cfg.fit_balance_bins)
             a, b = fit_scale_shift_robust(x, target, w, cfg.fit_trim)
             x = a * x + b
         if cfg.kind == "disparity":

@@ -11,7 +11,12 @@ from worldtree.errors import UserError
 from worldtree.imageio import write_image
 from worldtree.priors import DepthConfig, PriorsConfig, compute_priors
 from worldtree.priors.config import DepthImportConfig
-from worldtree.priors.imported import fit_scale_shift, fit_scale_shift_robust
+from worldtree.priors.imported import (
+    balanced_weights,
+    fit_scale_shift,
+    fit_scale_shift_robust,
+    imported_to_depth,
+)
 
 
 def test_robust_fit_ignores_gross_outliers():
@@ -29,6 +34,42 @@ def test_robust_fit_ignores_gross_outliers():
     # Exact data: trimming never removes points at rounding level, the result is the exact line.
     a0, b0 = fit_scale_shift_robust(x, 2 * x - 1, w, trim=2.5)
     np.testing.assert_allclose([a0, b0], [2.0, -1.0], atol=1e-9)
+
+
+def test_balanced_weights_give_every_value_range_the_same_mass():
+    rng = np.random.default_rng(1)
+    # 95 % of the pixels on a far wall (disparity ~1), 5 % spread over nearer surfaces (1..4).
+    x = np.concatenate([rng.normal(1.0, 0.01, 9500), rng.uniform(1.0, 4.0, 500)])
+    w = rng.uniform(0.5, 1.0, x.size)
+    wb = balanced_weights(x, w, 5)
+    lo, hi = np.percentile(x, [1, 99])
+    idx = np.clip(((x - lo) / (hi - lo) * 5).astype(int), 0, 4)
+    mass = np.bincount(idx, weights=wb, minlength=5)
+    np.testing.assert_allclose(mass, np.full(5, w.sum() / 5), rtol=1e-9)
+    # Inside a bin the confidence still orders the pixels.
+    same = idx == idx[0]
+    np.testing.assert_allclose(wb[same] / w[same], (wb[same] / w[same])[0])
+    np.testing.assert_array_equal(balanced_weights(x, w, 0), w)
+    assert not np.any(balanced_weights(x, np.zeros_like(w), 5))
+
+
+def test_refit_without_moving_pixels_recovers_their_depth():
+    """A frame whose reference depth on a near object is the wall behind it (stereo fills moving pixels
+    from their surroundings): fitted with them, the object's depth is wrong; left out, it is exact."""
+    H, W = 40, 60
+    depth = np.full((1, H, W), 10.0)
+    depth[0, 30:, :] = np.linspace(4.0, 9.0, W)[None]  # a floor: nearer static surfaces
+    near = np.zeros((1, H, W), bool)
+    near[0, 5:20, 10:30] = True
+    depth[near] = 2.0  # the moving object, close to the camera
+    disp = 0.7 / depth + 0.05  # relative disparity: exact up to scale and shift
+    ref = depth.copy()
+    ref[near] = 10.0  # what the static reference says there
+    cfg = DepthImportConfig(kind="disparity", fit_scale_shift=True, fit_trim=None, fit_balance_bins=0)
+    with_obj = imported_to_depth(disp, cfg, ref, np.ones_like(ref))
+    without = imported_to_depth(disp, cfg, ref, np.ones_like(ref), exclude=near)
+    np.testing.assert_allclose(without[near], 2.0, rtol=1e-6)
+    assert abs(np.median(with_obj[near]) / 2.0 - 1) > 0.1
 
 
 @pytest.fixture(scope="module")
