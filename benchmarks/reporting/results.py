@@ -334,6 +334,7 @@ def collect_runs(runs_dirs: Sequence[str | Path]) -> Collection:
     unfinished: list[str] = []
     skipped_bad: list[str] = []
     nonfinite: list[str] = []
+    no_ground_truth: list[str] = []
     seen: set[Path] = set()
     for d in runs_dirs:
         d = Path(d)
@@ -350,7 +351,11 @@ def collect_runs(runs_dirs: Sequence[str | Path]) -> Collection:
                 unfinished.append(rel)
                 continue
             config = read_json(run / "config.json")
-            mean = _mean_row(run / "metrics.csv")
+            record = read_json(run / "metrics.json") or {}
+            no_gt = record.get("ground_truth") is False  # a scene without test views: nothing was scored
+            if no_gt:
+                no_ground_truth.append(rel)
+            mean = {m: math.nan for m in HARNESS_METRICS} if no_gt else _mean_row(run / "metrics.csv")
             timing_path = run / "timing.json"
             timing = read_json(timing_path)
             unreadable = [
@@ -369,7 +374,6 @@ def collect_runs(runs_dirs: Sequence[str | Path]) -> Collection:
                     f"skipped {run}: unreadable {', '.join(unreadable)}; re-run it with `wtbench run ... --force`"
                 )
                 continue
-            record = read_json(run / "metrics.json") or {}
             proto = record.get("protocol")
             protocol = (
                 str(proto.get("name")) if isinstance(proto, Mapping) and proto.get("name") else "unknown"
@@ -409,6 +413,14 @@ def collect_runs(runs_dirs: Sequence[str | Path]) -> Collection:
         notes.append(
             f"{len(nonfinite)} run(s) hold NaN or infinite values, shown as missing: {shown}; "
             "re-score them (`wtbench eval`) or re-run them"
+        )
+    if no_ground_truth:
+        shown = ", ".join(no_ground_truth[:5]) + (
+            f" and {len(no_ground_truth) - 5} more" if len(no_ground_truth) > 5 else ""
+        )
+        notes.append(
+            f"no ground truth for {len(no_ground_truth)} run(s) (scenes without test views, e.g. your own video): "
+            f"{shown}; listed without scores"
         )
     if unfinished:
         shown = ", ".join(unfinished[:5]) + (

@@ -165,7 +165,9 @@ def native_test_view(root: Path) -> TestView:
     doc = read_cameras(root)
     path = root / "cameras.json"
     if not doc.test_frames:
-        raise UserError(f"{path}: lists no test frames, so nothing can be scored")
+        # A scene without test views (your own video, `nvls import CLIP`): the run trains and saves its model;
+        # nothing is rendered at a test camera and the evaluation records "no ground truth".
+        return TestView(torch.eye(3), torch.eye(4), doc.width, doc.height, [], [])
     cam = doc.camera(doc.test_camera, path)
     return TestView(
         K=torch.tensor(cam.K, dtype=torch.float32),
@@ -560,8 +562,26 @@ def _render_test(method, view: TestView, folder: RunFolder) -> None:
         write_image(out, arr)
 
 
+NO_GROUND_TRUTH = "no ground truth"
+"""What ``metrics.json`` (``protocol.name``) and the tables say of a run on a scene without test views."""
+
+
 def _evaluate(folder: RunFolder, root: Path, req: RunRequest, device: torch.device) -> dict[str, float]:
     from benchmarks.evaluation.evaluate import evaluate_folder
+
+    gt = root / "gt_images"
+    if not (gt.is_dir() and any(gt.iterdir())):
+        # No metrics.csv: there is nothing to score. The record says why, for the tables and the report.
+        atomic_write_json(
+            folder.metrics_json,
+            {"protocol": {"name": NO_GROUND_TRUTH}, "ground_truth": False,
+             "note": f"{root}: the scene has no test views (e.g. imported from a video), so nothing is scored"},
+        )  # fmt: skip
+        print(
+            f"{NO_GROUND_TRUTH}: {root} has no test views; the model is saved, nothing scored",
+            file=sys.stderr,
+        )
+        return {}
 
     mask_dir = root / "masks"
     has_masks = mask_dir.is_dir() and any(mask_dir.iterdir())
