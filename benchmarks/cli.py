@@ -12,7 +12,7 @@ import typer
 
 from worldtree.cli_runner import run_cli
 
-COMMAND_MODULES = ("eval", "weights", "prep", "run", "sweep", "table", "plot", "video", "report", "demo")
+COMMAND_MODULES = ("eval", "weights", "prep", "run", "sweep", "table", "plot", "video", "report", "demo", "view")
 
 app = typer.Typer(
     name="wtbench",

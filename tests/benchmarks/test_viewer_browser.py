@@ -1,0 +1,192 @@
+"""`wtbench view` in a real headless browser: Debian's chromium and chromium-driver driven by Selenium.
+
+A WorldTree run (smoke schedule) on the tiny analytic scene is loaded through ``benchmarks.api.load_run`` and
+served on a free port from this process. Checked: the page loads with no console error and fetches nothing
+but the local server, the canvas shows the rendered image, moving the time slider (keyboard, in the page)
+changes the rendered pixels, dragging the camera sends small previews and then the full image, and the "Test
+camera" button shows the run's own test render: the PNG the server sent, cropped out of its letterbox, equals
+``RUN/renders/v001_tXXX.png`` exactly (both are the rasterizer's image rounded the same way; PNG is lossless).
+Skips with one reason where the browser or Selenium is missing (`.ci/run` installs both when it can).
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import time
+import warnings
+
+import numpy as np
+import pytest
+import torch
+
+CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
+CHROMEDRIVER = shutil.which("chromedriver")
+if not (CHROMIUM and CHROMEDRIVER):
+    pytest.skip(
+        "no chromium/chromedriver on PATH (install: apt-get install chromium chromium-driver)",
+        allow_module_level=True,
+    )
+webdriver = pytest.importorskip(
+    "selenium.webdriver", reason="selenium is not installed (pip install selenium)"
+)
+
+TIMEOUT = 30.0
+
+
+@pytest.fixture(scope="module")
+def run_dir(tmp_path_factory, write_tiny_scene):
+    from benchmarks.runner.runs import RunRequest, execute
+
+    tmp = tmp_path_factory.mktemp("viewer")
+    scene = write_tiny_scene(tmp / "scenes" / "tiny")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # LPIPS weights are not installed here: its columns stay empty
+        res = execute(
+            RunRequest(scene=scene, method="worldtree", runs_dir=tmp / "runs", preset="smoke", device="cpu",
+                       progress=False)
+        )  # fmt: skip
+    torch.set_num_threads(1)
+    return res.folder.root
+
+
+@pytest.fixture(scope="module")
+def viewer(run_dir):
+    from benchmarks.viewer.server import Viewer
+    from benchmarks.viewer.source import open_run
+
+    v = Viewer(open_run(run_dir, "cpu"), host="127.0.0.1", port=0)
+    yield v
+    v.stop()
+
+
+@pytest.fixture(scope="module")
+def browser(tmp_path_factory):
+    from selenium.webdriver.chrome.options import Options
+    from selenium.webdriver.chrome.service import Service
+
+    opts = Options()
+    opts.binary_location = CHROMIUM
+    profile = tmp_path_factory.mktemp("chromium-profile")
+    for arg in ("--headless=new", "--no-sandbox", "--disable-gpu", "--disable-dev-shm-usage",
+                "--window-size=1280,800", f"--user-data-dir={profile}"):  # fmt: skip
+        opts.add_argument(arg)
+    opts.set_capability("goog:loggingPrefs", {"browser": "ALL", "performance": "ALL"})
+    # An explicit driver path: Selenium Manager (which would download a driver) is never run.
+    driver = webdriver.Chrome(service=Service(executable_path=CHROMEDRIVER), options=opts)
+    driver.set_page_load_timeout(60)
+    yield driver
+    driver.quit()
+
+
+def _errors(driver) -> list[str]:
+    return [e["message"] for e in driver.get_log("browser") if e["level"] == "SEVERE"]
+
+
+def _requested_urls(driver) -> list[str]:
+    urls = []
+    for entry in driver.get_log("performance"):
+        msg = json.loads(entry["message"])["message"]
+        if msg["method"] == "Network.requestWillBeSent":
+            urls.append(msg["params"]["request"]["url"])
+        elif msg["method"] == "Network.webSocketCreated":
+            urls.append(msg["params"]["url"])
+    return urls
+
+
+def _canvas_pixels(driver) -> np.ndarray:
+    """RGB ``uint8 [H, W, 3]`` of the 3D canvas as the browser shows it (a screenshot of the element)."""
+    import cv2
+
+    png = driver.find_element("css selector", "canvas").screenshot_as_png
+    return np.ascontiguousarray(cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR)[..., ::-1])
+
+
+def _click_button(driver, label: str) -> None:
+    button = next(b for b in driver.find_elements("css selector", "button") if b.text.strip() == label)
+    button.click()
+
+
+def _wait_canvas(driver, accept, timeout: float = TIMEOUT) -> np.ndarray:
+    """Screenshots of the canvas until ``accept(pixels)`` (the browser paints a frame after it arrives)."""
+    deadline = time.monotonic() + timeout
+    while True:
+        px = _canvas_pixels(driver)
+        if accept(px) or time.monotonic() > deadline:
+            return px
+        time.sleep(0.2)
+
+
+def test_viewer_in_the_browser(viewer, browser, run_dir):
+    from selenium.webdriver.common.action_chains import ActionChains
+    from selenium.webdriver.common.keys import Keys
+
+    from worldtree.imageio import read_image
+
+    browser.get(viewer.url)
+    # The page opens on the test camera at the first time, full size.
+    first = viewer.wait_for_frame(lambda f: not f.preview and f.camera == "test", TIMEOUT)
+    assert first.time == 0 and first.format == "png"
+    assert _errors(browser) == []
+
+    # Nothing but the local server is fetched (viser's client is bundled in its wheel; no CDN).
+    remote = [u for u in _requested_urls(browser) if u.split(":", 1)[0] in ("http", "https", "ws", "wss")
+              and not u.startswith((viewer.url, viewer.url.replace("http", "ws", 1)))]  # fmt: skip
+    assert remote == []
+
+    # The canvas shows the rendered image: not blank, and where no panel, notice or frustum covers it, the
+    # sent image stretched over the canvas (the browser scales it smoothly; hence a tolerance).
+    px = _wait_canvas(browser, lambda p: p.std() > 10)
+    assert px.std() > 10 and len(np.unique(px.reshape(-1, 3), axis=0)) > 100
+    assert _uncovered_difference(px, first.sent) < 6
+    # The time slider, moved with the keyboard in the page, changes the rendered pixels.
+    slider = browser.find_element("css selector", "[role=slider]")
+    slider.click()
+    slider.send_keys(Keys.END)
+    last = len(viewer.source.times) - 1
+    later = viewer.wait_for_frame(lambda f: f.seq > first.seq and f.time == last and not f.preview, TIMEOUT)
+    assert later.camera == "test"
+    changed = np.abs(later.image.astype(int) - first.image.astype(int)).sum(-1) > 30
+    assert changed.sum() > 50  # the moving square is drawn elsewhere
+    px_later = _wait_canvas(browser, lambda p: np.abs(p.astype(int) - px.astype(int)).sum(-1).max() > 60)
+    assert (np.abs(px_later.astype(int) - px.astype(int)).sum(-1) > 60).sum() > 1000
+
+    # Dragging the camera: small JPEG previews of the free camera, then the full image once it is still.
+    canvas = browser.find_element("css selector", "canvas")
+    ActionChains(browser).move_to_element(canvas).click_and_hold().move_by_offset(40, 10).move_by_offset(
+        40, 10
+    ).release().perform()
+    preview = viewer.wait_for_frame(lambda f: f.seq > later.seq and f.camera is None and f.preview, TIMEOUT)
+    assert preview.format == "jpeg"
+    still = viewer.wait_for_frame(
+        lambda f: f.seq > preview.seq and f.camera is None and not f.preview, TIMEOUT
+    )
+    assert still.format == "png" and still.image.shape[1] > preview.image.shape[1]
+
+    # "Test camera" looks through the test camera again: the run's own test render, exactly.
+    _click_button(browser, "Test camera")
+    shot = viewer.wait_for_frame(
+        lambda f: f.seq > still.seq and f.camera == "test" and not f.preview, TIMEOUT
+    )
+    assert shot.format == "png" and shot.time == last
+    t = viewer.source.times[shot.time]
+    expected = read_image(run_dir / "renders" / f"v001_t{t:03d}.png")
+    sent = shot.box.crop(shot.sent, expected.shape[1], expected.shape[0])
+    np.testing.assert_array_equal(sent, expected)
+    assert (shot.sent.shape[0] == expected.shape[0]) or (shot.sent.shape[1] == expected.shape[1])
+
+    # WorldTree: the tree node is named in the panel (a 6-frame scene keeps the root alone).
+    assert "node 1" in browser.find_element("css selector", "body").text
+    assert _errors(browser) == []
+
+
+def _uncovered_difference(px: np.ndarray, sent: np.ndarray) -> float:
+    """Mean absolute difference (grey levels) of the screenshot ``px`` and the ``sent`` image stretched to its
+    size, over the canvas's lower middle: the GUI panel (right), the browser's notices (top left), the axes
+    (bottom left) and the training cameras' frusta (upper half) lie outside it."""
+    import cv2
+
+    H, W = px.shape[:2]
+    stretched = cv2.resize(sent, (W, H), interpolation=cv2.INTER_LINEAR)
+    rows, cols = slice(int(0.45 * H), int(0.95 * H)), slice(int(0.1 * W), int(0.7 * W))
+    return float(np.abs(px[rows, cols].astype(int) - stretched[rows, cols].astype(int)).mean())
