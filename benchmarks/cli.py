@@ -12,7 +12,20 @@ import typer
 
 from worldtree.cli_runner import run_cli
 
-COMMAND_MODULES = ("eval", "weights", "prep", "run", "sweep", "table", "plot", "video", "report", "demo", "view")
+COMMAND_MODULES = (
+    "eval",
+    "weights",
+    "prep",
+    "run",
+    "sweep",
+    "table",
+    "plot",
+    "video",
+    "report",
+    "demo",
+    "view",
+    "export",
+)
 
 app = typer.Typer(
     name="wtbench",

@@ -23,3 +23,15 @@ def small_quick(monkeypatch):
     monkeypatch.setitem(
         spec.presets, "quick", lambda: dataclasses.replace(quick(), init_num_points=200, checkpoint_every=2)
     )
+
+
+@pytest.fixture(scope="session")
+def api_runs(tmp_path_factory, write_tiny_scene) -> dict[str, Path]:
+    """Finished tiny static, Base and WorldTree runs (tests/benchmarks/api_runs.py), made once per session."""
+    import importlib.util
+
+    path = Path(__file__).with_name("api_runs.py")
+    spec = importlib.util.spec_from_file_location("wt_tests_api_runs", path)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod.make_runs(tmp_path_factory.mktemp("api_runs"), write_tiny_scene)
