@@ -226,10 +226,12 @@ class DepthImportConfig:
     """Robust fit: after the weighted least squares, pixels whose residual exceeds this many robust standard
     deviations (1.4826 MAD) are dropped and the fit repeated (3 rounds); None keeps the plain fit. Multi-view
     stereo has gross errors (occlusions, repeated texture) that would otherwise tilt the line."""
-    fit_balance_bins: int = 10
+    fit_balance_bins: int = 0
     """Scale/shift fit: the weights are rebalanced so that each of this many equal ranges of the imported
     values weighs the same (``imported.balanced_weights``: the far wall would otherwise pin the line and leave
-    the slope, which sets every nearer depth, to a few pixels); 0 or 1: the confidence weights as they are."""
+    the slope, which sets every nearer depth, to a few pixels); 0 or 1 (default): the confidence weights as
+    they are. Off by default: the nearest range is often a moving object's pixels that its mask missed, whose
+    reference is the wall behind it, and balancing multiplies their weight (docs/base_method.md)."""
     fit_exclude_dynamic: bool = True
     """Under ``merge="fill"``: once the dynamic masks are known, refit each frame without their pixels
     (dilated by ``fit_exclude_px``) before the fitted depth fills them. The first fit, made before there are
