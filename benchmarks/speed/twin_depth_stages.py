@@ -97,7 +97,8 @@ def main(argv: list[str] | None = None) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from benchmarks.speed.twin_score import Truth, erode, load_model, render_depth
+    from benchmarks.api import load_run
+    from benchmarks.speed.twin_score import Truth, erode, render_depth
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("run", type=Path)
@@ -111,14 +112,15 @@ def main(argv: list[str] | None = None) -> None:
     scene, st, prior = _base_state(a.run, a.scene)
     T, h, w = prior.shape
     truth = Truth(a.raw, a.scene)
-    model = load_model(a.run, scene)
+    model = load_run(a.run, device="cpu", scene=a.scene)
+    cams = [c for c in model.cameras.values() if c.kind == "train"]  # training frame t -> its camera
     tracks, tvis = st.tracks.numpy(), st.track_vis.numpy()
     rows, pics = [], {}
     for t in range(T):
         d_gt, ids = truth.view(truth.inp.frame_cams[t], truth.inp.frame_times[t], w, h)
         P = erode(ids == a.object, 1)
-        frame, ns = model.gaussians_at(t)
-        d_m = render_depth(frame, ns, scene.Ks[t], model.w2cs[t], w, h)[0] / model.scale
+        frame = model.gaussians_at(t)
+        d_m = render_depth(frame, scene.Ks[t], model.model_w2c(cams[t]), w, h)[0] / frame.scene_to_model.scale
         ui = np.clip(np.round(tracks[t, :, 0]).astype(int), 0, w - 1)
         vi = np.clip(np.round(tracks[t, :, 1]).astype(int), 0, h - 1)
         on = tvis[t] & P[vi, ui]

@@ -32,14 +32,12 @@ from __future__ import annotations
 
 import argparse
 import json
-from collections.abc import Callable
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import torch
 
-RenderList = tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]
+from worldtree.gaussian_frame import GaussianFrame
 
 
 # ------------------------------------------------------------------------------------------------ geometry
@@ -124,125 +122,28 @@ def erode(mask: np.ndarray, px: int) -> np.ndarray:
 
 
 # ------------------------------------------------------------------------------------------------ the model
-@dataclass
-class FittedModel:
-    """A finished run's model as the scoring needs it.
-
-    Attributes:
-        method: ``static``, ``base`` or ``worldtree``.
-        w2cs: ``[T, 4, 4]`` the model's own training cameras (its world).
-        test_poses: test-camera pose by test time (the model's world), as the run rendered its test views.
-        scale: model units per scene unit (scale of the Sim(3) from the given poses to the optimised ones).
-        gaussians_at: frame ``t`` -> ``(render list, number of static Gaussians first in it)``.
-    """
-
-    method: str
-    w2cs: torch.Tensor
-    test_poses: dict[int, torch.Tensor]
-    scale: float
-    gaussians_at: Callable[[int], tuple[RenderList, int]]
-
-
-def _no_colours(n: int) -> torch.Tensor:
-    return torch.zeros(n, 3)
-
-
-def load_model(run: Path, scene) -> FittedModel:
-    """Read ``run``'s fitted model (``RUN/model``; ``scene``: the scene loaded at any size)."""
-    from worldtree.gaussians import GaussianSet
-
-    run = Path(run)
-    model = run / "model"
-    info = json.loads((model / "model.json").read_text())
-    method = info.get("method", "")
-    if method == "static":
-        gs = GaussianSet.load(model / "gaussians.pt")
-        n = len(gs)
-        frame = (gs.means.detach(), gs.quats.detach(), gs.log_scales.detach(), gs.opacities.detach(),
-                 _no_colours(n))  # fmt: skip
-        poses = {int(t): scene.test_w2c for t in scene.test_times.tolist()}
-        return FittedModel("static", scene.w2cs.clone(), poses, 1.0, lambda t: (frame, n))
-    if method not in ("base", "worldtree"):
-        raise SystemExit(
-            f"error: {model / 'model.json'}: method {method!r}; twin_score reads static, base, worldtree"
-        )
-    from worldtree.dynamic import DynamicGaussians, gaussians_at
-    from worldtree.motion.scaffold import Scaffold
-
-    sc = torch.load(model / "scaffold_cameras.pt", map_location="cpu", weights_only=False)
-    sim = info.get("sim3_given_to_optimised") or {"scale": 1.0}
-    poses = {int(k): v.float() for k, v in sc.get("test_poses", {}).items()}
-    if not poses:
-        from worldtree.stages.cameras import Sim3
-
-        s3 = Sim3(float(sim["scale"]), torch.tensor(sim["R"]), torch.tensor(sim["t"]))
-        poses = {int(t): s3.apply_w2c(scene.test_w2c.double()).float() for t in scene.test_times.tolist()}
-    static = GaussianSet.load(model / "static_gaussians.pt")
-    dynamic = DynamicGaussians.load(model / "dynamic_gaussians.pt")
-    scaffold = Scaffold.from_state(sc["scaffold"])
-    w2cs = sc["w2cs"].float().clone()
-
-    def colourless(f: RenderList) -> RenderList:
-        return (*[x.detach() for x in f[:4]], _no_colours(len(f[0])))
-
-    if method == "base":
-        cache = dynamic.attach(scaffold)
-
-        def at(t: int):
-            with torch.no_grad():
-                return colourless(gaussians_at(static, dynamic, scaffold, t, cache)), len(static)
-
-        return FittedModel("base", w2cs, poses, float(sim["scale"]), at)
-
-    from worldtree.tree.node import NodeState
-    from worldtree.tree.tpt import TemporalPartitionTree
-
-    tree = TemporalPartitionTree.from_dict(info["tree"]) if info.get("tree") else None
-    nodes = {int(p.stem[4:]): p for p in (model / "tree").glob("node*.pt")}
-    states: dict[int, tuple] = {}
-
-    def node_of(t: int) -> int:
-        j = tree.covering(t) if tree is not None else 1
-        while j > 1 and j not in nodes:  # a rejected child: its parent renders its frames
-            j //= 2
-        return j
-
-    for t in range(len(w2cs)):  # each frame seen by the node that renders it
-        j = node_of(t)
-        if j not in states and j in nodes:
-            st = NodeState.load(nodes[j])
-            states[j] = (st, st.dynamic.attach(st.scaffold))
-        if j in states:
-            st = states[j][0]
-            w2cs[t] = st.w2cs[t - st.interval.start].float()
-
-    def at_tree(t: int):
-        j = node_of(t)
-        if j not in states:
-            cache = dynamic.attach(scaffold)
-            with torch.no_grad():
-                return colourless(gaussians_at(static, dynamic, scaffold, t, cache)), len(static)
-        st, cache = states[j]
-        with torch.no_grad():
-            return colourless(st.gaussians_at(t, info.get("chain_length"), cache)), len(st.static)
-
-    return FittedModel("worldtree", w2cs, poses, float(sim["scale"]), at_tree)
+# The finished run is read through the Python API (benchmarks.api.load_run): its Gaussians at a frame
+# (LoadedRun.gaussians_at), the pose the model draws a training or test camera from (LoadedRun.model_w2c) and
+# the scene->model Sim(3) scale (GaussianFrame.scene_to_model).
 
 
 @torch.no_grad()
-def render_depth(frame: RenderList, n_static: int, K, w2c, width: int, height: int):
-    """``(depth [H, W], alpha [H, W], dynamic alpha [H, W])`` of a render list (depth = ``sum w z / alpha``,
-    nan where alpha < 0.5; dynamic alpha: the Gaussians after the first ``n_static`` alone)."""
+def render_depth(frame: GaussianFrame, K, w2c, width: int, height: int):
+    """``(depth [H, W], alpha [H, W], dynamic alpha [H, W])`` of a frame (model units; depth = ``sum w z /
+    alpha``, nan where alpha < 0.5; dynamic alpha: the frame's dynamic Gaussians alone)."""
     from worldtree.render import rasterize
 
     K = torch.as_tensor(K, dtype=torch.float32)
     w2c = torch.as_tensor(w2c, dtype=torch.float32)
-    out = rasterize(*frame, K, w2c, width, height)
+    black = torch.zeros(len(frame), 3)  # colour plays no part in depth or alpha
+    out = rasterize(frame.means, frame.quats, frame.log_scales, frame.opacities, black, K, w2c, width, height)
     alpha = out.alpha.cpu().numpy()
     depth = np.where(alpha >= 0.5, out.depth.cpu().numpy() / np.maximum(alpha, 1e-6), np.nan)
     dyn = np.zeros_like(alpha)
-    if len(frame[0]) > n_static:
-        dyn = rasterize(*[x[n_static:] for x in frame], K, w2c, width, height).alpha.cpu().numpy()
+    if bool(frame.dynamic.any()):
+        d = frame.select(frame.dynamic)
+        dyn = rasterize(d.means, d.quats, d.log_scales, d.opacities, black[: len(d)], K, w2c, width,
+                        height).alpha.cpu().numpy()  # fmt: skip
     return depth, alpha, dyn
 
 
@@ -279,6 +180,7 @@ class Truth:
 # ------------------------------------------------------------------------------------------------ scoring
 def score_run(run: Path, raw: Path, scene_dir: Path, object_id: int = 1, erode_px: int = 2) -> list[dict]:
     """One dict per training frame of ``run`` (see the module docstring)."""
+    from benchmarks.api import load_run
     from worldtree.imageio import read_image
     from worldtree.scene import load_scene
 
@@ -288,32 +190,34 @@ def score_run(run: Path, raw: Path, scene_dir: Path, object_id: int = 1, erode_p
     full = load_scene(scene_dir, 1, load_masks=False)
     T, h, w = scene.images.shape[:3]
     Hf, Wf = full.test_images.shape[1:3]
-    model = load_model(run, scene)
+    model = load_run(run, device="cpu", scene=scene_dir)
     truth = Truth(raw, scene_dir)
     tc = truth.test_camera
     test_index = {int(t): k for k, t in enumerate(full.test_times.tolist())}
+    model_camera = [c for c in model.cameras.values() if c.kind == "train"]  # training frame t -> its camera
     rows = []
     yy, xx = np.mgrid[0:h, 0:w]
     for t in range(T):
         cam, tau = truth.inp.frame_cams[t], truth.inp.frame_times[t]
         d_gt, ids = truth.view(cam, tau, w, h)
         P = erode(ids == object_id, erode_px)
-        frame, n_static = model.gaussians_at(t)
-        d_m, alpha, dyn = render_depth(frame, n_static, scene.Ks[t], model.w2cs[t], w, h)
-        d_m_scene = d_m / model.scale
+        frame = model.gaussians_at(t)
+        w2c_t = model.model_w2c(model_camera[t])  # the model's own (fitted) camera t
+        d_m, alpha, dyn = render_depth(frame, scene.Ks[t], w2c_t, w, h)
+        d_m_scene = d_m / frame.scene_to_model.scale
         err, bias = depth_errors(d_m_scene, d_gt, P)
         row = {"frame": t, "camera": cam, "time": tau, "pixels": int(P.sum()), "depth": err, "bias": bias,
                "dyn": float(dyn[P].sum() / max(alpha[P].sum(), 1e-9)) if P.any() else float("nan")}  # fmt: skip
         ok = P & np.isfinite(d_m) & np.isfinite(d_gt)
         k = test_index.get(int(tau))
-        if ok.any() and int(tau) in model.test_poses:
+        if ok.any() and "test" in model.cameras and int(tau) in model.times:
             px = np.stack([xx[ok], yy[ok]], 1).astype(np.float64)
             # Pixels of the working grid, scored in the test camera at the scene's full size.
             Ktr = scene.Ks[t].double().numpy()
             Kte = full.test_K.double().numpy()
             c, cm, um, ug = screen_errors(
-                px, d_m[ok], (Ktr, model.w2cs[t].double().numpy()),
-                (Kte, model.test_poses[int(tau)].double().numpy()),
+                px, d_m[ok], (Ktr, w2c_t.double().numpy()),
+                (Kte, model.model_w2c("test", int(tau)).double().numpy()),
                 d_gt[ok], (Ktr, scene.w2cs[t].double().numpy()), (Kte, full.test_w2c.double().numpy()),
             )  # fmt: skip
             src = (px + 0.5) * np.array([Wf / w, Hf / h]) - 0.5
