@@ -1,6 +1,8 @@
 """The configs `wtbench run` and `wtbench sweep` build, frozen: every method x preset x ablation subset (and the
 tree options, --set, overrides, every grid of every method) resolves to the same config, run-folder name,
-recorded options and command line as in tests/benchmarks/data/run_configs.json.
+recorded options and command line as in tests/benchmarks/data/run_configs.json. A config is recorded as what
+it changes from its preset's config (every setting, derived fields included), so that a new default of the
+library changes no entry while a request that builds another config does.
 
 The file was written before the method options moved from the harness into the methods' specs (issue 29), so
 this test is the proof that the move changed no run. Regenerate it only for a deliberate change of configs:
@@ -10,7 +12,6 @@ this test is the proof that the move changed no run. Regenerate it only for a de
 from __future__ import annotations
 
 import dataclasses
-import hashlib
 import itertools
 import json
 import os
@@ -39,20 +40,33 @@ COMMON_ARGS: tuple[tuple[str, ...], ...] = (
 )
 
 
-def _canonical(cfg) -> str:
-    return hashlib.sha256(
-        json.dumps(dataclasses.asdict(cfg), sort_keys=True, default=str).encode()
-    ).hexdigest()
+def _leaves(tree: dict, prefix: str = "") -> dict:
+    out = {}
+    for k, v in tree.items():
+        if isinstance(v, dict):
+            out.update(_leaves(v, f"{prefix}{k}."))
+        else:
+            out[f"{prefix}{k}"] = v
+    return out
+
+
+def _changes(cfg, preset) -> dict:
+    """``{dotted key: value}`` of every setting where ``cfg`` differs from ``preset`` (both as config.json has
+    them)."""
+    new, old = (_leaves(json.loads(json.dumps(dataclasses.asdict(c), default=str))) for c in (cfg, preset))
+    assert set(new) == set(old)
+    return {k: new[k] for k in sorted(new) if new[k] != old[k]}
 
 
 def _entry(req) -> dict:
     from benchmarks.runner.runs import resolve_config, run_folder_of
     from methods.registry import get_method
 
-    cfg, _ = resolve_config(get_method(req.method), req)
+    spec = get_method(req.method)
+    cfg, _ = resolve_config(spec, req)
     return {
         "folder": run_folder_of(req).root.as_posix(),
-        "config_sha256": _canonical(cfg),
+        "config_changes": _changes(cfg, spec.config(req.preset)),
         "options": json.loads(json.dumps(req.options)),
         "command": req.command,
     }
