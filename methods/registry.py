@@ -18,6 +18,7 @@ from typing import Any, Protocol
 
 import torch
 
+from methods.plugin import Grid, MethodOption
 from worldtree.budget import BudgetConfig
 from worldtree.errors import UserError
 from worldtree.gaussian_frame import GaussianFrame, RenderMode
@@ -146,6 +147,18 @@ class MethodSpec:
     """Preset name -> config factory; ``quick`` and ``paper`` at least."""
     build: Callable[[Any, Scene, torch.device], Method]
     """Entry point: ``build(config, scene, device) -> Method``."""
+    options: tuple[MethodOption, ...] = ()
+    """Config fields that `wtbench run` offers as options of their own (``--chain-length``), in run-folder-name
+    order (:class:`methods.plugin.MethodOption`); ``--set`` reaches every field."""
+    grids: Mapping[str, Grid] = field(default_factory=dict)
+    """Named sweep grids of the method (``wtbench sweep --grid NAME``; :class:`methods.plugin.Grid`)."""
+
+    @property
+    def ablations(self) -> tuple[str, ...]:
+        """Names ``--ablate`` accepts, in display order: the config's ``ablation_names()`` (its ``ablate`` field
+        holds those given); none for a config without them."""
+        names = getattr(self.config_cls, "ablation_names", None)
+        return tuple(names()) if names is not None else ()
 
     def config(self, preset: str) -> Any:
         """The config of ``preset``."""
@@ -168,6 +181,14 @@ def register_method(spec: MethodSpec) -> MethodSpec:
     for required in ("quick", "paper"):
         if required not in spec.presets:
             raise TypeError(f"method {spec.name!r} must define a {required!r} preset")
+    if spec.ablations and "ablate" not in names:
+        raise TypeError(f"config of method {spec.name!r} names ablations but has no 'ablate' field")
+    for opt in spec.options:
+        if opt.field not in names or opt.field in (*COMMON_FIELDS, "ablate"):
+            raise TypeError(f"option {opt.field!r} of method {spec.name!r}: not a config field of its own")
+    tags = [opt.tag for opt in spec.options]
+    if "" in tags or len(set(tags)) != len(tags):
+        raise TypeError(f"method {spec.name!r}: option tags must be distinct and non-empty: {tags}")
     _METHODS[spec.name] = spec
     return spec
 

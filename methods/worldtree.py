@@ -35,7 +35,7 @@ import time
 from dataclasses import dataclass, field
 from functools import partial
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import torch
 
@@ -50,6 +50,7 @@ from methods.base import (
     smoke_config,
 )
 from methods.model_folder import read_model_json
+from methods.plugin import Grid, GridPoint, MethodOption
 from methods.registry import MethodSpec, register_method, settings_of
 from methods.stages import Ablation, Stage
 from worldtree.atomic import atomic_write_json
@@ -96,12 +97,13 @@ class WorldTreeConfig(BaseConfig):
     The tree's defaults are the library's (``TreeConfig``, ``InheritConfig``, ``AncestorPolicy``): declared
     there once and read here, so the two cannot drift apart."""
 
-    depth: int | str = TreeConfig.depth
-    """Deepest tree layer (0 = the root only; the paper: 2), or ``"auto"`` (sets ``auto_depth``)."""
-    auto_depth: bool = False
-    """``--depth auto``: split a trained node only when the measured criterion of ``auto_split`` says its
-    frames need it (:mod:`worldtree.tree.adaptive`); also turns on ``budget`` and ``early_stop`` unless they
-    are set explicitly."""
+    depth: int | Literal["auto"] = TreeConfig.depth
+    """Deepest tree layer (0: the root only; the paper: 2), or auto: split a trained node only where the
+    measured criterion of auto_split says its frames need it (also turns on the Gaussian budget, early stop
+    and node_steps_per_frame unless they are set)."""
+    auto_depth: bool = field(init=False, default=False, metadata={"derived_from": "depth"})
+    """Whether ``depth`` is ``"auto"`` (derived, not a setting: set ``depth``; kept as a field so that the
+    recorded config of a run, and its folder's check on resuming, stay as they were)."""
     auto_split: AutoSplitConfig = field(default_factory=AutoSplitConfig)
     """Thresholds of the ``--depth auto`` criterion and its depth bound."""
     chain_length: int | None = None
@@ -153,13 +155,12 @@ class WorldTreeConfig(BaseConfig):
         super().__post_init__()
         if isinstance(self.depth, str):
             if self.depth.strip().lower() == "auto":
-                self.depth, self.auto_depth = "auto", True
+                self.depth = "auto"
             elif self.depth.strip().isdigit():
                 self.depth = int(self.depth)
             else:
                 raise UserError(f"--depth {self.depth}: give an integer >= 0 or 'auto'")
-        elif self.auto_depth:
-            self.depth = "auto"
+        self.auto_depth = self.depth == "auto"
         if isinstance(self.depth, int) and self.depth < 0:
             raise UserError(f"--depth {self.depth}: must be >= 0 (0 = the root only)")
         if self.chain_length is not None and self.chain_length < 0:
@@ -917,6 +918,56 @@ class WorldTreeMethod(BaseMethod):
         return out
 
 
+# --------------------------------------------------------------------------------------------- the plug-in
+#: `wtbench run` options of their own, in run-folder-name order (``quick-noba-depth3-chain1-splitflow-seq``).
+OPTIONS = (
+    MethodOption("depth", "depth"),
+    MethodOption("chain_length", "chain"),
+    MethodOption("split", "split"),
+    MethodOption("sequential", "seq"),
+)
+
+
+def _ablation_rows() -> list[GridPoint]:
+    """The paper's ablation table, (BA, SW) x (TPT, SAC): BA/SW in {off/off, on/off, on/on}, TPT/SAC likewise."""
+    rows = []
+    for ba, sw in ((False, False), (True, False), (True, True)):
+        for tpt, sac in ((False, False), (True, False), (True, True)):
+            ablate = [n for n, on in (("ba", ba), ("sw", sw), ("tpt", tpt), ("sac", sac)) if not on]
+            if not tpt:
+                ablate.remove("sac")  # root only: SAC has no ancestors to use, `tpt` says it all
+            flags = "".join("+" if on else "-" for on in (ba, sw, tpt, sac))
+            label = f"BA{flags[0]} SW{flags[1]} TPT{flags[2]} SAC{flags[3]}"
+            rows.append(GridPoint(label, {"ablate": sorted(ablate)} if ablate else {}))
+    return rows
+
+
+def _depths(depths) -> list[GridPoint]:
+    return [GridPoint(f"depth {d}", {"depth": d}) for d in depths]
+
+
+#: `wtbench sweep --grid NAME` (the first is the default of `--method worldtree`).
+GRIDS = {
+    "paper-ablation": Grid("the paper's 9-row ablation: (BA, SW) x (TPT, SAC)", _ablation_rows),
+    "depth": Grid("tree depth 0..4 (the paper's depth study)", partial(_depths, range(5))),
+    "adaptive": Grid(
+        "fixed tree depths 0..3 and --depth auto (criterion-grown tree, Gaussian budget, early stop)",
+        partial(_depths, (0, 1, 2, 3, "auto")),
+    ),
+    "tree": Grid(
+        "the root alone (depth 0), fixed depths 1 and 2, and --depth auto: does the tree beat its root?",
+        partial(_depths, (0, 1, 2, "auto")),
+    ),
+    "chain": Grid(
+        "chain length 0..4 at depth 4 (the paper's chain-length study)",
+        lambda: [GridPoint(f"chain {k}", {"depth": 4, "chain_length": k}) for k in range(5)],
+    ),
+    "split": Grid(
+        "split strategies binary, gradient, flow",
+        lambda: [GridPoint(f"split {s}", {"split": s}) for s in SPLIT_STRATEGIES],
+    ),
+}
+
 register_method(
     MethodSpec(
         name="worldtree",
@@ -928,5 +979,7 @@ register_method(
             "smoke": partial(smoke_config, WorldTreeConfig, layer_steps=(10, 10), inherit_caps=(500, 300)),
         },
         build=WorldTreeMethod,
+        options=OPTIONS,
+        grids=GRIDS,
     )
 )

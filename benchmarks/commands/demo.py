@@ -63,8 +63,8 @@ def run_demo(
 
     With ``gt_priors`` the exact priors are written to ``SCENE/gt_priors`` (once) and imported by every
     method whose config has 2D priors; the others run as usual. ``depth`` (``"auto"`` or an integer as text)
-    is given to every method whose config has a tree depth (the option ``--depth`` of `wtbench run`); the
-    others run without it.
+    is given to every method that declares the option ``depth`` (``--depth`` of `wtbench run`); the others run
+    without it.
     """
     from rich.console import Console
 
@@ -120,7 +120,7 @@ def run_demo(
         flags = "".join(f" --{k.replace('_', '-')} {v}" for k, v in given.items())
         if priors and not given:
             console.print(f"  {m} uses no 2D priors: --gt-priors does not apply to it")
-        options = {"depth": depth} if _config_has(m, preset, "depth") else {}
+        options = {"depth": depth} if _declares_option(m, "depth") else {}
         flags += f" --depth {depth}" if options else ""
         console.print(f"[bold]3/3[/] wtbench run --method {m} --scene {scene} --preset {preset}{flags}")
         result = execute(
@@ -148,6 +148,13 @@ def run_demo(
 def _uses_priors(method: str, preset: str) -> bool:
     """Whether ``method``'s config has 2D priors (imported priors are refused by the others)."""
     return _config_has(method, preset, "priors")
+
+
+def _declares_option(method: str, name: str) -> bool:
+    """Whether ``method``'s spec declares the option ``name`` (``MethodSpec.options``)."""
+    from methods.registry import get_method
+
+    return any(o.field == name for o in get_method(method).options)
 
 
 def _config_has(method: str, preset: str, name: str) -> bool:

@@ -96,12 +96,12 @@ class RunOptions:
         parts += ["--preset", self.preset, "--device", self.device]
         for k, v in overrides.items():
             parts += [f"--{k}", str(v)]
-        for k, v in options.items():
+        for k, v in options.items():  # a list repeats its option; True is a flag given
             flag = option_flag(k)
-            if k == "ablate":
-                for a in v:
-                    parts += [flag, a]
-            elif k == "sequential":
+            if isinstance(v, list | tuple):
+                for item in v:
+                    parts += [flag, str(item)]
+            elif v is True:
                 parts.append(flag)
             else:
                 parts += [flag, str(v)]

@@ -1,4 +1,5 @@
-"""`wtbench sweep`: run a named grid of configurations (ablations, depths, chain lengths) over scenes."""
+"""`wtbench sweep`: run a named grid of configurations over scenes (the grids are the methods' own,
+``MethodSpec.grids``, plus the harness's ``seeds``)."""
 
 from __future__ import annotations
 
@@ -8,25 +9,26 @@ import typer
 
 from benchmarks.commands import run_options as opt
 from benchmarks.commands.run_options import RunOptions
-from benchmarks.runner.sweep import GRIDS
 
 
 def register(app: typer.Typer) -> None:
     @app.command(
         "sweep",
         help=(
-            f"Run a grid of configurations ({', '.join(GRIDS)}) over scenes; skips finished "
-            "runs, goes on past a failed one and reports it."
+            "Run a grid of configurations over scenes; skips finished runs, goes on past a failed one and "
+            "reports it. Each method declares its grids (`wtbench sweep --list`); seeds works with every method."
         ),
     )
     def _cmd(
         scenes: list[Path] | None = typer.Option(
             None, "--scenes", help="Scene folders, or folders of scene folders (repeatable)."
         ),
-        grid: str = typer.Option(
-            "paper-ablation", "--grid", help=f"One of: {', '.join(GRIDS)} (docs/running.md)."
+        grid: str | None = typer.Option(
+            None, "--grid", help="A grid of the method (--list; default: its first) or seeds."
         ),
-        method: str = typer.Option("worldtree", "--method", "-m", help="Registered method to sweep."),
+        method: str | None = typer.Option(
+            None, "--method", "-m", help="Method to sweep (default: the one that declares the --grid)."
+        ),
         runs_dir: Path = opt.OUT,
         preset: str = opt.PRESET,
         device: str = opt.DEVICE,
@@ -75,7 +77,9 @@ def register(app: typer.Typer) -> None:
             metavar="RUNS_DIR",
             help="Show each run's state under RUNS_DIR (done, running, queued, failed) and exit.",
         ),
+        list_: bool = typer.Option(False, "--list", help="List every method's grids, then exit."),
     ) -> None:
+        from benchmarks.runner.sweep import resolve_grid
         from benchmarks.runner.sweep_executors import (
             ExecutorConfig,
             SlurmOptions,
@@ -87,8 +91,12 @@ def register(app: typer.Typer) -> None:
         if status is not None:
             show_status(status)
             return
+        if list_:
+            list_grids()
+            return
         if not scenes:
             raise UserError("`wtbench sweep` needs --scenes FOLDER (or --status RUNS_DIR)")
+        method, grid = resolve_grid(method, grid)
         run = RunOptions.from_cli(
             method, masks, tracks, depth_maps, flow, steps, seed, sets=set_, runs_dir=runs_dir, preset=preset,
             device=device, lpips_weights=lpips_weights,
@@ -102,6 +110,17 @@ def register(app: typer.Typer) -> None:
             extra=parse_slurm_args(slurm_arg or []),
         )
         sweep(scenes, grid, run, dry_run, ExecutorConfig(kind=executor, max_parallel=max_parallel, slurm=slurm))
+
+
+def list_grids() -> None:
+    """Print every grid: each method's own, then the harness's."""
+    from benchmarks.runner.sweep import HARNESS_GRIDS
+    from methods.registry import list_methods
+
+    rows = [(s.name, name, g.description) for s in list_methods() for name, g in s.grids.items()]
+    rows += [("(any)", name, g.description) for name, g in HARNESS_GRIDS.items()]
+    for method, name, description in rows:
+        print(f"{method:12s} {name:16s} {description}")
 
 
 def show_status(runs_dir: Path) -> None:
@@ -143,7 +162,7 @@ def sweep(scenes, grid: str, run: RunOptions, dry_run: bool = False, executor=No
     method, runs_dir, device = run.method, run.runs_dir, run.device
     sets, priors, overrides = run.sets, run.priors, run.overrides
     found = find_scenes(scenes)
-    points = grid_points(grid)
+    points = grid_points(grid, get_method(method))
     for k in sorted({k for p in points for k in p.overrides} & set(overrides)):
         raise UserError(f"--{k}: the {grid} grid sets {k} itself; drop --{k}")
     grid_keys = {k for p in points for k in p.options} | {k for p in points for k in p.overrides}

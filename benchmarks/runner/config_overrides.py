@@ -118,6 +118,10 @@ def _replace_path(obj: Any, path: list[str], key: str, raw: str, done: tuple[str
     here = ".".join((*done, name))
     if name not in types_:
         where = ".".join(done) or type(obj).__name__
+        derived = {f.name: f.metadata.get("derived_from") for f in dataclasses.fields(obj)}
+        if name in derived:  # a field the config derives (init=False)
+            source = ".".join((*done, derived[name])) if derived[name] else "other settings"
+            raise UserError(f"--set {key}: {here} follows from {source}; set that instead")
         raise UserError(f"--set {key}: {where} has no field {name!r}{_suggest(name, types_)}")
     current = getattr(obj, name)
     if len(path) > 1:
@@ -141,13 +145,19 @@ def _suggest(name: str, types_: dict[str, Any]) -> str:
     return f"{hint}; fields: {', '.join(sorted(types_))}"
 
 
-def parse_value(tp: Any, raw: str, key: str = "value") -> Any:
-    """``raw`` parsed as annotation ``tp`` (see the module doc); a :class:`UserError` naming ``key``, the
-    expected type and ``raw`` when it does not parse."""
+def parse_value(tp: Any, raw: str, key: str = "value", flag: str | None = None) -> Any:
+    """``raw`` parsed as annotation ``tp`` (see the module doc); a :class:`UserError` naming ``key`` (or the
+    option ``flag`` it was given with), the expected type and ``raw`` when it does not parse."""
     try:
         return _parse(tp, raw)
     except _BadValue:
-        raise UserError(f"--set {key}={raw}: expected {_describe(tp)}, got {raw!r}") from None
+        given = f"{flag} {raw}" if flag else f"--set {key}={raw}"
+        raise UserError(f"{given}: expected {_describe(tp)}, got {raw!r}") from None
+
+
+def describe_type(tp: Any) -> str:
+    """The annotation ``tp`` as the user writes its values: ``float``, ``int or none``, ``int or one of auto``."""
+    return _describe(tp)
 
 
 class _BadValue(Exception):

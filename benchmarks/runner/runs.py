@@ -27,9 +27,10 @@ import resource
 import shutil
 import sys
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import torch
@@ -44,9 +45,12 @@ from worldtree.losses import SSIM_WINDOW
 from worldtree.output_paths import check_name, check_output_folder, check_replaceable, folder_name_of
 from worldtree.timing import StageClock
 
+if TYPE_CHECKING:
+    from methods.plugin import MethodOption
+
 TUNABLE = ("steps", "seed", "downscale")
-# Method options of `wtbench run` (set only on methods whose config has the field), in tag order.
-METHOD_OPTIONS = ("ablate", "depth", "chain_length", "split", "sequential")
+# The ablations of a run (`--ablate`, the method's `MethodSpec.ablations`), on the config field of that name.
+ABLATE = "ablate"
 # Files every run folder gets first (config.json, then command.txt): `--force` deletes only a folder holding them.
 RUN_MARKERS = ("config.json", "command.txt")
 # What a sweep writes into a run folder before its job starts the run (benchmarks.runner.sweep_executors).
@@ -121,20 +125,26 @@ def run_tag(
     overrides: dict[str, Any],
     options: dict[str, Any] | None = None,
     sets: list[str] | None = None,
+    method_options: Sequence[MethodOption] = (),
 ) -> str:
     """Folder name of a configuration: the preset, then ``-<field><value>`` per override in a fixed order,
-    then the method options: ``-no<name>`` per ablation, ``-depth<D>``, ``-chain<K>``, ``-split<S>``, ``-seq``
-    (e.g. ``quick-steps200-noba-nosac-depth3``), then ``-set<8 hex>`` when ``sets`` (``KEY=VALUE`` strings,
+    then ``-no<name>`` per ablation, then the method's options (``method_options``, its
+    ``MethodSpec.options``) in their declared order, each ``-<tag><value>`` (a flag: ``-<tag>``; e.g.
+    ``quick-steps200-noba-nosac-depth3``), then ``-set<8 hex>`` when ``sets`` (``KEY=VALUE`` strings,
     imported priors included) are given: :func:`benchmarks.runner.config_overrides.sets_digest`, the same for the
-    same settings in any order."""
+    same settings in any order. An option in ``options`` that ``method_options`` does not declare is a
+    ValueError (:func:`resolve_config` refuses it first, naming its flag)."""
     parts = [preset] + [f"{k}{overrides[k]}" for k in TUNABLE if k in overrides]
-    opts = options or {}
-    parts += [f"no{a}" for a in sorted(set(opts.get("ablate") or ()))]
-    for key, name in (("depth", "depth"), ("chain_length", "chain"), ("split", "split")):
-        if opts.get(key) is not None:
-            parts.append(f"{name}{opts[key]}")
-    if opts.get("sequential"):
-        parts.append("seq")
+    opts = dict(options or {})
+    parts += [f"no{a}" for a in sorted(set(opts.pop(ABLATE, None) or ()))]
+    for opt in method_options:
+        value = opts.pop(opt.field, None)
+        if value is True:
+            parts.append(opt.tag)
+        elif value is not None and value is not False:
+            parts.append(f"{opt.tag}{value}")
+    if opts:
+        raise ValueError(f"options {sorted(opts)} are not among the method's options")
     if sets:
         parts.append("set" + sets_digest(sets))
     return "-".join(parts)
@@ -196,8 +206,9 @@ class RunRequest:
     overrides: dict[str, int] = field(default_factory=dict)
     """Overridden common config fields (steps, seed, downscale)."""
     options: dict[str, Any] = field(default_factory=dict)
-    """Method options (``METHOD_OPTIONS``: ablate list, depth, chain_length, split, sequential), set on the
-    config fields of the same name; a method whose config lacks one refuses it."""
+    """Method options: ``ablate`` (a list of the method's ``MethodSpec.ablations``) and the fields of its
+    ``MethodSpec.options`` (e.g. ``{"ablate": ["ba"], "depth": 3}``), set on the config fields of the same
+    name; a method that does not declare one refuses it."""
     lpips_weights: Path | None = None
     """Folder with the LPIPS weight files (None: the evaluator's default search)."""
     tensorboard: bool = False
@@ -419,7 +430,8 @@ def _run_folder(req: RunRequest, spec, sets: list[str]) -> RunFolder:
     if req.tag is not None:
         tag = check_name(req.tag, "--tag")
     else:
-        tag = check_name(run_tag(req.preset, req.overrides, req.options, sets), "the run folder name")
+        tag = run_tag(req.preset, req.overrides, req.options, sets, spec.options)
+        tag = check_name(tag, "the run folder name")
     return RunFolder(Path(req.runs_dir) / scene / spec.name / tag)
 
 
@@ -469,7 +481,7 @@ def resolve_config(spec, req: RunRequest) -> tuple[Any, list[str]]:
     for k in req.overrides:
         if k not in TUNABLE:
             raise UserError(f"override {k!r} is not one of {', '.join(TUNABLE)}")
-    cfg = dataclasses.replace(cfg, **req.overrides, **_method_options(cfg, spec.name, req.options))
+    cfg = dataclasses.replace(cfg, **req.overrides, **method_option_fields(spec, req.options))
     prior_sets = _prior_sets(cfg, spec.name, req.priors)
     flags = {k: option_flag(k) for k in (*req.overrides, *req.options)}
     flags |= {f"priors.{PRIOR_OPTIONS[k][0]}": option_flag(k) for k in req.priors}
@@ -523,25 +535,42 @@ def _prior_sets(cfg, method: str, priors: dict[str, Any]) -> list[str]:
     given = [k for k, v in priors.items() if v is not None]
     if given and "priors" not in {f.name for f in dataclasses.fields(cfg)}:
         raise UserError(
-            f"{option_flag(given[0])}: method {method!r} uses no 2D priors; drop it or use --method base or --method worldtree"
+            f"{option_flag(given[0])}: method {method!r} uses no 2D priors; drop it or use one of the methods "
+            f"that do ({', '.join(_methods_with_field('priors')) or 'none'})"
         )
     paths = resolve_prior_paths(priors)
     return [f"priors.{PRIOR_OPTIONS[k][0]}={paths[k]}" for k in PRIOR_OPTIONS if k in paths]
 
 
-def _method_options(cfg, method: str, options: dict[str, Any]) -> dict[str, Any]:
-    """``options`` checked against ``cfg``'s fields, the ablation list as a tuple."""
-    names = {f.name for f in dataclasses.fields(cfg)}
+def method_option_fields(spec, options: dict[str, Any]) -> dict[str, Any]:
+    """``options`` as config fields of ``spec``'s method: ``ablate`` (a tuple) when it declares ablations, and
+    the fields of its ``MethodSpec.options``; an option it does not declare is a :class:`UserError` naming the
+    flag and the methods that have it."""
     out: dict[str, Any] = {}
     for k, v in options.items():
-        if k not in METHOD_OPTIONS:
-            raise UserError(f"option {k!r} is not one of {', '.join(METHOD_OPTIONS)}")
-        if k not in names:
-            raise UserError(
-                f"{option_flag(k)}: method {method!r} has no such option; drop it or use --method worldtree"
-            )
-        out[k] = tuple(v) if k == "ablate" else v
+        if k not in method_option_names(spec):
+            others = [s.name for s in _list_methods() if k in method_option_names(s)]
+            where = f"use it with --method {' or '.join(others)}" if others else "no method has it"
+            raise UserError(f"{option_flag(k)}: method {spec.name!r} has no such option; drop it or {where}")
+        out[k] = tuple(v) if k == ABLATE else v
     return out
+
+
+def method_option_names(spec) -> set[str]:
+    """The ``RunRequest.options`` keys ``spec``'s method accepts: ``ablate`` (when it has ablations) and the
+    fields of its ``MethodSpec.options``."""
+    return {o.field for o in spec.options} | ({ABLATE} if spec.ablations else set())
+
+
+def _list_methods():
+    from methods.registry import list_methods
+
+    return list_methods()
+
+
+def _methods_with_field(name: str) -> list[str]:
+    """Names of the registered methods whose config has a top-level field ``name``."""
+    return [s.name for s in _list_methods() if name in {f.name for f in dataclasses.fields(s.config_cls)}]
 
 
 def _render_test(method, view: TestView, folder: RunFolder) -> None:

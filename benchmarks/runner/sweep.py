@@ -1,6 +1,8 @@
 """Named grids of run configurations and a runner that executes them over scenes.
 
-A grid is a list of :class:`GridPoint` (method options such as ablations, depth, chain length). The runner
+A grid is a list of :class:`~methods.plugin.GridPoint` (a method's options, its ablations, common overrides).
+Each method declares its own grids (``MethodSpec.grids``); the harness adds only :data:`HARNESS_GRIDS`, which
+work with every method (``seeds``). The runner
 turns every (scene, point) pair into a :class:`benchmarks.runner.runs.RunRequest`; runs that already finished are
 skipped by :func:`benchmarks.runner.runs.execute` itself, and a failing run is recorded and the sweep goes on.
 Settings common to the whole grid (``--set KEY=VALUE``, imported priors) are not grid points: `wtbench sweep`
@@ -19,71 +21,63 @@ from pathlib import Path
 from typing import Any
 
 import worldtree
+from methods.plugin import Grid, GridPoint
 from worldtree.atomic import atomic_write_json
 from worldtree.errors import UserError
 
-
-@dataclass(frozen=True)
-class GridPoint:
-    """One configuration of a grid: a label, the method options it sets (``RunRequest.options``) and the
-    common fields it overrides (``RunRequest.overrides``: steps, seed, downscale)."""
-
-    label: str
-    options: dict[str, Any] = field(default_factory=dict)
-    overrides: dict[str, int] = field(default_factory=dict)
-
-
-def _ablation_rows() -> list[GridPoint]:
-    # The paper's Table (BA, SW) x (TPT, SAC): BA/SW in {off/off, on/off, on/on}, TPT/SAC likewise.
-    rows = []
-    for ba, sw in ((False, False), (True, False), (True, True)):
-        for tpt, sac in ((False, False), (True, False), (True, True)):
-            ablate = [n for n, on in (("ba", ba), ("sw", sw), ("tpt", tpt), ("sac", sac)) if not on]
-            if not tpt:
-                ablate.remove("sac")  # root only: SAC has no ancestors to use, `tpt` says it all
-            flags = "".join("+" if on else "-" for on in (ba, sw, tpt, sac))
-            label = f"BA{flags[0]} SW{flags[1]} TPT{flags[2]} SAC{flags[3]}"
-            rows.append(GridPoint(label, {"ablate": sorted(ablate)} if ablate else {}))
-    return rows
-
-
-GRIDS: dict[str, tuple[str, Callable[[], list[GridPoint]]]] = {
-    "paper-ablation": ("the paper's 9-row ablation: (BA, SW) x (TPT, SAC)", _ablation_rows),
-    "depth": (
-        "tree depth 0..4 (the paper's depth study)",
-        lambda: [GridPoint(f"depth {d}", {"depth": d}) for d in range(5)],
-    ),
-    "adaptive": (
-        "fixed tree depths 0..3 and --depth auto (criterion-grown tree, Gaussian budget, early stop)",
-        lambda: (
-            [GridPoint(f"depth {d}", {"depth": d}) for d in (0, 1, 2, 3)]
-            + [GridPoint("depth auto", {"depth": "auto"})]
-        ),
-    ),
-    "tree": (
-        "the root alone (depth 0), fixed depths 1 and 2, and --depth auto: does the tree beat its root?",
-        lambda: [GridPoint(f"depth {d}", {"depth": d}) for d in (0, 1, 2, "auto")],
-    ),
-    "chain": (
-        "chain length 0..4 at depth 4 (the paper's chain-length study)",
-        lambda: [GridPoint(f"chain {k}", {"depth": 4, "chain_length": k}) for k in range(5)],
-    ),
-    "split": (
-        "split strategies binary, gradient, flow",
-        lambda: [GridPoint(f"split {s}", {"split": s}) for s in ("binary", "gradient", "flow")],
-    ),
-    "seeds": (
+#: Grids of the harness, for every method (a method's own grid may not take these names).
+HARNESS_GRIDS: dict[str, Grid] = {
+    "seeds": Grid(
         "seeds 0..3 of one configuration (run-to-run spread; works with every method)",
         lambda: [GridPoint(f"seed {k}", overrides={"seed": k}) for k in range(4)],
     ),
 }
 
 
-def grid_points(name: str) -> list[GridPoint]:
-    """The configurations of the grid ``name`` (see :data:`GRIDS`)."""
-    if name not in GRIDS:
-        raise UserError(f"--grid {name!r}: unknown grid; choose one of {', '.join(GRIDS)}")
-    return GRIDS[name][1]()
+def grids_of(spec) -> dict[str, Grid]:
+    """The grids ``wtbench sweep --method NAME`` accepts: the method's own (``spec.grids``), then the harness's."""
+    clash = set(spec.grids) & set(HARNESS_GRIDS)
+    if clash:
+        raise TypeError(f"method {spec.name!r}: grid names {sorted(clash)} are the harness's; rename them")
+    return {**spec.grids, **HARNESS_GRIDS}
+
+
+def resolve_grid(method: str | None, grid: str | None) -> tuple[str, str]:
+    """``(method, grid)`` of ``wtbench sweep``: a grid a single method declares names its method; a method alone
+    names its first grid. Anything else missing or unknown is a :class:`UserError` listing the choices."""
+    from methods.registry import get_method, list_methods
+
+    if method is not None:
+        spec = get_method(method)
+        known = grids_of(spec)
+        if grid is None:
+            if not spec.grids:
+                raise UserError(f"--method {method}: has no grid of its own; give --grid {', '.join(known)}")
+            return method, next(iter(spec.grids))
+        if grid not in known:
+            raise UserError(f"--grid {grid}: method {method!r} has the grids {', '.join(known)}")
+        return method, grid
+    specs = list_methods()
+    owners = [s.name for s in specs if grid in s.grids]
+    if grid is not None and len(owners) == 1:
+        return owners[0], grid
+    listing = "; ".join(f"{s.name}: {', '.join(s.grids)}" for s in specs if s.grids)
+    listing += f"; every method: {', '.join(HARNESS_GRIDS)}"
+    if grid is None:
+        raise UserError(f"`wtbench sweep` needs --grid NAME (and --method NAME for a shared one): {listing}")
+    if owners or grid in HARNESS_GRIDS:
+        where = f"methods {', '.join(owners)} have" if owners else "every method has"
+        raise UserError(f"--grid {grid}: {where} it; name one with --method")
+    raise UserError(f"--grid {grid!r}: unknown grid; grids are {listing}")
+
+
+def grid_points(name: str, spec) -> list[GridPoint]:
+    """The configurations of the grid ``name`` of ``spec``'s method (see :func:`grids_of`)."""
+    known = grids_of(spec)
+    if name not in known:
+        choices = ", ".join(known)
+        raise UserError(f"--grid {name!r}: unknown grid of method {spec.name!r}; choose one of {choices}")
+    return known[name].points()
 
 
 def find_scenes(paths: Sequence[str | Path]) -> list[Path]:

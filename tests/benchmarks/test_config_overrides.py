@@ -222,7 +222,10 @@ def test_digest_and_run_tag():
     assert run_tag("quick", {"steps": 5}, None, ["a=1", "b.c=3"]) != with_sets
     assert run_tag("quick", {"steps": 5}, None, []) == plain
     opts = {"ablate": ["ba"], "depth": 3}
-    assert run_tag("quick", {}, opts, sets) == f"quick-noba-depth3-set{expected}"
+    tree = get_method("worldtree").options
+    assert run_tag("quick", {}, opts, sets, tree) == f"quick-noba-depth3-set{expected}"
+    with pytest.raises(ValueError, match="not among the method's options"):
+        run_tag("quick", {}, opts, sets)
 
 
 @pytest.mark.parametrize("method", ["base", "worldtree"])
@@ -235,8 +238,11 @@ def test_a_field_the_method_fills_in_is_refused_not_ignored(method):
 
 
 def _leaves(obj, prefix=""):
-    """``(dotted key, value)`` of every leaf field of a config dataclass."""
+    """``(dotted key, value)`` of every leaf setting of a config dataclass (fields it derives, ``init=False``,
+    are not settings)."""
     for f in dataclasses.fields(obj):
+        if not f.init:
+            continue
         v = getattr(obj, f.name)
         if dataclasses.is_dataclass(v):
             yield from _leaves(v, f"{prefix}{f.name}.")
@@ -291,6 +297,18 @@ def test_every_set_key_changes_the_run_or_is_refused(label, cfg):
                 apply_overrides(cfg, [item])
         else:
             assert apply_overrides(cfg, [item]) == cfg, item
+
+
+def test_a_derived_field_has_one_spelling_its_source():
+    cfg = get_method("worldtree").config("quick")
+    with pytest.raises(
+        UserError, match=r"^--set auto_depth: auto_depth follows from depth; set that instead$"
+    ):
+        apply_overrides(cfg, ["auto_depth=true"])
+    auto = apply_overrides(cfg, ["depth=auto"])
+    assert auto.depth == "auto" and auto.auto_depth and not apply_overrides(auto, ["depth=2"]).auto_depth
+    with pytest.raises(UserError, match=r"^--set depth=deep: expected int or one of auto, got 'deep'$"):
+        apply_overrides(cfg, ["depth=deep"])
 
 
 def test_switching_a_feature_on_in_the_same_command_makes_its_settings_count():

@@ -145,6 +145,15 @@ def _grids_of(method: str) -> list[str]:
     return ["seeds"]
 
 
+def test_the_dump_covers_every_grid_of_every_method():
+    from benchmarks.runner.sweep import grids_of
+    from methods.registry import list_methods
+
+    for spec in list_methods():
+        if spec.name in ("static", "base", "worldtree"):
+            assert sorted(grids_of(spec)) == sorted(_grids_of(spec.name)), spec.name
+
+
 def test_run_and_sweep_configs_are_unchanged(tmp_path):
     expected = json.loads(EXPECTED.read_text())
     got = dump(tmp_path)

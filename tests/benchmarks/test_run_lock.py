@@ -100,7 +100,7 @@ def test_a_second_sweep_into_the_same_report_is_refused(tmp_path, write_tiny_sce
     from benchmarks.cli import app
 
     scene = write_tiny_scene(tmp_path / "scenes" / "tiny", frames=2)
-    report = tmp_path / "runs" / "sweep-depth.json"
+    report = tmp_path / "runs" / "sweep-seeds.json"
     env = dict(os.environ, PYTHONPATH=os.pathsep.join(sys.path))
     holder = subprocess.Popen(
         [sys.executable, "-c", HOLD.replace('"run folder"', '"sweep report"'), str(report)],
@@ -108,7 +108,7 @@ def test_a_second_sweep_into_the_same_report_is_refused(tmp_path, write_tiny_sce
     )  # fmt: skip
     try:
         assert holder.stdout.readline().strip() == "held"
-        args = ["sweep", "--scenes", str(scene.parent), "--grid", "depth", "--method", "static"]
+        args = ["sweep", "--scenes", str(scene.parent), "--grid", "seeds", "--method", "static"]
         args += ["--preset", "quick", "-o", str(tmp_path / "runs")]
         with pytest.raises(UserError, match=rf"sweep report is in use by PID {holder.pid} on "):
             CliRunner().invoke(app, args, catch_exceptions=False)

@@ -156,7 +156,7 @@ def test_sweep_passes_sets_and_priors_to_every_run(tmp_path, monkeypatch):
     with pytest.raises(UserError, match="the split grid sets split itself"):
         sweep([scene], "split", opts("worldtree", sets=["split=flow"]))
     with pytest.raises(UserError, match="'static' uses no 2D priors"):
-        sweep([scene], "split", opts("static", priors={"masks": str(masks)}))
+        sweep([scene], "seeds", opts("static", priors={"masks": str(masks)}))
     assert seen == []
 
 

@@ -10,8 +10,11 @@ from types import SimpleNamespace
 
 import pytest
 
-from benchmarks.runner.sweep import GridPoint, find_scenes, grid_points, run_sweep
+from benchmarks.runner.sweep import GridPoint, find_scenes, grid_points, resolve_grid, run_sweep
+from methods.registry import get_method
 from worldtree.errors import UserError
+
+WORLDTREE = get_method("worldtree")
 
 
 def test_paper_ablation_grid_is_the_papers_nine_rows():
@@ -28,17 +31,35 @@ def test_paper_ablation_grid_is_the_papers_nine_rows():
         if "tpt" in off:
             off.discard("sac")  # root only: --ablate tpt alone says SAC is unused
         expected.append(sorted(off))
-    got = [pt.options.get("ablate", []) for pt in grid_points("paper-ablation")]
+    got = [pt.options.get("ablate", []) for pt in grid_points("paper-ablation", WORLDTREE)]
     assert got == expected
-    assert len({pt.label for pt in grid_points("paper-ablation")}) == 9
+    assert len({pt.label for pt in grid_points("paper-ablation", WORLDTREE)}) == 9
 
 
 def test_depth_and_chain_grids():
-    assert [pt.options for pt in grid_points("depth")] == [{"depth": d} for d in range(5)]
-    assert [pt.options["chain_length"] for pt in grid_points("chain")] == [0, 1, 2, 3, 4]
-    assert all(pt.options["depth"] == 4 for pt in grid_points("chain"))
+    assert [pt.options for pt in grid_points("depth", WORLDTREE)] == [{"depth": d} for d in range(5)]
+    assert [pt.options["chain_length"] for pt in grid_points("chain", WORLDTREE)] == [0, 1, 2, 3, 4]
+    assert all(pt.options["depth"] == 4 for pt in grid_points("chain", WORLDTREE))
     with pytest.raises(UserError, match="unknown grid"):
-        grid_points("nope")
+        grid_points("nope", WORLDTREE)
+    with pytest.raises(UserError, match="unknown grid of method 'static'"):
+        grid_points("depth", get_method("static"))
+
+
+def test_grid_names_its_method_and_a_method_its_first_grid():
+    assert resolve_grid(None, "paper-ablation") == ("worldtree", "paper-ablation")
+    assert resolve_grid("worldtree", None) == ("worldtree", "paper-ablation")
+    assert resolve_grid("static", "seeds") == ("static", "seeds")
+    with pytest.raises(UserError, match=r"^--grid seeds: every method has it; name one with --method$"):
+        resolve_grid(None, "seeds")
+    with pytest.raises(UserError, match=r"^--method static: has no grid of its own; give --grid seeds$"):
+        resolve_grid("static", None)
+    with pytest.raises(UserError, match=r"^--grid depth: method 'static' has the grids seeds$"):
+        resolve_grid("static", "depth")
+    with pytest.raises(
+        UserError, match=r"^`wtbench sweep` needs --grid NAME .*worldtree: paper-ablation, depth"
+    ):
+        resolve_grid(None, None)
 
 
 def test_find_scenes(tmp_path):
@@ -73,16 +94,32 @@ def test_sweep_goes_on_past_a_failed_run(tmp_path):
 
 
 def test_cli_reports_failures_and_exits_nonzero(tmp_path, write_tiny_scene):
-    # The static method refuses tree options, so every run of the depth grid fails: the sweep must try
-    # all five, report each, write the JSON report and exit 1.
+    # The scene's training images are gone, so every run of the seeds grid fails when it loads the scene:
+    # the sweep must try all four, report each, write the JSON report and exit 1.
+    scene = write_tiny_scene(tmp_path / "scenes" / "tiny", frames=2)
+    for image in (scene / "images").iterdir():
+        image.unlink()
+    out = subprocess.run(
+        [sys.executable, "-m", "benchmarks.cli", "sweep", "--scenes", str(scene.parent), "--grid", "seeds",
+         "--method", "static", "--preset", "quick", "--device", "cpu", "-o", str(tmp_path / "runs")],
+        capture_output=True, text=True,
+    )  # fmt: skip
+    assert out.returncode == 1, out.stderr
+    assert "0 done, 0 already finished, 4 failed" in out.stdout
+    report = json.loads((tmp_path / "runs" / "sweep-seeds.json").read_text())
+    assert [r["status"] for r in report["runs"]] == ["failed"] * 4
+    assert all("images" in r["error"] for r in report["runs"]), report["runs"][0]["error"]
+
+
+def test_cli_refuses_a_grid_the_method_does_not_have(tmp_path, write_tiny_scene):
     scene = write_tiny_scene(tmp_path / "scenes" / "tiny", frames=2)
     out = subprocess.run(
         [sys.executable, "-m", "benchmarks.cli", "sweep", "--scenes", str(scene.parent), "--grid", "depth",
          "--method", "static", "--preset", "quick", "-o", str(tmp_path / "runs")],
         capture_output=True, text=True,
     )  # fmt: skip
-    assert out.returncode == 1, out.stderr
-    assert "0 done, 0 already finished, 5 failed" in out.stdout
-    report = json.loads((tmp_path / "runs" / "sweep-depth.json").read_text())
-    assert [r["status"] for r in report["runs"]] == ["failed"] * 5
-    assert all("depth" in r["error"] for r in report["runs"])
+    assert (
+        out.returncode == 2
+        and out.stderr.strip() == "error: --grid depth: method 'static' has the grids seeds"
+    )
+    assert not (tmp_path / "runs").exists()

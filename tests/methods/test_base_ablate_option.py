@@ -6,14 +6,15 @@ import dataclasses
 
 import pytest
 
-from benchmarks.runner.runs import _method_options, run_tag
+from benchmarks.runner.runs import method_option_fields, run_tag
 from methods.base import BaseConfig
+from methods.registry import get_method
 from methods.worldtree import WorldTreeConfig
 from worldtree.errors import UserError
 
 
 def _apply(cfg, method, options):
-    return dataclasses.replace(cfg, **_method_options(cfg, method, options))
+    return dataclasses.replace(cfg, **method_option_fields(get_method(method), options))
 
 
 def test_base_accepts_ablate_ba_and_sw():
@@ -64,8 +65,16 @@ def test_worldtree_grows_its_tree_before_the_test_pose():
 def test_base_refuses_tree_ablations_and_options():
     with pytest.raises(UserError, match="--ablate tpt: choose among ba, sw"):
         _apply(BaseConfig(), "base", {"ablate": ["tpt"]})
-    with pytest.raises(UserError, match="--depth"):
+    with pytest.raises(
+        UserError,
+        match=r"^--depth: method 'base' has no such option; drop it or use it with --method worldtree$",
+    ):
         _apply(BaseConfig(), "base", {"depth": 1})
+    with pytest.raises(
+        UserError,
+        match=r"^--ablate: method 'static' has no such option; drop it or use it with --method base or worldtree$",
+    ):
+        method_option_fields(get_method("static"), {"ablate": ["ba"]})
 
 
 def test_worldtree_accepts_all_four():

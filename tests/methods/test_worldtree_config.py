@@ -46,8 +46,13 @@ def test_bad_values_are_user_errors(kw):
 
 
 def test_run_tags_differ_per_configuration():
+    tree = get_method("worldtree").options
+
+    def tag(overrides, opts=None):
+        return run_tag("quick", overrides, opts, None, tree)
+
     tags = {
-        run_tag("quick", {}, opts)
+        tag({}, opts)
         for opts in (
             {},
             {"ablate": ["sac"]},
@@ -60,12 +65,10 @@ def test_run_tags_differ_per_configuration():
         )
     }
     assert len(tags) == 8
-    assert (
-        run_tag("quick", {"steps": 5}, {"ablate": ["sw", "ba"], "depth": 1})
-        == "quick-steps5-noba-nosw-depth1"
-    )
-    assert run_tag("quick", {}, {"ablate": ["sw", "ba"]}) == run_tag("quick", {}, {"ablate": ["ba", "sw"]})
-    assert run_tag("quick", {"steps": 5}) == "quick-steps5"
+    assert tag({"steps": 5}, {"ablate": ["sw", "ba"], "depth": 1}) == "quick-steps5-noba-nosw-depth1"
+    assert tag({}, {"ablate": ["sw", "ba"]}) == tag({}, {"ablate": ["ba", "sw"]})
+    assert tag({}, {"sequential": True, "split": "flow", "depth": "auto"}) == "quick-depthauto-splitflow-seq"
+    assert tag({"steps": 5}) == "quick-steps5"
 
 
 @pytest.mark.parametrize(

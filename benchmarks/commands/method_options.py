@@ -1,0 +1,153 @@
+"""The method options of `wtbench run`, generated from what the registered methods declare.
+
+Each method's :class:`~methods.registry.MethodSpec` names its ablations (``--ablate NAME``, repeatable) and the
+config fields it offers as options of their own (``MethodSpec.options``: ``chain_length`` -> ``--chain-length``).
+The option's help is the string literal written under the field, prefixed by the methods that have it; its
+value is parsed by the field's annotation exactly as ``--set`` parses it (:mod:`benchmarks.runner.config_overrides`),
+and a ``bool`` field is a flag that turns it on. Nothing here names a method or a field: a method installed
+from another package brings its options with it. The options are generated when typer builds the command line
+(the app runs), so the modules that only register commands import no method.
+"""
+
+from __future__ import annotations
+
+import functools
+import inspect
+import typing
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+from typing import Any
+
+FLAG, LIST, VALUE = "flag", "list", "value"
+
+
+@dataclass(frozen=True)
+class GeneratedOption:
+    """One method option of `wtbench run`."""
+
+    key: str
+    """Config field and ``RunRequest.options`` key."""
+    annotation: Any
+    """The field's type (a ``tuple[X, ...]`` option: ``X`` per value)."""
+    kind: str
+    """``flag`` (a bool field, turned on), ``list`` (a tuple field, repeatable) or ``value``."""
+    help: str
+
+    @property
+    def flag(self) -> str:
+        return "--" + self.key.replace("_", "-")
+
+
+def declared_options() -> list[GeneratedOption]:
+    """``--ablate`` (when a method has ablations), then every field some method's ``MethodSpec.options`` names,
+    in the methods' order (by name) and each method's declared order. Two methods declaring one field with
+    different types is a TypeError, as is a field without its help."""
+    from benchmarks.runner.config_overrides import field_types
+    from benchmarks.runner.runs import ABLATE
+    from methods.registry import list_methods
+    from nvidia_ls.config_options import field_docs
+
+    specs = list_methods()
+    out: list[GeneratedOption] = []
+    ablating = [s for s in specs if s.ablations]
+    if ablating:
+        names = "; ".join(f"{s.name}: {', '.join(s.ablations)}" for s in ablating)
+        out.append(
+            GeneratedOption(
+                ABLATE, tuple[str, ...], LIST, f"Ablate a component, repeat for several ({names})."
+            )
+        )
+    owners: dict[str, list] = {}
+    for spec in specs:
+        for opt in spec.options:
+            owners.setdefault(opt.field, []).append(spec)
+    for key, methods in owners.items():
+        types = {s.name: field_types(s.config_cls)[key] for s in methods}
+        if len(set(map(str, types.values()))) > 1:
+            raise TypeError(f"option --{key.replace('_', '-')}: declared with different types {types}")
+        doc = field_docs(methods[0].config_cls).get(key)
+        if doc is None:
+            raise TypeError(
+                f"{methods[0].config_cls.__name__}.{key}: write its help as a string literal under it"
+            )
+        tp = types[methods[0].name]
+        kind = FLAG if tp is bool else LIST if typing.get_origin(tp) is tuple else VALUE
+        out.append(GeneratedOption(key, tp, kind, f"{', '.join(s.name for s in methods)}: {doc}"))
+    return out
+
+
+def given_options(declared: list[GeneratedOption], values: Mapping[str, Any]) -> dict[str, Any]:
+    """The ``RunRequest.options`` of the command-line ``values`` (by key): options not given are left out; a
+    flag given is True; a list's values are parsed, sorted and deduplicated (so that one set of ablations names
+    one run folder); a value is parsed by its field's type. A value that does not parse is a one-line
+    :class:`UserError` naming the option."""
+    from benchmarks.runner.config_overrides import parse_value
+
+    out: dict[str, Any] = {}
+    for o in declared:
+        raw = values.get(o.key)
+        if o.kind == FLAG:
+            if raw:
+                out[o.key] = True
+        elif o.kind == LIST:
+            if raw:
+                item = typing.get_args(o.annotation)[0]
+                out[o.key] = sorted({parse_value(item, s.strip(), o.key, o.flag) for s in raw})
+        elif raw is not None:
+            out[o.key] = parse_value(o.annotation, raw.strip(), o.key, o.flag)
+    return out
+
+
+def _typer_parameter(o: GeneratedOption) -> inspect.Parameter:
+    import typer
+
+    from benchmarks.runner.config_overrides import describe_type
+
+    if o.kind == FLAG:
+        annotation, default = bool, typer.Option(False, o.flag, help=o.help)
+    elif o.kind == LIST:
+        annotation, default = list[str] | None, typer.Option(None, o.flag, help=o.help, metavar="NAME")
+    else:
+        arms = describe_type(o.annotation).split(" or ")  # "int or one of auto" -> INT|auto
+        metavar = "|".join(a.removeprefix("one of ").replace(", ", "|") if a.startswith("one of ") or a == "none"
+                           else a.upper() for a in arms)  # fmt: skip
+        annotation, default = str | None, typer.Option(None, o.flag, help=o.help, metavar=metavar)
+    return inspect.Parameter(o.key, inspect.Parameter.KEYWORD_ONLY, default=default, annotation=annotation)
+
+
+class MethodOptionsCommand:
+    """A typer command function with the method options added: ``func`` declares its own parameters plus one
+    named ``param`` that receives the given options (:func:`given_options`)."""
+
+    def __init__(self, func: Callable[..., Any], param: str = "method_options") -> None:
+        self.func, self.param = func, param
+        self.__name__, self.__qualname__ = func.__name__, func.__qualname__
+        self.__module__, self.__doc__ = func.__module__, func.__doc__
+
+    @functools.cached_property
+    def _resolved(self) -> tuple[list[GeneratedOption], list[inspect.Parameter]]:
+        declared = declared_options()
+        own = [
+            p for p in inspect.signature(self.func, eval_str=True).parameters.values() if p.name != self.param
+        ]
+        clash = {p.name for p in own} & {o.key for o in declared}
+        if clash:
+            raise TypeError(f"{self.func.__name__}: parameters named like method options: {sorted(clash)}")
+        return declared, own
+
+    @property
+    def __signature__(self) -> inspect.Signature:
+        declared, own = self._resolved
+        own = [p.replace(kind=inspect.Parameter.KEYWORD_ONLY) for p in own]
+        return inspect.Signature([*own, *map(_typer_parameter, declared)])
+
+    @property
+    def __annotations__(
+        self,
+    ) -> dict[str, Any]:  # read by typing.get_type_hints (typer resolves types with it)
+        return {p.name: p.annotation for p in self.__signature__.parameters.values()}
+
+    def __call__(self, **values: Any) -> Any:
+        declared, own = self._resolved
+        given = given_options(declared, values)
+        return self.func(**{p.name: values[p.name] for p in own}, **{self.param: given})
