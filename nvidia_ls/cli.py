@@ -140,46 +140,51 @@ def gt_priors(
     console.print(f"wrote {path}", highlight=False)
 
 
-@app.command(
-    "import",
-    help="Turn a scene in the DynamicNeRF layout (images/, poses_bounds.npy, disp/, flow/, motion_masks/, "
-    "v000_tXXX.png test views) or the NVIDIA-LS release layout into a scene folder OUT_DIR/<Scene>/, with its "
-    "network priors under imported/ ready for `wtbench run` (docs/nvidia_ls.md).",
-)
+def _import_options():
+    """``nvls import``'s options: every field of :class:`~nvidia_ls.importer.ImportConfig` (its nested
+    ``video`` settings as ``--video-*``), with its default and help."""
+    from nvidia_ls.build import parse_size
+    from nvidia_ls.importer import ImportConfig
+
+    return ImportConfig, config_options(
+        ImportConfig,
+        {
+            "size": Shown(
+                type=str | None, parse=parse_size,
+                help="Output size WxH (same aspect as the images), e.g. 480x270; default: the images' size.",
+            )
+        },
+    )  # fmt: skip
+
+
 def import_(
-    source: Path = typer.Argument(..., help="Scene folder holding images/ and poses_bounds.npy."),
+    source: Path = typer.Argument(
+        ...,
+        help="A scene folder holding images/ and poses_bounds.npy (DynamicNeRF or NVIDIA-LS layout), or your "
+        "own clip: a video file (.mp4, .mov, ...) or a folder of frames, whose cameras SfM estimates.",
+    ),
     out_dir: Path = typer.Option(
         Path("scenes"), "-o", "--out-dir", help="Parent folder of the scene folder."
     ),
-    layout: str = typer.Option("auto", help="Source layout: auto | dynamicnerf | nvidia-ls."),
-    size: str | None = typer.Option(None, help="Output size WxH (same aspect as the images), e.g. 480x270."),
-    test_row: int | None = typer.Option(
-        None, help="Row of poses_bounds.npy holding the test camera (default 0: frame 0's camera)."
-    ),
-    test_images: Path | None = typer.Option(None, help="Folder of the test views vNNN_tXXX.png."),
-    test_masks: Path | None = typer.Option(None, help="Folder of test-view masks named like the views."),
-    name: str | None = typer.Option(None, help="Scene folder name (default: the source folder's name)."),
-    no_poses: bool = typer.Option(
-        False, "--no-poses", help="A clip without poses_bounds.npy: identity poses, for 2D priors only."
-    ),
-    normalize: str = typer.Option(
-        "auto", help="World frame: auto | rig | none (rig: mean camera at the origin, median depth 1)."
-    ),
-    force: bool = typer.Option(False, "--force", help="Replace an existing scene folder."),
+    cfg=None,  # the ImportConfig made from the generated options (ConfigCommand)
 ) -> None:
-    from nvidia_ls.build import parse_size
-    from nvidia_ls.importer import ImportConfig, import_scene, run_args
+    from rich.progress import Progress
 
-    cfg = ImportConfig(
-        layout=layout, size=parse_size(size), test_row=test_row, test_images=test_images,
-        test_masks=test_masks, name=name, no_poses=no_poses, normalize=normalize, force=force,
-    )  # fmt: skip
+    from nvidia_ls.importer import import_scene, run_args
+
     console = _console()
-    path = import_scene(
-        source, out_dir, cfg, log=lambda m: console.print(m, style="yellow", markup=False, soft_wrap=True)
-    )
+    with Progress(console=console, transient=True) as prog:
+        task = prog.add_task("import", total=None)
+
+        def progress(stage: str, done: int, total: int) -> None:
+            prog.update(task, description=stage, completed=done, total=total or None)
+
+        path = import_scene(
+            source, out_dir, cfg, progress=progress,
+            log=lambda m: console.print(m, style="yellow", markup=False, soft_wrap=True),
+        )  # fmt: skip
     console.print(f"wrote {path}", highlight=False, markup=False, soft_wrap=True)
-    if no_poses:
+    if cfg.no_poses:
         console.print(
             f"2D priors without poses: wtbench prep {path} --epi-from-flow --preview", highlight=False,
             soft_wrap=True,
@@ -194,6 +199,16 @@ def import_(
             "run with its priors: " + shlex.join(["wtbench", "run", "--scene", str(path), "--method", "base"] + args),
             highlight=False, markup=False, soft_wrap=True,
         )  # fmt: skip
+
+
+# Options generated from ImportConfig like build's (one source of defaults and help).
+app.command(
+    "import",
+    help="Turn a scene in the DynamicNeRF layout (images/, poses_bounds.npy, disp/, flow/, motion_masks/, "
+    "v000_tXXX.png test views) or the NVIDIA-LS release layout into a scene folder OUT_DIR/<Scene>/, with its "
+    "network priors under imported/ ready for `wtbench run`; or your own video / frames folder, cameras by "
+    "pycolmap SfM, no test views (docs/nvidia_ls.md).",
+)(ConfigCommand(import_, _import_options))
 
 
 @app.command(help="Re-check a built scene against its manifest; exit 1 listing problems.")

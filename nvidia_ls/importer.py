@@ -28,7 +28,7 @@ from __future__ import annotations
 import io
 import re
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import cv2
@@ -45,6 +45,7 @@ from nvidia_ls.scene_checks import (
     read_pose_rows,
     rotation_problem,
 )
+from nvidia_ls.video_frames import VideoConfig
 from nvidia_ls.world_frame import apply_similarity, rig_similarity
 from nvidia_ls.writer import cameras_document, frame_file, mask_file, save_image, test_file
 from worldtree import __version__
@@ -90,6 +91,8 @@ class ImportConfig:
     cameras scaled to 1), "none" (the file's LLFF frame as is), "auto" (rig, none with ``no_poses``)."""
     force: bool = False
     """Replace an existing scene folder."""
+    video: VideoConfig = field(default_factory=VideoConfig)
+    """A video file or a folder of frames (no poses): how its cameras are estimated (nvidia_ls.video_import)."""
 
 
 @dataclass
@@ -281,17 +284,21 @@ class _Geometry:
 
 
 def import_scene(
-    source: str | Path, out_dir: str | Path, cfg: ImportConfig = ImportConfig(), log=print
+    source: str | Path, out_dir: str | Path, cfg: ImportConfig = ImportConfig(), log=print, progress=None
 ) -> Path:
-    """Write ``out_dir/<name>/`` in the scene format from a DynamicNeRF / NVIDIA-LS folder ``source``.
+    """Write ``out_dir/<name>/`` in the scene format from a DynamicNeRF / NVIDIA-LS folder ``source``, or from a
+    video file or a folder of frames (cameras by SfM: :func:`nvidia_ls.video_import.import_clip`).
 
     Returns the scene folder. Everything is checked before anything is written, and the folder appears in
     one rename when complete (:func:`worldtree.atomic.atomic_dir`).
     """
     from nvidia_ls.build import SCENE_MARKERS
+    from nvidia_ls.video_import import import_clip, is_clip_source
 
     t0 = time.perf_counter()
     root = Path(source)
+    if is_clip_source(root):
+        return import_clip(root, out_dir, cfg, log=log, progress=progress)
     # The name first: a bad one is refused before the source is read and before anything is deleted.
     name = check_name(cfg.name if cfg.name is not None else root.resolve().name, "--name")
     final = Path(out_dir) / name
