@@ -12,8 +12,9 @@ priors.depth_import.merge=fill``).
 ``fit`` reads the scene's cached classical depth (``SCENE/priors/x<downscale>/depth-*``) and reports, per frame,
 the median ratio of fitted to true depth over the smallest moving region (the twin's ball) for the ways of
 fitting the disparity to the classical depth: all pixels (what ``merge=fill`` did before the refit), without
-the exact dynamic mask, without a run's own motion masks (``--run RUN``: its ``checkpoints/motion.npz``), and
-the same with balanced weights (``priors.depth_import.fit_balance_bins``).
+the exact dynamic mask, without a run's own motion masks (``--run RUN``: its ``checkpoints/motion.npz``, the
+priors' masks and the masks refined after the static warm-up), and the same with balanced weights
+(``priors.depth_import.fit_balance_bins``).
 
     python -m benchmarks.speed.twin_mono_prior write SCENE OUT [--seed 0] [--object-error 0.1]
     python -m benchmarks.speed.twin_mono_prior fit SCENE DISP [--run RUN] [--downscale 2]
@@ -71,9 +72,10 @@ def fit(scene: Path, disp_dir: Path, run: Path | None, downscale: int) -> None:
         raise SystemExit(
             f"error: {scene}/priors/x{downscale}: no classical depth cache; run a Base run first"
         )
-    run_masks = None
+    run_masks = refined = None
     if run is not None:
-        run_masks = np.load(run / "checkpoints" / "motion.npz")["mask_before"]
+        motion = np.load(run / "checkpoints" / "motion.npz")
+        run_masks, refined = motion["mask_before"], motion["mask"]
     k7 = np.ones((7, 7), np.uint8)
     rows: dict[str, list[float]] = {}
     for t, (dp, mp) in enumerate(zip(depth_files, mask_files, strict=True)):
@@ -93,6 +95,7 @@ def fit(scene: Path, disp_dir: Path, run: Path | None, downscale: int) -> None:
         variants = {"all pixels": conf, "exact mask out": conf * (cv2.dilate(dyn.astype(np.uint8), k7) == 0)}
         if run_masks is not None:
             variants["run masks out"] = conf * (cv2.dilate(run_masks[t].astype(np.uint8), k7) == 0)
+            variants["refined masks out"] = conf * (cv2.dilate(refined[t].astype(np.uint8), k7) == 0)
         for name, w in list(variants.items()):
             if name != "all pixels":
                 variants[f"{name}, balanced"] = balanced_weights(disp, w, 10)
