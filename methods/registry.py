@@ -1,8 +1,11 @@
 """Methods registered by name: a typed config with named presets, a description, and a builder.
 
 A new method is one module that defines its config dataclass and a class implementing :class:`Method`, and
-calls :func:`register_method` at import; its module name is added once to :data:`METHOD_MODULES`. Nothing
-else in the toolkit changes: ``wtbench run --method NAME`` finds it here.
+calls :func:`register_method` at import. Methods are found through the Python entry points of the group
+:data:`ENTRY_POINT_GROUP` (``wtbench.methods``; as nerfstudio finds its methods): an installed package that
+declares ``[project.entry-points."wtbench.methods"] NAME = "its.module"`` appears in ``wtbench run --list``
+with nothing changed here. This package declares its own methods the same way; :data:`METHOD_MODULES` also
+imports them when the installed metadata predates those entry points (an editable install not re-installed).
 
 Every config dataclass has the fields of :class:`CommonConfig` (``seed``, ``steps``, ``downscale``), which
 ``wtbench run`` can override from the command line.
@@ -26,8 +29,11 @@ from worldtree.plateau import PlateauRule
 from worldtree.scene import Scene
 from worldtree.trainer import TrainContext, TrainSummary
 
-# Modules that register methods when imported (one line per method).
+# This package's methods (also entry points in pyproject.toml): modules that register methods when imported.
 METHOD_MODULES: tuple[str, ...] = ("methods.static3dgs", "methods.base", "methods.worldtree")
+#: Entry-point group of methods: each entry point names a module that registers its methods when imported, or
+#: a :class:`MethodSpec` object, which is registered.
+ENTRY_POINT_GROUP = "wtbench.methods"
 
 COMMON_FIELDS = ("seed", "steps", "downscale")
 
@@ -193,9 +199,34 @@ def register_method(spec: MethodSpec) -> MethodSpec:
     return spec
 
 
+_BROKEN: dict[str, str] = {}
+"""Entry points whose loading failed: name -> ``"value: error"`` (shown when that method is asked for)."""
+_LOADED = False
+
+
 def _load_all() -> None:
+    """Import this package's methods and load every entry point of :data:`ENTRY_POINT_GROUP` (once). A plug-in
+    that fails to load is left out with a one-line warning, so that it breaks no other method."""
+    global _LOADED
+    if _LOADED:
+        return
+    import warnings
+    from importlib.metadata import entry_points
+
     for mod in METHOD_MODULES:
         importlib.import_module(mod)
+    _LOADED = True
+    for ep in entry_points(group=ENTRY_POINT_GROUP):
+        if ep.value in METHOD_MODULES:
+            continue
+        try:
+            obj = ep.load()
+        except Exception as e:  # any error of a third-party import
+            _BROKEN[ep.name] = f"{ep.value}: {type(e).__name__}: {e}".splitlines()[0]
+            warnings.warn(f"method plug-in {ep.name!r} not loaded ({_BROKEN[ep.name]})", stacklevel=2)
+            continue
+        if isinstance(obj, MethodSpec):
+            register_method(obj)
 
 
 def list_methods() -> list[MethodSpec]:
@@ -208,6 +239,8 @@ def get_method(name: str) -> MethodSpec:
     """The method called ``name``; an unknown name is a :class:`UserError` listing the registered ones."""
     _load_all()
     if name not in _METHODS:
+        if name in _BROKEN:
+            raise UserError(f"--method {name}: its plug-in failed to load ({_BROKEN[name]}); fix or uninstall it")
         known = ", ".join(sorted(_METHODS)) or "(none)"
         raise UserError(f"--method {name!r} is not a registered method; choose one of: {known}")
     return _METHODS[name]

@@ -1,9 +1,10 @@
-"""Example method (docs/adding_a_method.md): show the training frame of the same time, resized."""
+"""Example method (docs/adding_a_method.md): show the training frame of the same time (or a few frames earlier)."""
 
 from dataclasses import dataclass
 
 import torch
 
+from methods.plugin import Grid, GridPoint, MethodOption
 from methods.registry import CommonConfig, MethodSpec, register_method
 from methods.stages import Stage, run_stages
 from worldtree.timing import StageClock
@@ -12,6 +13,8 @@ from worldtree.timing import StageClock
 @dataclass
 class FrameCopyConfig(CommonConfig):
     steps: int = 1  # nothing is optimised; kept for the common fields
+    lag: int = 0
+    """Show the training frame this many frames earlier (0: the frame of the same time)."""
 
 
 @dataclass
@@ -35,7 +38,7 @@ class FrameCopy:
         run_stages(STAGES, self.state, self.clock)  # each stage timed: stats()["stages_s"]
 
     def render(self, K, w2c, width, height, time, test_view=False) -> torch.Tensor:
-        t = min(max(int(time), 0), self.state.frames.shape[0] - 1)
+        t = min(max(int(time) - self.cfg.lag, 0), self.state.frames.shape[0] - 1)
         img = self.state.frames[t].permute(2, 0, 1)[None]  # [1, 3, H, W]
         return torch.nn.functional.interpolate(img, size=(height, width), mode="area")[0].permute(1, 2, 0)
 
@@ -46,5 +49,14 @@ class FrameCopy:
         return {"num_gaussians": 0, "backend": "none", "stages_s": dict(self.clock.stages_s)}
 
 
-presets = {"quick": FrameCopyConfig, "paper": FrameCopyConfig}
-register_method(MethodSpec("frame-copy", "training frame of the same time", FrameCopyConfig, presets, FrameCopy))
+register_method(
+    MethodSpec(
+        name="frame-copy",
+        description="training frame of the same time (or lag frames earlier)",
+        config_cls=FrameCopyConfig,
+        presets={"quick": FrameCopyConfig, "paper": FrameCopyConfig},
+        build=FrameCopy,
+        options=(MethodOption("lag", "lag"),),  # `wtbench run --lag N`, run folder quick-lag<N>
+        grids={"lags": Grid("lag 0..2", lambda: [GridPoint(f"lag {k}", {"lag": k}) for k in range(3)])},
+    )
+)
