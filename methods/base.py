@@ -409,6 +409,16 @@ def stage_motion(s: BaseState) -> None:
         )  # fmt: skip
         atomic_write_bytes(s.checkpoint_dir / "motion.npz", buf.getvalue())
     dev = s.device
+    if pri.depth_fill is not None and pc.depth_import.fit_exclude_dynamic:
+        # Imported depth under merge=fill: the refined masks cover more of each moving object than the
+        # priors' masks did, so the import is refitted without them and fills them.
+        depth, conf = refill_imported(
+            s.P["depth"], s.P["depth_conf"], torch.from_numpy(mask).to(dev), pri.depth_fill,
+            pc.depth_import.fill_conf,
+        )  # fmt: skip
+        s.P = {**s.P, "depth": depth, "depth_conf": conf}
+        s.depth = depth * s.ba.depth_scale.float().to(dev)[:, None, None]
+        s.info["motion_refine"]["depth_refitted"] = True
     s.P = {
         **s.P,
         "epi_mask": torch.from_numpy(mask).to(dev),
@@ -416,6 +426,23 @@ def stage_motion(s: BaseState) -> None:
         "track_vis": torch.from_numpy(vis).to(dev),
         "track_dynamic": torch.from_numpy(dyn).to(dev),
     }
+
+
+def refill_imported(
+    depth: torch.Tensor,
+    conf: torch.Tensor,
+    mask: torch.Tensor,
+    fill: Callable[[np.ndarray], np.ndarray],
+    fill_conf: float,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """The depth prior ``[T, H, W]`` (scene units, before BA's per-frame scales) and its confidence with the
+    pixels of ``mask`` ``[T, H, W]`` (bool) replaced by ``fill(mask)`` (the imported depth refitted without
+    them, :attr:`worldtree.priors.Priors.depth_fill`) at confidence ``fill_conf``; the rest unchanged."""
+    refit = torch.from_numpy(np.asarray(fill(mask.cpu().numpy()), np.float32)).to(depth.device)
+    return (
+        torch.where(mask, refit, depth.float()),
+        torch.where(mask, torch.full_like(conf, fill_conf), conf),
+    )
 
 
 def _trajectory_depth(s: BaseState, tracks: torch.Tensor, vis: torch.Tensor, scale: float) -> torch.Tensor:

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import torch
 
-from methods.base import BaseMethod, smoke_config
+from methods.base import BaseMethod, refill_imported, smoke_config
 from nvidia_ls.build import BuildConfig, build_scene
 from nvidia_ls.synth import SynthConfig, write_raw_scene
 from worldtree.device import pick_device
@@ -71,3 +71,23 @@ def test_dynamic_content_gets_a_scaffold_and_moving_gaussians(moving_scene, tmp_
     model = json.loads((tmp_path / "model" / "model.json").read_text())
     assert model["num_dynamic"] == st["num_dynamic"] and model["scaffold_nodes"] == st["scaffold_nodes"]
     assert np.isfinite(st["ba"]["reproj_px_after"])
+
+
+def test_refill_imported_replaces_only_the_mask_with_the_refit():
+    T, H, W = 2, 5, 7
+    gen = torch.Generator().manual_seed(0)
+    depth = torch.rand(T, H, W, generator=gen) + 1.0
+    conf = torch.rand(T, H, W, generator=gen)
+    mask = torch.zeros(T, H, W, dtype=torch.bool)
+    mask[0, 1:3, 2:5] = True
+    mask[1, 4, 6] = True
+    seen = {}
+
+    def fill(m):
+        seen["mask"] = m
+        return np.full(m.shape, 0.25, np.float32) + m  # 1.25 on the mask: depends on the mask given
+
+    d, c = refill_imported(depth, conf, mask, fill, 0.8)
+    np.testing.assert_array_equal(seen["mask"], mask.numpy())
+    assert torch.all(d[mask] == 1.25) and torch.all(c[mask] == 0.8)
+    assert torch.equal(d[~mask], depth[~mask]) and torch.equal(c[~mask], conf[~mask])

@@ -57,6 +57,8 @@ class Priors:
         cache_dir: the cache root, or None when nothing was cached.
         depth_metric: ``depth`` agrees with the cameras (classical, or imported and fitted to them).
         track_pieces: ``[N]`` chained pieces linked into each track (1 for the others); None without chaining.
+        depth_fill: under ``depth_import.merge="fill"``, the imported depth refitted without a dynamic mask:
+            ``mask [T, H, W] bool -> depth [T, H, W]`` (scene units), for masks refined later; None otherwise.
     """
 
     depth: np.ndarray
@@ -75,6 +77,7 @@ class Priors:
     cache_dir: Path | None = None
     depth_metric: bool = False
     track_pieces: np.ndarray | None = None
+    depth_fill: Callable[[np.ndarray], np.ndarray] | None = field(default=None, repr=False)
 
     @property
     def num_frames(self) -> int:
@@ -457,7 +460,7 @@ def compute_priors(
     sources = {"flow": flow_src, "depth": depth_src, "tracks": tracks_src, "masks": mask_src}
     pri = Priors(depth, depth_conf, flows, xy, vis, dynamic, err, mask, sources, mask_conf, evidence, n_chained,
                  cfg, Path(cache_dir) if cache_dir is not None else None, depth_key is not None,
-                 pieces)  # fmt: skip
+                 pieces, fill)  # fmt: skip
     if cache_dir is not None:
         atomic_write_json(
             Path(cache_dir) / "priors.json",

@@ -102,6 +102,12 @@ def test_fill_keeps_stereo_and_gives_moving_objects_the_imported_depth(planar_sc
     assert np.median(rel) < 0.05 and np.median(rel_classical) > 0.2
     assert np.all(pri.depth_conf[mask] == 1.0)
     assert "filled from" in pri.sources["depth"]
+    # The refit a method makes with its own (refined) masks: without the moving pixels it is at least as close
+    # on them as a fit that keeps them (their stereo reference is the wall).
+    kept = np.abs(pri.depth_fill(np.zeros_like(mask))[mask] - fr["depth"][mask]) / fr["depth"][mask]
+    refit = np.abs(pri.depth_fill(mask)[mask] - fr["depth"][mask]) / fr["depth"][mask]
+    assert np.median(refit) < 0.05 and np.median(refit) <= np.median(kept) + 1e-3
+    assert classical.depth_fill is None
 
 
 def test_fill_needs_the_fit(planar_scene_files, tmp_path):
