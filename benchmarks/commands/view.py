@@ -37,6 +37,7 @@ def register(app: typer.Typer) -> None:
         ),
         fps: float = typer.Option(10.0, "--fps", min=0.5, max=60.0, help="Frames per second when playing."),
     ) -> None:
+        import signal
         import sys
         import threading
 
@@ -44,8 +45,12 @@ def register(app: typer.Typer) -> None:
         from benchmarks.viewer.source import open_run
 
         check_can_serve(host, port)  # before loading the model: a busy port is said at once
-        print(f"loading {run_dir} ...", file=sys.stderr)
-        source = open_run(run_dir, device)
+        print(f"loading {run_dir} ...", flush=True)
+        try:
+            source = open_run(run_dir, device)
+        except KeyboardInterrupt:  # stopping is the normal end of a viewer, also while it loads
+            print("viewer stopped")
+            return
 
         from benchmarks.viewer.server import Viewer
 
@@ -56,10 +61,16 @@ def register(app: typer.Typer) -> None:
                 f"note: --host {host} serves to other machines too; the viewer has no password",
                 file=sys.stderr,
             )
+        # Ctrl-C (SIGINT) and SIGTERM end the wait, even where SIGINT was ignored (a shell's background job).
+        stop = threading.Event()
+        old = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
+        for sig in old:
+            signal.signal(sig, lambda *_: stop.set())
         try:
-            threading.Event().wait()  # the server and render threads do the work; wait for Ctrl-C
-        except KeyboardInterrupt:
-            pass
+            while not stop.wait(1.0):  # the server and render threads do the work
+                pass
         finally:
+            for sig, handler in old.items():
+                signal.signal(sig, handler if handler is not None else signal.SIG_DFL)
             viewer.stop()
         print("viewer stopped")

@@ -177,7 +177,43 @@ def test_viewer_in_the_browser(viewer, browser, run_dir):
 
     # WorldTree: the tree node is named in the panel (a 6-frame scene keeps the root alone).
     assert "node 1" in browser.find_element("css selector", "body").text
+
+    # Play runs through the times (full images of the test camera), Pause stops.
+    _click_button(browser, "Play")
+    times = set()
+    mark = shot.seq
+    while len(times) < 3:
+        f = viewer.wait_for_frame(lambda f, m=mark: f.seq > m, TIMEOUT)
+        times.add(f.time)
+        mark = f.seq
+    _click_button(browser, "Pause")
+    assert not viewer.playing
+
+    # Render modes, picked in the page's menu: depth (turbo colours), the dynamic part alone, the tree node.
+    images, current = {"colour": shot.image}, "colour"
+    for mode in ("depth", "dynamic part", "tree node"):
+        _choose(browser, current, mode)
+        f = viewer.wait_for_frame(
+            lambda f, m=mode: f.mode == m and f.camera == "test" and not f.preview, TIMEOUT
+        )
+        images[mode], current = f.image, mode
+    for mode in ("depth", "dynamic part", "tree node"):
+        assert images[mode].shape == shot.image.shape and not np.array_equal(images[mode], images["colour"])
     assert _errors(browser) == []
+
+
+def _choose(driver, current: str, option: str) -> None:
+    """Pick ``option`` in the viewer's menu that shows ``current`` (a Mantine select: open it, click the option)."""
+    from selenium.webdriver.support.ui import WebDriverWait
+
+    menu = next(
+        i for i in driver.find_elements("css selector", "input") if i.get_attribute("value") == current
+    )
+    menu.click()
+    WebDriverWait(driver, TIMEOUT).until(
+        lambda d: any(o.text.strip() == option for o in d.find_elements("css selector", "[role=option]"))
+    )
+    next(o for o in driver.find_elements("css selector", "[role=option]") if o.text.strip() == option).click()
 
 
 def _uncovered_difference(px: np.ndarray, sent: np.ndarray) -> float:
