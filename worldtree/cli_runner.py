@@ -52,3 +52,11 @@ def run_cli(app, interrupted: str = INTERRUPTED) -> None:
         print(interrupted, file=sys.stderr)
     if isinstance(code, int) and code != 0:
         raise SystemExit(code)
+
+
+def one_line_warning(message, category, filename, lineno, file=None, line=None) -> None:
+    """Show warnings (e.g. missing LPIPS weights) as one ``warning:`` line, without source code
+    (``warnings.showwarning = one_line_warning``)."""
+    import sys
+
+    print(f"warning: {message}", file=sys.stderr)

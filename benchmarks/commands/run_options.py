@@ -8,12 +8,15 @@ canonical command line (``command.txt``), for a single run and for every run of 
 from __future__ import annotations
 
 import shlex
-import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import typer
+
+from worldtree.cli_runner import one_line_warning
+
+__all__ = ["RunOptions", "one_line_warning"]
 
 # Help of the imported-prior options, worded as `wtbench prep`'s options for the same files.
 PRIOR_HELP = {
@@ -116,8 +119,3 @@ class RunOptions:
         if self.tag is not None:
             parts += ["--tag", self.tag]
         return shlex.join(parts)
-
-
-def one_line_warning(message, category, filename, lineno, file=None, line=None) -> None:
-    """Show warnings (e.g. missing LPIPS weights) as one ``warning:`` line, without source code."""
-    print(f"warning: {message}", file=sys.stderr)

@@ -24,6 +24,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from benchmarks.runner.layout import find_run_folders
 from worldtree.errors import UserError
 
 #: Columns of the evaluation harness (benchmarks.evaluation.evaluate.COLUMNS without ``frame``).
@@ -309,19 +310,6 @@ def stage_times(timing: Mapping[str, Any] | None) -> dict[str, float]:
     if isinstance(inner, Mapping):
         out.update({f"{STAGE_PREFIX}method.{k}": _number(v) for k, v in inner.items()})
     return out
-
-
-def find_run_folders(runs_dir: Path) -> list[Path]:
-    """Folders ``runs_dir/<scene>/<method>/<tag>`` holding a ``config.json``, ``DONE`` or ``job.json`` (a run
-    a sweep has submitted, perhaps still queued), sorted; hidden names (temporary folders of atomic writes,
-    locks) are left out."""
-    return sorted(
-        p
-        for p in runs_dir.glob("*/*/*")
-        if p.is_dir()
-        and not any(part.startswith(".") for part in p.relative_to(runs_dir).parts)
-        and any((p / name).is_file() for name in ("config.json", "DONE", "job.json"))
-    )
 
 
 def collect_runs(runs_dirs: Sequence[str | Path]) -> Collection:

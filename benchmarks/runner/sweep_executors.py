@@ -267,8 +267,8 @@ def run_in_job(request: RunRequest, threads: int | None) -> dict[str, Any]:
     folder, whether it was skipped, its mean scores, the job id, host, device and start/end times."""
     import torch
 
-    from benchmarks.commands.run_options import one_line_warning
     from benchmarks.runner.runs import execute
+    from worldtree.cli_runner import one_line_warning
 
     started = time.time()
     if threads:
@@ -734,7 +734,7 @@ def run_states(runs_dir: Path) -> list[RunState]:
     sweep resumes it)."""
     if not runs_dir.is_dir():
         raise UserError(f"--status {runs_dir}: no such folder; give the sweep's RUNS_DIR (-o)")
-    from benchmarks.reporting.results import find_run_folders
+    from benchmarks.runner.layout import find_run_folders
 
     folders = [RunFolder(p) for p in find_run_folders(runs_dir)]
     last = {f.root: (read_jobs(f) or [{}])[-1] for f in folders}
