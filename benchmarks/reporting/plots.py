@@ -204,3 +204,56 @@ def figure(panels: Sequence[Panel]):
         ax.grid(True, alpha=0.3)
         ax.legend(fontsize=7)
     return fig
+
+
+# ---------------------------------------------------------------------------------------------- over time
+
+#: Characters of a legend entry of :func:`curves_figure`; longer labels are cut (the page's key has them whole).
+LEGEND_CHARS = 60
+
+
+@dataclass
+class Curve:
+    """One run's per-frame scores for :func:`curves_figure`."""
+
+    label: str
+    t: np.ndarray
+    """Time of each test frame."""
+    values: dict[str, np.ndarray]
+    """Metric -> score of each frame (NaN or infinite: a gap)."""
+
+
+def curves_figure(curves: Sequence[Curve], metrics: Sequence[str]):
+    """Per-frame scores over time: one axes per metric side by side, one line per curve, and one legend for
+    all axes below them (outside the axes, so that long labels never shrink the plots; labels cut to
+    :data:`LEGEND_CHARS`, as many columns as the figure's width holds)."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    from benchmarks.reporting.names import cut
+
+    fontsize = 7
+    width = 6.0 * len(metrics)
+    labels = [cut(c.label, LEGEND_CHARS) for c in curves]
+    # About 0.6 em per character plus the line sample and the gap between columns.
+    entry_in = (max((len(s) for s in labels), default=1) * 0.6 * fontsize + 40) / 72
+    ncols = max(1, min(len(curves), int(width * 0.95 // entry_in)))
+    rows = -(-len(curves) // ncols)
+    fig = Figure(figsize=(width, 3.6 + rows * fontsize * 1.6 / 72), layout="constrained")
+    FigureCanvasAgg(fig)
+    handles = []
+    for k, m in enumerate(metrics):
+        ax = fig.add_subplot(1, len(metrics), k + 1)
+        for i, c in enumerate(curves):
+            y = np.asarray(c.values.get(m, np.full(len(c.t), np.nan)), dtype=np.float64)
+            # Infinite PSNR (a frame equal to the ground truth) cannot be drawn; it is left as a gap.
+            y = np.where(np.isfinite(y), y, np.nan)
+            (line,) = ax.plot(c.t, y, marker=".", ms=4, lw=1.2, color=f"C{i % 10}")
+            if k == 0:
+                handles.append(line)
+        ax.set_xlabel("test frame time")
+        ax.set_ylabel(f"{_LABELS.get(m, m)} (dB, higher is better)")
+        ax.grid(True, alpha=0.3)
+    if handles:
+        fig.legend(handles, labels, loc="outside lower center", ncols=ncols, fontsize=fontsize, frameon=False)
+    return fig
