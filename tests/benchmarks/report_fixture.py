@@ -44,17 +44,41 @@ FRAMES = 4
 WIDTH, HEIGHT = 64, 36
 
 
-def write_sweep(root: Path) -> tuple[Path, Path]:
-    """Write scenes under ``root/scenes`` and runs under ``root/runs``; return (runs_dir, scenes_dir)."""
+#: What runs with imported priors record (``nvls import`` folders, many ``--set`` overrides): with these,
+#: every configuration name of the fixture is 150 characters or more (``write_sweep(long_names=True)``).
+LONG_SETS = (
+    "priors.depth_import.fit_scale_shift=true",
+    "priors.depth_import.kind=disparity",
+    "priors.depth_import.merge=fill",
+)
+LONG_PRIORS = {"depth_maps": "/data/priors/balloon1_dav2"}
+
+
+def _imported_priors(folder: Path, k: int) -> None:
+    """Add the ``--set`` overrides and imported prior folders of :data:`LONG_SETS`/:data:`LONG_PRIORS` to a
+    run's config.json; ``k`` makes one override differ per configuration (the tail of the name)."""
+    path = folder / "config.json"
+    record = json.loads(path.read_text())
+    record["sets"] = [*LONG_SETS, f"train.tv_weight=0.{k + 1}"]
+    record["imported_priors"] = dict(LONG_PRIORS)
+    path.write_text(json.dumps(record))
+
+
+def write_sweep(root: Path, long_names: bool = False) -> tuple[Path, Path]:
+    """Write scenes under ``root/scenes`` and runs under ``root/runs``; return (runs_dir, scenes_dir).
+    ``long_names``: the runs record imported priors and ``--set`` overrides, so that their configuration
+    names are 150 characters or more (as real runs with imported priors have)."""
     runs, scenes = root / "runs", root / "scenes"
     rng = np.random.default_rng(0)
     for s in SCENES:
         scene = sf.write_tiny_scene(scenes / s, frames=FRAMES)
-        for method, tag, ablate, noise, train_s in CONFIGS:
+        for k, (method, tag, ablate, noise, train_s) in enumerate(CONFIGS):
             folder = rf.write_run(
                 runs, s, method, tag, {}, config={"ablate": ablate} if ablate else None, train_s=train_s,
                 scene_dir=scene,
             )  # fmt: skip
+            if long_names:
+                _imported_priors(folder.root, k)
             folder.renders.mkdir()
             for gt in sorted((scene / "gt_images").iterdir()):
                 img = read_image(gt).astype(np.float64) + rng.normal(0.0, noise, (36, 64, 3))
@@ -67,7 +91,9 @@ def write_sweep(root: Path) -> tuple[Path, Path]:
     video_run = runs / SCENES[0] / CONFIGS[1][0] / CONFIGS[1][1]
     write_video(compose_frames(video_run)[0], video_run / "test_view.mp4")
     # A run of a fourth configuration that has not finished: listed with its state, not in the table.
-    rf.write_run(runs, "SceneA", "base", "quick", {}, done=False, scene_dir=scenes / "SceneA")
+    unfinished = rf.write_run(runs, "SceneA", "base", "quick", {}, done=False, scene_dir=scenes / "SceneA")
+    if long_names:
+        _imported_priors(unfinished.root, len(CONFIGS))
     report = {
         "grid": "paper-ablation",
         "runs": [

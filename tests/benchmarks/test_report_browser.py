@@ -161,7 +161,84 @@ def test_scene_page_viewer(report, browser):
 
     video = browser.find_element("css selector", "#videos video")
     browser.execute_script("arguments[0].scrollIntoView(); arguments[0].load()", video)
-    WebDriverWait(browser, 120).until(lambda d: d.execute_script("return arguments[0].readyState", video) >= 1)
+    WebDriverWait(browser, 120).until(
+        lambda d: d.execute_script("return arguments[0].readyState", video) >= 1
+    )
     size = browser.execute_script("return [arguments[0].videoWidth, arguments[0].videoHeight]", video)
     assert size == [3 * fx.WIDTH, fx.HEIGHT]
     assert _errors(browser) == []
+
+
+# ------------------------------------------------------------------------------- long configuration names
+
+
+@pytest.fixture(scope="module")
+def long_report(tmp_path_factory):
+    """The fixture's sweep with imported priors and --set overrides: configuration names of 150+ characters."""
+    runs, _ = fx.write_sweep(tmp_path_factory.mktemp("sweep-long"), long_names=True)
+    out = tmp_path_factory.mktemp("site-long") / "report"
+    res = CliRunner().invoke(app, ["report", str(runs), "-o", str(out)])
+    assert res.exit_code == 0, res.output
+    return runs, out
+
+
+def _box(driver, element) -> dict:
+    return driver.execute_script(
+        "const r = arguments[0].getBoundingClientRect();"
+        "return {left: r.left, right: r.right, width: r.width, height: r.height, inner: window.innerWidth}",
+        element,
+    )
+
+
+def test_long_names_stay_legible_at_1400px(long_report, browser, tmp_path):
+    """At 1400 px, with names of 150+ characters: every score column of the scene page's table is on screen,
+    the per-frame plot is visible within the viewport, and the key lists every full name."""
+    from benchmarks.reporting.results import describe_configuration
+
+    runs, out = long_report
+    names = {describe_configuration(json.loads(p.read_text())) for p in runs.glob("SceneA/*/*/config.json")}
+    assert min(len(n) for n in names) >= 150
+    browser.set_window_size(1400, 1000)
+    try:
+        _open(browser, out / "scenes" / "SceneA.html")
+        assert browser.execute_script("return window.innerWidth") <= 1400
+        assert _errors(browser) == []
+        assert browser.execute_script("return document.documentElement.scrollWidth <= window.innerWidth")
+        table = browser.find_element("css selector", "#scene-worldtree")
+        scores = table.find_elements("css selector", "th.m-psnr, th[data-type='num'], td.num")
+        assert len(scores) >= len(fx.CONFIGS) + 1
+        for el in scores:
+            assert el.is_displayed()
+            box = _box(browser, el)
+            assert box["width"] > 0 and box["left"] >= 0 and box["right"] <= box["inner"], box
+        # The configuration column is the shortened, wrapped name; the full one is the hover text.
+        keys = table.find_elements("css selector", "tbody td.key:nth-child(2)")
+        assert {k.get_attribute("title") for k in keys} <= {f"{c[0]} {n}" for c in fx.CONFIGS for n in names}
+        assert all(len(k.text) < 60 for k in keys)
+        # The key lists every configuration on this page with its full name.
+        full = [td.text for td in browser.find_elements("css selector", "table.key-table td.full")]
+        assert set(full) == {f"{e.split('/')[1]} {n}" for e, n in _runs_and_names(runs)}
+        # The per-frame plot: an image of real size, inside the viewport horizontally.
+        img = browser.find_element("css selector", "img.curves")
+        browser.execute_script("arguments[0].scrollIntoView()", img)
+        from selenium.webdriver.support.ui import WebDriverWait
+
+        WebDriverWait(browser, 60).until(lambda d: d.execute_script("return arguments[0].complete", img))
+        assert browser.execute_script("return arguments[0].naturalWidth", img) > 0
+        box = _box(browser, img)
+        assert img.is_displayed() and box["left"] >= 0 and box["right"] <= box["inner"], box
+        assert box["width"] >= 300 and box["height"] >= 150, box
+        browser.save_screenshot(str(tmp_path / "scene_long_names.png"))
+        assert _errors(browser) == []
+    finally:
+        browser.set_window_size(1280, 900)
+
+
+def _runs_and_names(runs: Path) -> list[tuple[str, str]]:
+    """(scene/method/tag, configuration name) of SceneA's run folders."""
+    from benchmarks.reporting.results import describe_configuration
+
+    return [
+        (str(p.parent.relative_to(runs)), describe_configuration(json.loads(p.read_text())))
+        for p in sorted(runs.glob("SceneA/*/*/config.json"))
+    ]

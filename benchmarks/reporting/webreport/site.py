@@ -22,6 +22,7 @@ import numpy as np
 import pandas as pd
 
 import worldtree
+from benchmarks.reporting.names import NameKey, name_key, shorten
 from benchmarks.reporting.results import GROUP_KEYS, HARNESS_METRICS, collect_runs, higher_is_better, select
 from benchmarks.reporting.tables import LABELS, WideTable, build_wide, column_marks, format_value, to_csv
 from benchmarks.reporting.webreport.gather import (
@@ -121,11 +122,16 @@ def _table_model(
     entries: dict[str, RunEntry],
     scenes: Sequence[str] | None = None,
     links: dict[str, str] | None = None,
+    codes: NameKey | None = None,
 ) -> dict[str, Any]:
     """What the table template needs: header groups, sortable sub-headers, rows of cells (text, value, rank
     mark, hover text) and each row's runs. ``scenes``: only these scenes' columns (no mean), for a scene page.
-    ``links``: run folder -> scene page, for the runs listed in each row's details."""
+    ``links``: run folder -> scene page, for the runs listed in each row's details. ``codes``: the site's name
+    key; when it shortens, each row carries its code and each key cell a short text (the full one to hover)."""
     keys = list(table.group_by)
+    key_texts = [[_key_text(rec[g]) for g in keys] for _, rec in table.frame.iterrows()]
+    # Each key column shortened on its own (a long configuration leaves the method column as it is).
+    short_cols = [shorten([t[j] for t in key_texts]) if key_texts else [] for j in range(len(keys))]
     marks = column_marks(table)
     long = long.assign(**{g: long[g].map(_key_text) for g in keys})
     runs_of: dict[tuple, list[str]] = {}
@@ -163,8 +169,10 @@ def _table_model(
             }
         )
     rows = []
-    for i, rec in table.frame.iterrows():
-        key = tuple(_key_text(rec[g]) for g in keys)
+    for n, (i, rec) in enumerate(table.frame.iterrows()):
+        key = tuple(key_texts[n])
+        name = " ".join(k for k in key if k)
+        code = codes.code(name) if codes is not None and codes.shortened and name in codes.names else ""
         cells = []
         for col, m, scene in columns:
             v = float(rec[col])
@@ -199,7 +207,11 @@ def _table_model(
                 runs.append({"entry": e, "link": (links or {}).get(r)})
         if scenes is not None and not row_runs:
             continue  # a configuration without a run on this scene has no row on its page
-        rows.append({"keys": list(key), "cells": cells, "runs": runs})
+        key_cells = [
+            {"text": short_cols[j][n], "full": k, "shortened": short_cols[j][n] != k}
+            for j, k in enumerate(key)
+        ]
+        rows.append({"keys": key_cells, "code": code, "name": name, "cells": cells, "runs": runs})
     return {
         "groups": groups,
         "subs": subs,
@@ -237,10 +249,9 @@ def _speed_plots(long: pd.DataFrame, keys: Sequence[str], folder: Path, stem: st
 
 
 def _curves(runs: Sequence[RunEntry], labels: dict[str, str], path: Path) -> bool:
-    """Per-frame PSNR and masked PSNR over time, one line per run, into ``path`` (PNG). False when no run
-    has per-frame scores."""
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
+    """Per-frame PSNR and masked PSNR over time, one line per run (:func:`benchmarks.reporting.plots.curves_figure`),
+    into ``path`` (PNG). False when no run has per-frame scores."""
+    from benchmarks.reporting.plots import Curve, curves_figure
 
     metrics = [
         m
@@ -249,23 +260,16 @@ def _curves(runs: Sequence[RunEntry], labels: dict[str, str], path: Path) -> boo
     ]
     if not metrics:
         return False
-    fig = Figure(figsize=(6.0 * len(metrics), 3.6), layout="constrained")
-    FigureCanvasAgg(fig)
-    for k, m in enumerate(metrics):
-        ax = fig.add_subplot(1, len(metrics), k + 1)
-        for i, r in enumerate(runs):
-            if r.frames is None or m not in r.frames:
-                continue
-            t = frame_times(r.scene_dir, list(r.frames.index))
-            y = r.frames[m].to_numpy(np.float64)
-            # Infinite PSNR (a frame equal to the ground truth) cannot be drawn; it is left as a gap.
-            y = np.where(np.isfinite(y), y, np.nan)
-            ax.plot(t, y, marker=".", ms=4, lw=1.2, color=f"C{i % 10}", label=labels[str(r.folder)])
-        ax.set_xlabel("test frame time")
-        ax.set_ylabel(f"{LABELS.get(m, m)} (dB, higher is better)")
-        ax.grid(True, alpha=0.3)
-        ax.legend(fontsize=6)
-    fig.savefig(path, format="png", dpi=90)
+    curves = [
+        Curve(
+            labels[str(r.folder)],
+            np.asarray(frame_times(r.scene_dir, list(r.frames.index)), dtype=np.float64),
+            {m: r.frames[m].to_numpy(np.float64) for m in metrics if m in r.frames},
+        )
+        for r in runs
+        if r.frames is not None
+    ]
+    curves_figure(curves, metrics).savefig(path, format="png", dpi=90)
     return True
 
 
@@ -398,10 +402,27 @@ def _check_out(out: Path) -> None:
     check_output_folder(out, "-o")  # -o FILE/sub, an unwritable parent
 
 
-def _run_label(e: RunEntry, keys: Sequence[str]) -> str:
+def _row_text(e: RunEntry, keys: Sequence[str]) -> str:
+    """The run's table row as one text: its group keys' values joined by spaces (the name the key codes)."""
     fields = {"method": e.method, "configuration": e.configuration, "tag": e.tag,
               "seed": "" if e.seed is None else str(e.seed), "preset": ""}  # fmt: skip
-    return " ".join(fields[k] for k in keys if fields.get(k)) + f" [{e.tag}]"
+    return " ".join(fields[k] for k in keys if fields.get(k))
+
+
+def _name_key(long: pd.DataFrame | None, opts: ReportOptions, entries: Sequence[RunEntry]) -> NameKey:
+    """Codes of the site's row names (:mod:`benchmarks.reporting.names`), the same on every page: the table
+    rows in their order (sorted by the group keys), then the rows of runs not in a table (unfinished)."""
+    rows: list[str] = []
+    if long is not None:
+        keys = list(opts.group_by)
+        texts = long[keys].map(_key_text).drop_duplicates()
+        rows = [" ".join(k for k in row if k) for row in sorted(texts.itertuples(index=False, name=None))]
+    return name_key(rows + [_row_text(e, opts.group_by) for e in entries])
+
+
+def _run_label(e: RunEntry, keys: Sequence[str], key: NameKey) -> str:
+    """A run's label in the viewer, the curves and the videos: its row's :meth:`NameKey.label` and its tag."""
+    return f"{key.label(_row_text(e, keys))} [{e.tag}]"
 
 
 def build_report(
@@ -449,7 +470,8 @@ def build_report(
     scene_slug = unique_slugs(scenes)  # scenes "A b" and "A_b" get a page each
     scene_page = {s: f"scenes/{scene_slug[s]}.html" for s in scenes}
     links = {str(e.folder): scene_page[e.scene] for e in entries}
-    labels = {str(e.folder): _run_label(e, opts.group_by) for e in entries}
+    key = _name_key(long, opts, entries)
+    labels = {str(e.folder): _run_label(e, opts.group_by, key) for e in entries}
     env = _environment()
     now = time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime())
     common = {"title": opts.title, "generated": now, "version": worldtree.__version__, "labels": LABELS}
@@ -491,7 +513,7 @@ def build_report(
                 {
                     "protocol": proto,
                     "id": f"results-{stem}",
-                    "table": _table_model(table, plong, by_run, links=links),
+                    "table": _table_model(table, plong, by_run, links=links, codes=key),
                     "plots": plots,
                     "csv": f"data/{stem}_wide.csv",
                     "long_csv": f"data/{stem}_long.csv",
@@ -511,7 +533,7 @@ def build_report(
                 {
                     "protocol": proto,
                     "id": f"scene-{proto_slug[proto]}",
-                    "table": _table_model(table, plong, by_run, scenes=[s]),
+                    "table": _table_model(table, plong, by_run, scenes=[s], codes=key),
                     "metrics": list(table.metrics),
                 }
                 for proto, (table, plong) in tables.items()
@@ -532,6 +554,8 @@ def build_report(
                 frames=frames,
                 videos=videos,
                 runs=runs,
+                name_key=key.entries(_row_text(e, opts.group_by) for e in runs) if key.shortened else [],
+                run_codes={str(e.folder): key.code(_row_text(e, opts.group_by)) for e in runs},
                 notes=scene_notes,
                 error_vmax=_error_vmax(),
             )
@@ -553,6 +577,7 @@ def build_report(
             scenes=scene_cards,
             runs=entries,
             links=links,
+            name_key=key.entries() if key.shortened else [],
             failures=failures,
             notes=notes,
             state_counts=state_counts,
