@@ -33,6 +33,8 @@ LOCK_TOL = 1e-3
 TEST_COLOUR = (220, 40, 40)
 TRAIN_COLOUR = (120, 120, 120)
 CURRENT_COLOUR = (40, 120, 230)
+#: Opacity (0..255) of a frustum's image plane.
+FRUSTUM_PLANE_ALPHA = 40
 
 
 def check_can_serve(host: str, port: int) -> None:
@@ -146,6 +148,7 @@ class ClientView:
             st.locked, st.locked_at = camera, time.monotonic()
             st.version += 1
             st.cond.notify_all()
+        self.viewer.refresh_frusta()
         aspect = c.aspect if c.image_height > 0 else camera.width / camera.height
         with self.client.atomic():
             c.fov = cam.letterbox_fov(camera.K, camera.width, camera.height, aspect)
@@ -166,6 +169,7 @@ class ClientView:
                 return
         w2c = cam.w2c_from_viser(c.wxyz, c.position)
         now = time.monotonic()
+        left = False
         with st.cond:
             canvas = (int(c.image_width), int(c.image_height))
             before, st.canvas = st.canvas, canvas
@@ -177,10 +181,12 @@ class ClientView:
                     return
                 if now - st.locked_at < LOCK_GRACE_S:
                     return  # an intermediate echo of the pose the server is placing
-                st.locked = None
+                st.locked, left = None, True
             st.moved_at = now
             st.version += 1
             st.cond.notify_all()
+        if left:
+            self.viewer.refresh_frusta()
 
     # -- rendering --------------------------------------------------------------------------------------------
     def _snapshot(self) -> _Request:
@@ -315,6 +321,7 @@ class Viewer:
         self._frusta: dict[str, object] = {}
         for c in self.source.cameras:
             wxyz, position = cam.viser_from_w2c(c.w2c)
+            colour = TEST_COLOUR if c.is_test else TRAIN_COLOUR
             handle = scene.add_camera_frustum(
                 f"/cameras/{_node_name(c.name)}",
                 fov=cam.vertical_fov(c.K, c.height),
@@ -322,7 +329,10 @@ class Viewer:
                 scale=size * (1.5 if c.is_test else 1.0),
                 thickness=1.5,
                 thickness_units="screen",
-                color=TEST_COLOUR if c.is_test else TRAIN_COLOUR,
+                color=colour,
+                # A faint image plane: viser picks clicks on a frustum's meshes only (its lines are not hit).
+                image=np.array([[[*colour, FRUSTUM_PLANE_ALPHA]]], dtype=np.uint8),
+                format="png",
                 wxyz=wxyz,
                 position=position,
             )
@@ -355,12 +365,19 @@ class Viewer:
             )
             b.on_click(lambda e: self._look_at_training_frame(e.client))
         self.show_cameras = gui.add_checkbox("show cameras", initial_value=True)
-        self.show_cameras.on_update(lambda _: self._show_frusta(self.show_cameras.value))
+        self.show_cameras.on_update(lambda _: self.refresh_frusta())
         self._highlight(0)
 
-    def _show_frusta(self, visible: bool) -> None:
-        for h in self._frusta.values():
-            h.visible = visible
+    def refresh_frusta(self) -> None:
+        """Show the frusta (unless *show cameras* is off), but not one a tab looks through: its image plane
+        would cover that tab's view."""
+        with self._clients_lock:
+            looked = {v.state.locked.name for v in self._clients.values() if v.state.locked is not None}
+        show = bool(self.show_cameras.value)
+        for name, h in self._frusta.items():
+            visible = show and name not in looked
+            if h.visible != visible:
+                h.visible = visible
 
     def _highlight(self, t: int) -> None:
         """Colour the training frustum of time index ``t`` (the frame the video shows now)."""

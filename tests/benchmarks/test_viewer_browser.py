@@ -6,6 +6,7 @@ but the local server, the canvas shows the rendered image, moving the time slide
 changes the rendered pixels, dragging the camera sends small previews and then the full image, and the "Test
 camera" button shows the run's own test render: the PNG the server sent, cropped out of its letterbox, equals
 ``RUN/renders/v001_tXXX.png`` exactly (both are the rasterizer's image rounded the same way; PNG is lossless).
+Then a click on a training camera's frustum looks through it, Play/Pause and the render menu.
 Skips with one reason where the browser or Selenium is missing (`.ci/run` installs both when it can).
 """
 
@@ -103,8 +104,8 @@ def _canvas_pixels(driver) -> np.ndarray:
 
 
 def _click_button(driver, label: str) -> None:
-    button = next(b for b in driver.find_elements("css selector", "button") if b.text.strip() == label)
-    button.click()
+    # One XPath query: reading every button's text is a round trip each, slow while the page plays.
+    driver.find_element("xpath", f"//button[normalize-space()='{label}']").click()
 
 
 def _wait_canvas(driver, accept, timeout: float = TIMEOUT) -> np.ndarray:
@@ -136,7 +137,7 @@ def test_viewer_in_the_browser(viewer, browser, run_dir):
 
     # The canvas shows the rendered image: not blank, and where no panel, notice or frustum covers it, the
     # sent image stretched over the canvas (the browser scales it smoothly; hence a tolerance).
-    px = _wait_canvas(browser, lambda p: p.std() > 10)
+    px = _wait_canvas(browser, lambda p: _uncovered_difference(p, first.sent) < 6)
     assert px.std() > 10 and len(np.unique(px.reshape(-1, 3), axis=0)) > 100
     assert _uncovered_difference(px, first.sent) < 6
     # The time slider, moved with the keyboard in the page, changes the rendered pixels.
@@ -178,27 +179,47 @@ def test_viewer_in_the_browser(viewer, browser, run_dir):
     # WorldTree: the tree node is named in the panel (a 6-frame scene keeps the root alone).
     assert "node 1" in browser.find_element("css selector", "body").text
 
-    # Play runs through the times (full images of the test camera), Pause stops.
+    # Clicking a training camera's frustum looks through it. The browser camera is put (from Python) behind that
+    # camera on its optical axis, so the frustum's image plane lies under the canvas centre; the click is the
+    # page's.
+    from benchmarks.viewer.camera import quat_to_matrix, viser_from_w2c
+
+    target = next(c for c in viewer.source.cameras if c.name == "train_002")
+    wxyz, centre = viser_from_w2c(target.w2c)
+    client = next(iter(viewer.server.get_clients().values()))
+    before = _canvas_pixels(browser)
+    client.camera.wxyz = wxyz
+    client.camera.position = centre - 0.3 * viewer.scale * quat_to_matrix(wxyz)[:, 2]
+    # The page has moved its camera once the frusta drawn over the image have moved.
+    _wait_canvas(browser, lambda p: (np.abs(p.astype(int) - before.astype(int)).sum(-1) > 30).sum() > 100)
+    ActionChains(browser).move_to_element(canvas).click().perform()
+    picked = viewer.wait_for_frame(lambda f: f.seq > shot.seq and f.camera == "train_002", TIMEOUT)
+    assert picked.image.shape[:2] == (target.height, target.width) and not picked.preview
+
+    # Play runs through the times (full images of the camera looked through), Pause stops.
     _click_button(browser, "Play")
     times = set()
-    mark = shot.seq
+    mark = picked.seq
     while len(times) < 3:
-        f = viewer.wait_for_frame(lambda f, m=mark: f.seq > m, TIMEOUT)
+        f = viewer.wait_for_frame(lambda f, m=mark: f.seq > m and f.camera == "train_002", TIMEOUT)
         times.add(f.time)
         mark = f.seq
     _click_button(browser, "Pause")
+    deadline = time.monotonic() + TIMEOUT
+    while viewer.playing and time.monotonic() < deadline:  # the click reaches the server a moment later
+        time.sleep(0.05)
     assert not viewer.playing
 
     # Render modes, picked in the page's menu: depth (turbo colours), the dynamic part alone, the tree node.
-    images, current = {"colour": shot.image}, "colour"
+    images, current = {"colour": picked.image}, "colour"
     for mode in ("depth", "dynamic part", "tree node"):
         _choose(browser, current, mode)
         f = viewer.wait_for_frame(
-            lambda f, m=mode: f.mode == m and f.camera == "test" and not f.preview, TIMEOUT
+            lambda f, m=mode: f.mode == m and f.camera == "train_002" and not f.preview, TIMEOUT
         )
         images[mode], current = f.image, mode
     for mode in ("depth", "dynamic part", "tree node"):
-        assert images[mode].shape == shot.image.shape and not np.array_equal(images[mode], images["colour"])
+        assert images[mode].shape == picked.image.shape and not np.array_equal(images[mode], images["colour"])
     assert _errors(browser) == []
 
 
@@ -206,14 +227,10 @@ def _choose(driver, current: str, option: str) -> None:
     """Pick ``option`` in the viewer's menu that shows ``current`` (a Mantine select: open it, click the option)."""
     from selenium.webdriver.support.ui import WebDriverWait
 
-    menu = next(
-        i for i in driver.find_elements("css selector", "input") if i.get_attribute("value") == current
-    )
-    menu.click()
-    WebDriverWait(driver, TIMEOUT).until(
-        lambda d: any(o.text.strip() == option for o in d.find_elements("css selector", "[role=option]"))
-    )
-    next(o for o in driver.find_elements("css selector", "[role=option]") if o.text.strip() == option).click()
+    driver.find_element("xpath", f"//input[@value='{current}']").click()
+    option = f"//*[@role='option' and normalize-space()='{option}']"
+    WebDriverWait(driver, TIMEOUT).until(lambda d: d.find_elements("xpath", option))
+    driver.find_element("xpath", option).click()
 
 
 def _uncovered_difference(px: np.ndarray, sent: np.ndarray) -> float:
