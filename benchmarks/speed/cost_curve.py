@@ -293,7 +293,15 @@ def collect(cell: Cell, out: Path) -> dict[str, Any]:
     row["n_gaussians"] = cost.get("n_gaussians", math.nan)
     row.update(_mean_scores(run) if done else {"mpsnr": math.nan, "psnr": math.nan})
     row["sessions"] = len(timing.get("sessions_s") or []) if done else ""
-    for k in ("proc_wall_s", "proc_cpu_s", "proc_maxrss_mib", "load_start", "load_end", "started"):
+    for k in (
+        "proc_wall_s",
+        "proc_cpu_s",
+        "proc_maxrss_mib",
+        "proc_tree_peak_rss_mib",
+        "load_start",
+        "load_end",
+        "started",
+    ):
         row[k] = record.get(k, "")
     row["device"] = timing.get("device", "")
     row["machine"] = record.get("machine", "")
@@ -306,25 +314,76 @@ def collect(cell: Cell, out: Path) -> dict[str, Any]:
 # ---------------------------------------------------------------------------------------------- running
 
 
-def _run_logged(cmd: list[str], log: Path) -> tuple[int, float, float, float]:
-    """Run ``cmd`` with its output appended to ``log``: ``(exit status, wall s, CPU s, max RSS MiB)``, CPU
-    and RSS from ``wait4`` (the process and every descendant it waited for)."""
+def tree_rss_mib(pid: int) -> float:
+    """Resident memory (MiB) of process ``pid`` and all its descendants now, from /proc (Linux); NaN
+    elsewhere or when ``pid`` is gone."""
+    total_kib, todo, seen = 0, [pid], set()
+    while todo:
+        p = todo.pop()
+        if p in seen:
+            continue
+        seen.add(p)
+        try:
+            for line in Path(f"/proc/{p}/status").read_text().splitlines():
+                if line.startswith("VmRSS:"):
+                    total_kib += int(line.split()[1])
+                    break
+            for task in Path(f"/proc/{p}/task").iterdir():
+                todo += [int(c) for c in (task / "children").read_text().split()]
+        except (OSError, ValueError):
+            if p == pid:
+                return math.nan
+    return total_kib / 1024
+
+
+class _TreeMemory:
+    """Samples :func:`tree_rss_mib` of a process every ``every`` seconds in a thread; ``peak`` is the largest."""
+
+    def __init__(self, pid: int, every: float = 0.5):
+        import threading
+
+        self.pid, self.every, self.peak = pid, every, math.nan
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._loop, daemon=True)
+        self._thread.start()
+
+    def _loop(self) -> None:
+        while not self._stop.is_set():
+            now = tree_rss_mib(self.pid)
+            if math.isfinite(now) and not now <= self.peak:
+                self.peak = now
+            self._stop.wait(self.every)
+
+    def stop(self) -> float:
+        self._stop.set()
+        self._thread.join()
+        return self.peak
+
+
+def _run_logged(cmd: list[str], log: Path) -> tuple[int, float, float, float, float]:
+    """Run ``cmd`` with its output appended to ``log``: ``(exit status, wall s, CPU s, max RSS MiB, peak
+    tree RSS MiB)``. CPU and max RSS come from ``wait4`` (the process and every descendant it waited for; RSS
+    of the largest single one); the tree's RSS is the sum over the process and its live descendants (the
+    tree's parallel workers), sampled every half second."""
     log.parent.mkdir(parents=True, exist_ok=True)
     with log.open("a") as fh:
         fh.write("$ " + " ".join(cmd) + "\n")
         fh.flush()
         t0 = time.perf_counter()
         proc = subprocess.Popen(cmd, stdout=fh, stderr=subprocess.STDOUT)
+        memory = _TreeMemory(proc.pid)
         try:
             _, status, usage = os.wait4(proc.pid, 0)
         except KeyboardInterrupt:
             proc.terminate()
             proc.wait()
             raise
+        finally:
+            tree_peak = memory.stop()
         proc.returncode = os.waitstatus_to_exitcode(status)
         wall = time.perf_counter() - t0
     maxrss_kib = usage.ru_maxrss if sys.platform != "darwin" else usage.ru_maxrss / 1024
-    return proc.returncode, wall, usage.ru_utime + usage.ru_stime, maxrss_kib / 1024
+    return proc.returncode, wall, usage.ru_utime + usage.ru_stime, maxrss_kib / 1024, tree_peak
 
 
 def _tool(name: str) -> str:
@@ -382,12 +441,13 @@ def run_cell(cell: Cell, out: Path, device: str, machine: str) -> dict[str, Any]
         "started": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
         "train_downscale": train_downscale(cell),
     }
-    rc, wall, cpu, rss = _run_logged(cmd, log)
+    rc, wall, cpu, rss, tree_rss = _run_logged(cmd, log)
     record.update(
         load_end=_load(),
         proc_wall_s=round(wall, 2),
         proc_cpu_s=round(cpu, 2),
         proc_maxrss_mib=round(rss, 1),
+        proc_tree_peak_rss_mib=round(tree_rss, 1) if math.isfinite(tree_rss) else None,
         status="done" if rc == 0 and cell.is_done(out) else f"failed (exit {rc})",
     )
     (out / "cells").mkdir(parents=True, exist_ok=True)
@@ -432,6 +492,7 @@ MD_COLUMNS = (
     ("wall_time_s", "Wall s", 1),
     ("cpu_time_s", "CPU s", 1),
     ("peak_memory_mib", "Peak MiB", 0),
+    ("proc_tree_peak_rss_mib", "All procs MiB", 0),
     ("n_gaussians", "Gaussians", 0),
     ("mpsnr", "mPSNR", 2),
     ("psnr", "PSNR", 2),
@@ -675,7 +736,8 @@ def _sweep(cells: list[Cell], args: argparse.Namespace) -> int:
         failed += record["status"] != "done"
         print(
             f"    {record['status']}: {record['proc_wall_s']:.0f} s wall, {record['proc_cpu_s']:.0f} s CPU, "
-            f"max RSS {record['proc_maxrss_mib']:.0f} MiB, load {record['load_start']} -> {record['load_end']}",
+            f"max RSS {record['proc_maxrss_mib']:.0f} MiB (all processes {record.get('proc_tree_peak_rss_mib')} MiB), "
+            f"load {record['load_start']} -> {record['load_end']}",
             flush=True,
         )
         rows = report(cells, out, plots=False)

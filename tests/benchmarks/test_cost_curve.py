@@ -11,6 +11,7 @@ import csv
 import dataclasses
 import json
 import math
+import sys
 
 import pandas as pd
 import pytest
@@ -196,6 +197,7 @@ def test_finished_cells_are_skipped_and_the_budget_stops(tmp_path, monkeypatch, 
             "proc_wall_s": 1.0,
             "proc_cpu_s": 1.0,
             "proc_maxrss_mib": 1.0,
+            "proc_tree_peak_rss_mib": 1.0,
             "load_start": "",
             "load_end": "",
         }
@@ -246,3 +248,13 @@ def test_reads_a_run_folder_made_by_wtbench_run(tmp_path, monkeypatch, write_tin
     assert {"stage_cpu_s:train", "stage_cpu_s:load", "stage_cpu_s:render"} <= set(row)
     assert not any(k.endswith(":eval") or k.endswith(":kernel_build") for k in row)
     assert math.isfinite(row["psnr"]) and math.isfinite(row["peak_memory_mib"])
+
+
+def test_process_measure_counts_children(tmp_path):
+    """wait4 CPU/RSS and the sampled memory of the whole process tree include a child process."""
+    child = "b = bytearray(300 * 2**20); import time; time.sleep(1.5)"
+    cmd = [sys.executable, "-c", f"import subprocess, sys; subprocess.run([sys.executable, '-c', {child!r}])"]
+    rc, wall, cpu, maxrss, tree = cc._run_logged(cmd, tmp_path / "log.txt")
+    assert rc == 0 and wall >= 1.5 and cpu > 0
+    assert maxrss >= 300 and tree >= 300 + 5  # the parent's own RSS adds to the tree's
+    assert (tmp_path / "log.txt").read_text().startswith("$ ")
