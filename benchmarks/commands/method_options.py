@@ -20,6 +20,16 @@ from typing import Any
 
 FLAG, LIST, VALUE = "flag", "list", "value"
 
+# Generating the options imports every method (torch included: seconds). The console entry point turns this
+# off when the command line runs another command, so that `wtbench --help` and the light commands stay instant.
+_GENERATE = True
+
+
+def skip_generation() -> None:
+    """Give the commands built after this call no method options (for a process that will not run them)."""
+    global _GENERATE
+    _GENERATE = False
+
 
 @dataclass(frozen=True)
 class GeneratedOption:
@@ -126,7 +136,7 @@ class MethodOptionsCommand:
 
     @functools.cached_property
     def _resolved(self) -> tuple[list[GeneratedOption], list[inspect.Parameter]]:
-        declared = declared_options()
+        declared = declared_options() if _GENERATE else []
         own = [
             p for p in inspect.signature(self.func, eval_str=True).parameters.values() if p.name != self.param
         ]
