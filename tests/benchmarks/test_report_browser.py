@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import importlib.util
 import json
-import shutil
 from pathlib import Path
 
 import pytest
@@ -18,27 +17,18 @@ from typer.testing import CliRunner
 
 from benchmarks.cli import app
 
-CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
-CHROMEDRIVER = shutil.which("chromedriver")
-if not (CHROMIUM and CHROMEDRIVER):
-    pytest.skip(
-        "no chromium/chromedriver on PATH (install: apt-get install chromium chromium-driver)",
-        allow_module_level=True,
-    )
-webdriver = pytest.importorskip(
-    "selenium.webdriver", reason="selenium is not installed (pip install selenium)"
-)
 
-
-def _fixture():
-    path = Path(__file__).with_name("report_fixture.py")
-    spec = importlib.util.spec_from_file_location("wt_tests_report_fixture_browser", path)
+def _load(name: str):
+    path = Path(__file__).with_name(f"{name}.py")
+    spec = importlib.util.spec_from_file_location(f"wt_tests_{name}_browser", path)
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
     return mod
 
 
-fx = _fixture()
+chromium = _load("chromium")
+webdriver = chromium.skip_without_browser()
+fx = _load("report_fixture")
 
 
 @pytest.fixture(scope="module")
@@ -52,19 +42,7 @@ def report(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def browser(tmp_path_factory):
-    from selenium.webdriver.chrome.options import Options
-    from selenium.webdriver.chrome.service import Service
-
-    opts = Options()
-    opts.binary_location = CHROMIUM
-    profile = tmp_path_factory.mktemp("chromium-profile")
-    for arg in ("--headless=new", "--no-sandbox", "--disable-gpu", "--disable-dev-shm-usage",
-                "--window-size=1280,900", f"--user-data-dir={profile}"):  # fmt: skip
-        opts.add_argument(arg)
-    opts.set_capability("goog:loggingPrefs", {"browser": "ALL"})
-    # An explicit driver path: Selenium Manager (which would download a driver) is never run.
-    driver = webdriver.Chrome(service=Service(executable_path=CHROMEDRIVER), options=opts)
-    driver.set_page_load_timeout(60)
+    driver = chromium.start(tmp_path_factory.mktemp("chromium-profile"), 1280, 900)
     yield driver
     driver.quit()
 
@@ -73,10 +51,6 @@ def _open(driver, page: Path) -> None:
     driver.get(page.resolve().as_uri())
     driver.get_log("browser")  # what earlier pages logged is not this page's
     driver.refresh()
-
-
-def _errors(driver) -> list[str]:
-    return [e["message"] for e in driver.get_log("browser") if e["level"] == "SEVERE"]
 
 
 def _all_images_load(driver) -> int:
@@ -104,7 +78,7 @@ def _column(driver, table_id: str, col: int) -> list[str]:
 def test_main_page(report, browser):
     runs, out = report
     _open(browser, out / "index.html")
-    assert _errors(browser) == []
+    assert chromium.severe_errors(browser) == []
     rows = browser.find_elements("css selector", "#results-worldtree tbody tr")
     assert len(rows) == len(fx.CONFIGS)
     # Plots (one per metric with values) and the scene thumbnails all load.
@@ -138,13 +112,13 @@ def test_main_page(report, browser):
     details = browser.find_element("css selector", "#results-worldtree details.runs")
     details.click()
     assert record["inputs"]["pred_sha256"] in details.text
-    assert _errors(browser) == []
+    assert chromium.severe_errors(browser) == []
 
 
 def test_scene_page_viewer(report, browser):
     _, out = report
     _open(browser, out / "scenes" / "SceneA.html")
-    assert _errors(browser) == []
+    assert chromium.severe_errors(browser) == []
     assert len(browser.find_elements("css selector", "#scene-worldtree tbody tr")) == len(fx.CONFIGS)
     shown = lambda: [f for f in browser.find_elements("css selector", ".frame") if f.is_displayed()]  # noqa: E731
     assert [f.get_attribute("data-name") for f in shown()] == ["v001_t000"]
@@ -166,7 +140,7 @@ def test_scene_page_viewer(report, browser):
     )
     size = browser.execute_script("return [arguments[0].videoWidth, arguments[0].videoHeight]", video)
     assert size == [3 * fx.WIDTH, fx.HEIGHT]
-    assert _errors(browser) == []
+    assert chromium.severe_errors(browser) == []
 
 
 # ------------------------------------------------------------------------------- long configuration names
@@ -202,7 +176,7 @@ def test_long_names_stay_legible_at_1400px(long_report, browser, tmp_path):
     try:
         _open(browser, out / "scenes" / "SceneA.html")
         assert browser.execute_script("return window.innerWidth") <= 1400
-        assert _errors(browser) == []
+        assert chromium.severe_errors(browser) == []
         assert browser.execute_script("return document.documentElement.scrollWidth <= window.innerWidth")
         table = browser.find_element("css selector", "#scene-worldtree")
         scores = table.find_elements("css selector", "th.m-psnr, th[data-type='num'], td.num")
@@ -229,7 +203,7 @@ def test_long_names_stay_legible_at_1400px(long_report, browser, tmp_path):
         assert img.is_displayed() and box["left"] >= 0 and box["right"] <= box["inner"], box
         assert box["width"] >= 300 and box["height"] >= 150, box
         browser.save_screenshot(str(tmp_path / "scene_long_names.png"))
-        assert _errors(browser) == []
+        assert chromium.severe_errors(browser) == []
     finally:
         browser.set_window_size(1280, 900)
 

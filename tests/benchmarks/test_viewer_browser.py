@@ -12,25 +12,27 @@ Skips with one reason where the browser or Selenium is missing (`.ci/run` instal
 
 from __future__ import annotations
 
+import importlib.util
 import json
-import shutil
 import time
 import warnings
+from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
 
-CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
-CHROMEDRIVER = shutil.which("chromedriver")
-if not (CHROMIUM and CHROMEDRIVER):
-    pytest.skip(
-        "no chromium/chromedriver on PATH (install: apt-get install chromium chromium-driver)",
-        allow_module_level=True,
-    )
-webdriver = pytest.importorskip(
-    "selenium.webdriver", reason="selenium is not installed (pip install selenium)"
-)
+
+def _load(name: str):
+    path = Path(__file__).with_name(f"{name}.py")
+    spec = importlib.util.spec_from_file_location(f"wt_tests_{name}_{Path(__file__).stem}", path)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+chromium = _load("chromium")
+webdriver = chromium.skip_without_browser()
 
 TIMEOUT = 30.0
 
@@ -63,25 +65,9 @@ def viewer(run_dir):
 
 @pytest.fixture(scope="module")
 def browser(tmp_path_factory):
-    from selenium.webdriver.chrome.options import Options
-    from selenium.webdriver.chrome.service import Service
-
-    opts = Options()
-    opts.binary_location = CHROMIUM
-    profile = tmp_path_factory.mktemp("chromium-profile")
-    for arg in ("--headless=new", "--no-sandbox", "--disable-gpu", "--disable-dev-shm-usage",
-                "--window-size=1280,800", f"--user-data-dir={profile}"):  # fmt: skip
-        opts.add_argument(arg)
-    opts.set_capability("goog:loggingPrefs", {"browser": "ALL", "performance": "ALL"})
-    # An explicit driver path: Selenium Manager (which would download a driver) is never run.
-    driver = webdriver.Chrome(service=Service(executable_path=CHROMEDRIVER), options=opts)
-    driver.set_page_load_timeout(60)
+    driver = chromium.start(tmp_path_factory.mktemp("chromium-profile"), 1280, 800, performance=True)
     yield driver
     driver.quit()
-
-
-def _errors(driver) -> list[str]:
-    return [e["message"] for e in driver.get_log("browser") if e["level"] == "SEVERE"]
 
 
 def _requested_urls(driver) -> list[str]:
@@ -128,7 +114,7 @@ def test_viewer_in_the_browser(viewer, browser, run_dir):
     # The page opens on the test camera at the first time, full size.
     first = viewer.wait_for_frame(lambda f: not f.preview and f.camera == "test", TIMEOUT)
     assert first.time == 0 and first.format == "png"
-    assert _errors(browser) == []
+    assert chromium.severe_errors(browser) == []
 
     # Nothing but the local server is fetched (viser's client is bundled in its wheel; no CDN).
     remote = [u for u in _requested_urls(browser) if u.split(":", 1)[0] in ("http", "https", "ws", "wss")
@@ -220,7 +206,7 @@ def test_viewer_in_the_browser(viewer, browser, run_dir):
         images[mode], current = f.image, mode
     for mode in ("depth", "dynamic part", "tree node"):
         assert images[mode].shape == picked.image.shape and not np.array_equal(images[mode], images["colour"])
-    assert _errors(browser) == []
+    assert chromium.severe_errors(browser) == []
 
 
 def _choose(driver, current: str, option: str) -> None:
