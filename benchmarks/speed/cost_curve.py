@@ -174,9 +174,11 @@ def fit_slope(work: Sequence[float], cost: Sequence[float]) -> tuple[float, floa
     return k, math.exp(my - k * mx)
 
 
-def estimate_wall_s(cell: Cell, rows: Sequence[Mapping[str, Any]]) -> float | None:
-    """Expected wall seconds of ``cell`` from the finished rows of its method and preset: the log-log fit
-    when two works are known, proportional to work from one; None when none is finished."""
+def estimate_wall_s(cell: Cell, rows: Sequence[Mapping[str, Any]]) -> float:
+    """Expected wall seconds of ``cell`` from the finished rows of its method and preset: the time of the
+    largest finished work scaled by ``(work / that work) ** k``, ``k`` the fitted log-log slope but at least 1
+    (a timing taken under changing load can fit a slope below 1 or even negative), 1 with a single finished
+    work; NaN when none is finished."""
     same = [
         r
         for r in rows
@@ -185,13 +187,11 @@ def estimate_wall_s(cell: Cell, rows: Sequence[Mapping[str, Any]]) -> float | No
     pts = [(float(r["work"]), _seconds(r)) for r in same]
     pts = [(w, s) for w, s in pts if math.isfinite(s) and s > 0]
     if not pts:
-        return None
+        return math.nan
     fit = fit_slope([w for w, _ in pts], [s for _, s in pts])
-    if fit is not None:
-        k, c = fit
-        return c * cell.work ** max(k, 1.0)
-    w, s = pts[0]
-    return s * cell.work / w
+    k = max(fit[0], 1.0) if fit is not None else 1.0
+    w_ref, s_ref = max(pts)
+    return s_ref * (cell.work / w_ref) ** k
 
 
 def _seconds(row: Mapping[str, Any]) -> float:
@@ -724,7 +724,7 @@ def _sweep(cells: list[Cell], args: argparse.Namespace) -> int:
         if args.max_minutes is not None:
             est = estimate_wall_s(cell, rows)
             elapsed = time.perf_counter() - start
-            if est is not None and elapsed + est > args.max_minutes * 60:
+            if math.isfinite(est) and elapsed + est > args.max_minutes * 60:
                 print(
                     f"stopping before {cell.name}: estimated {est / 60:.1f} min, {elapsed / 60:.1f} of "
                     f"{args.max_minutes:g} min used; run again (with more --max-minutes) to continue",

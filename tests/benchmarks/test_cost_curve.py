@@ -258,3 +258,15 @@ def test_process_measure_counts_children(tmp_path):
     assert rc == 0 and wall >= 1.5 and cpu > 0
     assert maxrss >= 300 and tree >= 300 + 5  # the parent's own RSS adds to the tree's
     assert (tmp_path / "log.txt").read_text().startswith("$ ")
+
+
+def test_estimate_scales_the_largest_finished_cell_at_least_linearly():
+    cells = cc.list_cells([40, 80, 160], [(160, 90)], ["base"], ["quick"])
+    rows = [
+        {"method": "base", "preset": "quick", "status": "done", "work": c.work, "proc_wall_s": s}
+        for c, s in zip(cells[:2], (108.0, 53.0), strict=True)  # faster at 80 frames: load went down
+    ]
+    assert cc.estimate_wall_s(cells[2], rows) == pytest.approx(106.0)  # slope < 1 fitted: 1 used
+    rows[1]["proc_wall_s"] = 432.0  # slope 2
+    assert cc.estimate_wall_s(cells[2], rows) == pytest.approx(432.0 * 4)
+    assert math.isnan(cc.estimate_wall_s(cells[2], [{**rows[0], "status": "pending"}]))
