@@ -266,6 +266,7 @@ def _manifest(src: Path, clip: Clip, cfg, cams, keep: np.ndarray, masks) -> dict
             "path": str(src.resolve()),
             "layout": clip.kind,
             "source_frames": clip.source_count,
+            "time_steps": clip.source_count,  # the key `nvls info` reads
             "kept_frames": len(clip.source_index),
             "fps": clip.fps,
             "width": clip.source_size[0],

@@ -1,7 +1,7 @@
 """`nvls import CLIP.mp4` / `nvls import FRAMES_DIR`: SfM recovers a known camera path; bad input is one line.
 
 The clip is generated (benchmarks.fixtures.video_clip): the textured room of `nvls synth` with its two moving
-objects, one camera gliding along a smooth 3D arc, 24 frames at 320x180. The estimated cameras are compared with
+objects, one camera gliding along a smooth 3D arc, 24 frames at 480x270. The estimated cameras are compared with
 the true ones after a similarity (Umeyama) fitted to the camera centres.
 """
 
