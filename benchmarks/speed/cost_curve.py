@@ -520,38 +520,83 @@ def markdown_table(rows: Sequence[Mapping[str, Any]]) -> str:
     return "\n".join(lines) + "\n"
 
 
+def fit_frames_pixels(
+    frames: Sequence[float], pixels: Sequence[float], cost: Sequence[float]
+) -> tuple[float, float] | None:
+    """Least-squares fit of ``log cost = a log frames + b log pixels + log c``: ``(a, b)``; None unless both
+    frames and pixels vary independently over the finite positive costs."""
+    import numpy as np
+
+    pts = [
+        (math.log(f), math.log(p), math.log(c))
+        for f, p, c in zip(frames, pixels, cost, strict=True)
+        if f > 0 and p > 0 and c > 0 and math.isfinite(c)
+    ]
+    if len(pts) < 3:
+        return None
+    a = np.array([[f, p, 1.0] for f, p, _ in pts])
+    if np.linalg.matrix_rank(a, tol=1e-9) < 3:
+        return None
+    sol, *_ = np.linalg.lstsq(a, np.array([c for _, _, c in pts]), rcond=None)
+    return float(sol[0]), float(sol[1])
+
+
 def slopes(rows: Sequence[Mapping[str, Any]]) -> list[dict[str, Any]]:
-    """Fitted log-log slopes against work: per method/preset for wall, CPU and memory, and per stage (CPU s)."""
+    """Fitted log-log slopes per method/preset of wall, CPU and memory and of each stage's CPU seconds:
+    ``slope`` against work (frames x pixels), ``vs_frames``/``vs_pixels`` apart when both vary (else NaN),
+    ``share``: a stage's part of the run's CPU seconds at the largest work (1 for the run's totals).
+    ``steep``: slope > :data:`STEEP` for a total, or for a stage of at least 2 % of the run's CPU."""
     done = [r for r in rows if r["status"] == "done"]
     groups: dict[tuple[str, str], list[Mapping[str, Any]]] = {}
     for r in done:
         groups.setdefault((r["method"], r["preset"]), []).append(r)
     out = []
     for (method, preset), rs in groups.items():
-        keys = ["wall_time_s", "cpu_time_s", "peak_memory_mib"]
+        keys = ["wall_time_s", "cpu_time_s", "peak_memory_mib", "proc_tree_peak_rss_mib"]
         keys += sorted({k for r in rs for k in r if k.startswith("stage_cpu_s:")})
+        largest = max(rs, key=lambda r: float(r["work"]))
         for key in keys:
-            fit = fit_slope([float(r["work"]) for r in rs], [_num(r.get(key)) for r in rs])
-            if fit is not None:
-                out.append(
-                    {
-                        "method": method,
-                        "preset": preset,
-                        "cost": key,
-                        "slope": fit[0],
-                        "steep": fit[0] > STEEP,
-                    }
-                )
+            costs = [_num(r.get(key)) for r in rs]
+            fit = fit_slope([float(r["work"]) for r in rs], costs)
+            if fit is None:
+                continue
+            apart = fit_frames_pixels(
+                [float(r["frames"]) for r in rs], [float(r["width"]) * float(r["height"]) for r in rs], costs
+            )
+            share = 1.0
+            if key.startswith("stage_"):
+                share = _num(largest.get(key)) / _num(largest.get("cpu_time_s"))
+            out.append(
+                {
+                    "method": method,
+                    "preset": preset,
+                    "cost": key,
+                    "slope": fit[0],
+                    "vs_frames": apart[0] if apart else math.nan,
+                    "vs_pixels": apart[1] if apart else math.nan,
+                    "share": share,
+                    "steep": fit[0] > STEEP and not share < 0.02,
+                }
+            )
     return out
 
 
 def slope_text(fits: Sequence[Mapping[str, Any]]) -> str:
     if not fits:
         return "no slope yet: a method/preset needs finished cells at two amounts of work\n"
-    lines = [f"log-log slope of cost against frames x pixels (1 = proportional; > {STEEP} flagged):"]
+    lines = [
+        f"log-log slope of cost against work = frames x pixels (1 = proportional; > {STEEP} flagged unless under "
+        "2 % of the run's CPU), and apart against frames and pixels where both vary:",
+        f"  {'method':<15} {'preset':<6} {'cost':<30} {'work':>5} {'frames':>6} {'pixels':>6} {'share':>6}",
+    ]
     for f in fits:
         flag = "  <-- grows faster than the work" if f["steep"] else ""
-        lines.append(f"  {f['method']:<15} {f['preset']:<6} {f['cost']:<28} {f['slope']:5.2f}{flag}")
+        apart = " ".join(
+            f"{f[k]:6.2f}" if math.isfinite(f[k]) else f"{'':>6}" for k in ("vs_frames", "vs_pixels")
+        )
+        lines.append(
+            f"  {f['method']:<15} {f['preset']:<6} {f['cost']:<30} {f['slope']:5.2f} {apart} {f['share']:6.0%}{flag}"
+        )
     return "\n".join(lines) + "\n"
 
 

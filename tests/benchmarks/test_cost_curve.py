@@ -80,6 +80,13 @@ def test_slope_fit_recovers_the_power():
         assert got[0] == pytest.approx(k, abs=1e-9) and got[1] == pytest.approx(3.5, rel=1e-6)
     assert cc.fit_slope([100, 100], [1.0, 2.0]) is None  # one amount of work: no slope
     assert cc.fit_slope([100, 200], [1.0, math.nan]) is None
+    # Apart: cost = 2 * frames^0.3 * pixels^1.2 over a 2 x 2 grid.
+    frames, pixels = [40, 80, 40, 80], [14_400, 14_400, 57_600, 57_600]
+    a, b = cc.fit_frames_pixels(
+        frames, pixels, [2 * f**0.3 * p**1.2 for f, p in zip(frames, pixels, strict=True)]
+    )
+    assert (a, b) == (pytest.approx(0.3), pytest.approx(1.2))
+    assert cc.fit_frames_pixels([40, 80, 160], [100, 100, 100], [1.0, 2.0, 4.0]) is None  # pixels do not vary
 
 
 def test_cells_cheapest_first_and_named_apart():
