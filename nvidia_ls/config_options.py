@@ -174,62 +174,44 @@ def _construct(cls: type, tree: Mapping[str, Any]) -> Any:
     return cls(**kwargs)
 
 
-class ConfigCommand:
-    """A typer command function whose options come from a config dataclass.
+class GeneratedCommand:
+    """A typer command function with generated options added to its own parameters.
 
     ``func`` declares the command's own parameters (arguments, output folder, ...) as usual, plus one parameter
-    named ``config_param`` that receives the built config. ``load`` returns ``(config class, options)``; it is
-    called only when typer builds the command line (when the app runs), so a module that only registers the
-    command does not import the config's module (``nvls`` sets its OpenMP policy before torch is imported).
+    named ``param`` that receives what the generated options build. Subclasses say which options
+    (:meth:`_generate`: ``(payload, [inspect.Parameter])``, called once, when typer first reads the signature)
+    and what ``param`` gets from their values (:meth:`_collect`). Typer reads the command's parameters from
+    ``__signature__`` and their types from ``__annotations__``; both are built here.
     """
 
-    def __init__(
-        self,
-        func: Callable[..., Any],
-        load: Callable[[], tuple[type, list[ConfigOption]]],
-        config_param: str = "cfg",
-    ) -> None:
-        self.func = func
-        self.load = load
-        self.config_param = config_param
-        self.__name__ = func.__name__
-        self.__qualname__ = func.__qualname__
-        self.__module__ = func.__module__
-        self.__doc__ = func.__doc__
+    def __init__(self, func: Callable[..., Any], param: str) -> None:
+        self.func, self.param = func, param
+        self.__name__, self.__qualname__ = func.__name__, func.__qualname__
+        self.__module__, self.__doc__ = func.__module__, func.__doc__
+
+    def _generate(self) -> tuple[Any, list[inspect.Parameter]]:
+        raise NotImplementedError
+
+    def _collect(self, payload: Any, values: dict[str, Any]) -> Any:
+        raise NotImplementedError
 
     @functools.cached_property
-    def _resolved(self) -> tuple[type, list[ConfigOption], list[inspect.Parameter]]:
-        cls, options = self.load()
+    def _resolved(self) -> tuple[Any, list[inspect.Parameter], list[inspect.Parameter]]:
+        payload, generated = self._generate()
         own = [
-            p for p in inspect.signature(self.func, eval_str=True).parameters.values() if p.name != self.config_param
-        ]  # fmt: skip
-        clash = {p.name for p in own} & {o.param for o in options}
+            p for p in inspect.signature(self.func, eval_str=True).parameters.values() if p.name != self.param
+        ]
+        clash = {p.name for p in own} & {p.name for p in generated}
         if clash:
             raise TypeError(
-                f"{self.__name__}: parameters named like config options: {', '.join(sorted(clash))}"
+                f"{self.__name__}: parameters named like generated options: {', '.join(sorted(clash))}"
             )
-        return cls, options, own
-
-    @property
-    def options(self) -> list[ConfigOption]:
-        return self._resolved[1]
+        return payload, generated, own
 
     @property
     def __signature__(self) -> inspect.Signature:
-        import typer
-
-        _, options, own = self._resolved
-        generated = [
-            inspect.Parameter(
-                o.param,
-                inspect.Parameter.KEYWORD_ONLY,
-                default=typer.Option(o.default, *o.decls, help=o.help),
-                annotation=o.type,
-            )
-            for o in options
-        ]
-        own = [p.replace(kind=inspect.Parameter.KEYWORD_ONLY) for p in own]
-        return inspect.Signature([*own, *generated])
+        _, generated, own = self._resolved
+        return inspect.Signature([*(p.replace(kind=inspect.Parameter.KEYWORD_ONLY) for p in own), *generated])
 
     @property
     def __annotations__(
@@ -238,6 +220,42 @@ class ConfigCommand:
         return {p.name: p.annotation for p in self.__signature__.parameters.values()}
 
     def __call__(self, **values: Any) -> Any:
-        cls, options, own = self._resolved
-        cfg = config_from(cls, options, values)
-        return self.func(**{p.name: values[p.name] for p in own}, **{self.config_param: cfg})
+        payload, _, own = self._resolved
+        return self.func(
+            **{p.name: values[p.name] for p in own}, **{self.param: self._collect(payload, values)}
+        )
+
+
+class ConfigCommand(GeneratedCommand):
+    """A command whose options come from a config dataclass: ``load`` returns ``(config class, options)``; it
+    is called only when typer builds the command line (when the app runs), so a module that only registers the
+    command does not import the config's module (``nvls`` sets its OpenMP policy before torch is imported).
+    ``config_param`` receives the built config."""
+
+    def __init__(
+        self,
+        func: Callable[..., Any],
+        load: Callable[[], tuple[type, list[ConfigOption]]],
+        config_param: str = "cfg",
+    ) -> None:
+        super().__init__(func, config_param)
+        self.load = load
+
+    @property
+    def options(self) -> list[ConfigOption]:
+        return self._resolved[0][1]
+
+    def _generate(self) -> tuple[Any, list[inspect.Parameter]]:
+        import typer
+
+        cls, options = self.load()
+        params = [
+            inspect.Parameter(o.param, inspect.Parameter.KEYWORD_ONLY,
+                              default=typer.Option(o.default, *o.decls, help=o.help), annotation=o.type)
+            for o in options
+        ]  # fmt: skip
+        return (cls, options), params
+
+    def _collect(self, payload: Any, values: dict[str, Any]) -> Any:
+        cls, options = payload
+        return config_from(cls, options, values)

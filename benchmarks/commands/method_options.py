@@ -3,7 +3,7 @@
 Each method's :class:`~methods.registry.MethodSpec` names its ablations (``--ablate NAME``, repeatable) and the
 config fields it offers as options of their own (``MethodSpec.options``: ``chain_length`` -> ``--chain-length``).
 The option's help is the string literal written under the field, prefixed by the methods that have it; its
-value is parsed by the field's annotation exactly as ``--set`` parses it (:mod:`benchmarks.runner.config_overrides`),
+value is parsed by the field's annotation exactly as ``--set`` parses it (:mod:`methods.config_overrides`),
 and a ``bool`` field is a flag that turns it on. Nothing here names a method or a field: a method installed
 from another package brings its options with it. The options are generated when typer builds the command line
 (the app runs), so the modules that only register commands import no method.
@@ -11,12 +11,13 @@ from another package brings its options with it. The options are generated when 
 
 from __future__ import annotations
 
-import functools
 import inspect
 import typing
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Any
+
+from nvidia_ls.config_options import GeneratedCommand
 
 FLAG, LIST, VALUE = "flag", "list", "value"
 
@@ -52,8 +53,8 @@ def declared_options() -> list[GeneratedOption]:
     """``--ablate`` (when a method has ablations), then every field some method's ``MethodSpec.options`` names,
     in the methods' order (by name) and each method's declared order. Two methods declaring one field with
     different types is a TypeError, as is a field without its help."""
-    from benchmarks.runner.config_overrides import field_types
     from benchmarks.runner.runs import ABLATE
+    from methods.config_overrides import field_types
     from methods.registry import list_methods
     from nvidia_ls.config_options import field_docs
 
@@ -91,7 +92,7 @@ def given_options(declared: list[GeneratedOption], values: Mapping[str, Any]) ->
     flag given is True; a list's values are parsed, sorted and deduplicated (so that one set of ablations names
     one run folder); a value is parsed by its field's type. A value that does not parse is a one-line
     :class:`UserError` naming the option."""
-    from benchmarks.runner.config_overrides import parse_value
+    from methods.config_overrides import parse_value
 
     out: dict[str, Any] = {}
     for o in declared:
@@ -111,7 +112,7 @@ def given_options(declared: list[GeneratedOption], values: Mapping[str, Any]) ->
 def _typer_parameter(o: GeneratedOption) -> inspect.Parameter:
     import typer
 
-    from benchmarks.runner.config_overrides import describe_type
+    from methods.config_overrides import describe_type
 
     if o.kind == FLAG:
         annotation, default = bool, typer.Option(False, o.flag, help=o.help)
@@ -125,39 +126,16 @@ def _typer_parameter(o: GeneratedOption) -> inspect.Parameter:
     return inspect.Parameter(o.key, inspect.Parameter.KEYWORD_ONLY, default=default, annotation=annotation)
 
 
-class MethodOptionsCommand:
+class MethodOptionsCommand(GeneratedCommand):
     """A typer command function with the method options added: ``func`` declares its own parameters plus one
     named ``param`` that receives the given options (:func:`given_options`)."""
 
     def __init__(self, func: Callable[..., Any], param: str = "method_options") -> None:
-        self.func, self.param = func, param
-        self.__name__, self.__qualname__ = func.__name__, func.__qualname__
-        self.__module__, self.__doc__ = func.__module__, func.__doc__
+        super().__init__(func, param)
 
-    @functools.cached_property
-    def _resolved(self) -> tuple[list[GeneratedOption], list[inspect.Parameter]]:
+    def _generate(self) -> tuple[Any, list[inspect.Parameter]]:
         declared = declared_options() if _GENERATE else []
-        own = [
-            p for p in inspect.signature(self.func, eval_str=True).parameters.values() if p.name != self.param
-        ]
-        clash = {p.name for p in own} & {o.key for o in declared}
-        if clash:
-            raise TypeError(f"{self.func.__name__}: parameters named like method options: {sorted(clash)}")
-        return declared, own
+        return declared, [_typer_parameter(o) for o in declared]
 
-    @property
-    def __signature__(self) -> inspect.Signature:
-        declared, own = self._resolved
-        own = [p.replace(kind=inspect.Parameter.KEYWORD_ONLY) for p in own]
-        return inspect.Signature([*own, *map(_typer_parameter, declared)])
-
-    @property
-    def __annotations__(
-        self,
-    ) -> dict[str, Any]:  # read by typing.get_type_hints (typer resolves types with it)
-        return {p.name: p.annotation for p in self.__signature__.parameters.values()}
-
-    def __call__(self, **values: Any) -> Any:
-        declared, own = self._resolved
-        given = given_options(declared, values)
-        return self.func(**{p.name: values[p.name] for p in own}, **{self.param: given})
+    def _collect(self, payload: Any, values: dict[str, Any]) -> Any:
+        return given_options(payload, values)
