@@ -609,14 +609,15 @@ def _series(rows: Sequence[Mapping[str, Any]], key: str) -> dict[str, list[tuple
     return {k: sorted(v) for k, v in out.items()}
 
 
-def _reference(ax, pts: list[tuple[float, float]]) -> None:
-    """A dashed slope-1 line through the smallest-work point's geometric-mean cost."""
+def _reference(ax, pts: list[tuple[float, float]], top: bool = False) -> None:
+    """A dashed slope-1 line from the smallest work, at the geometric mean of the costs there (``top``: at the
+    largest, so that the dominant stage reads against it)."""
     lo = min(w for w, _ in pts)
     hi = max(w for w, _ in pts)
     if hi <= lo:
         return
     at = [c for w, c in pts if w == lo]
-    c0 = math.exp(sum(map(math.log, at)) / len(at))
+    c0 = max(at) if top else math.exp(sum(map(math.log, at)) / len(at))
     ax.plot([lo, hi], [c0, c0 * hi / lo], "k--", lw=1, label="slope 1 (cost ~ work)")
 
 
@@ -660,12 +661,16 @@ def plot_stages(rows: Sequence[Mapping[str, Any]], path: Path) -> bool:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    groups = sorted({(r["method"], r["preset"]) for r in rows if r["status"] == "done"})
+    order = {m: i for i, m in enumerate([*METHODS, *PRESETS])}
+    groups = sorted(
+        {(r["method"], r["preset"]) for r in rows if r["status"] == "done"},
+        key=lambda g: (order.get(g[1], 99), order.get(g[0], 99), g),
+    )
     if not groups:
         return False
     cols = min(len(groups), 4)
     nrows = math.ceil(len(groups) / cols)
-    fig, axes = plt.subplots(nrows, cols, figsize=(4.6 * cols, 4.2 * nrows), squeeze=False)
+    fig, axes = plt.subplots(nrows, cols, figsize=(4.6 * cols, 5.4 * nrows), squeeze=False)
     for ax, (method, preset) in zip(axes.flat, groups, strict=False):
         rs = [r for r in rows if r["method"] == method and r["preset"] == preset]
         stages = sorted({k for r in rs for k in r if k.startswith("stage_cpu_s:")})
@@ -676,13 +681,13 @@ def plot_stages(rows: Sequence[Mapping[str, Any]], path: Path) -> bool:
                 ax.plot([w for w, _ in pts], [c for _, c in pts], "o-", label=key.split(":", 1)[1])
                 every += pts
         if every:
-            _reference(ax, every)
+            _reference(ax, every, top=True)
         ax.set_xscale("log")
         ax.set_yscale("log")
         ax.set_title(f"{method} {preset}: CPU s per stage")
         ax.set_xlabel("frames x pixels")
         ax.grid(True, which="both", alpha=0.3)
-        ax.legend(fontsize=7)
+        ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.16), ncol=3, frameon=False)
     for ax in list(axes.flat)[len(groups) :]:
         ax.set_visible(False)
     fig.tight_layout()
