@@ -150,10 +150,10 @@ def sweep(scenes, grid: str, run: RunOptions, dry_run: bool = False, executor=No
     import warnings
 
     from benchmarks.commands.run_options import one_line_warning
-    from benchmarks.runner.config_overrides import split_assignment
     from benchmarks.runner.runs import execute, resolve_config, run_folder_of
     from benchmarks.runner.sweep import find_scenes, grid_points, run_sweep, write_report
     from benchmarks.runner.sweep_executors import JOBS_DIR, Task, resolve_kind, run_tasks
+    from methods.config_overrides import split_assignment
     from methods.registry import get_method
     from worldtree.errors import UserError
     from worldtree.folder_lock import FolderLock

@@ -36,7 +36,7 @@ import numpy as np
 import torch
 
 import worldtree
-from benchmarks.runner.config_overrides import apply_overrides, sets_digest, split_assignment
+from methods.config_overrides import apply_overrides, sets_digest, split_assignment
 from worldtree.atomic import atomic_write_json, atomic_write_text
 from worldtree.config_ranges import check_config_ranges
 from worldtree.errors import UserError
@@ -131,7 +131,7 @@ def run_tag(
     then ``-no<name>`` per ablation, then the method's options (``method_options``, its
     ``MethodSpec.options``) in their declared order, each ``-<tag><value>`` (a flag: ``-<tag>``; e.g.
     ``quick-steps200-noba-nosac-depth3``), then ``-set<8 hex>`` when ``sets`` (``KEY=VALUE`` strings,
-    imported priors included) are given: :func:`benchmarks.runner.config_overrides.sets_digest`, the same for the
+    imported priors included) are given: :func:`methods.config_overrides.sets_digest`, the same for the
     same settings in any order. An option in ``options`` that ``method_options`` does not declare is a
     ValueError (:func:`resolve_config` refuses it first, naming its flag)."""
     parts = [preset] + [f"{k}{overrides[k]}" for k in TUNABLE if k in overrides]
@@ -216,7 +216,7 @@ class RunRequest:
     force: bool = False
     """Delete an existing run folder (finished or not) and start again."""
     sets: list[str] = field(default_factory=list)
-    """``KEY=VALUE`` assignments to any config field (``--set``, :mod:`benchmarks.runner.config_overrides`), applied
+    """``KEY=VALUE`` assignments to any config field (``--set``, :mod:`methods.config_overrides`), applied
     after overrides and options; recorded verbatim in config.json."""
     priors: dict[str, str] = field(default_factory=dict)
     """Imported priors: ``PRIOR_OPTIONS`` name (masks, tracks, depth_maps, flow) -> path; each sets its

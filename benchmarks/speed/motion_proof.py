@@ -202,7 +202,7 @@ def priors_rows(
     ``sets``: ``priors.*`` assignments applied to the "after" priors."""
     import dataclasses
 
-    from benchmarks.runner.config_overrides import apply_overrides
+    from methods.config_overrides import apply_overrides
     from worldtree.imageio import read_mask
     from worldtree.priors import PriorsConfig, compute_priors
     from worldtree.priors.config import MotionConfig
@@ -319,7 +319,7 @@ def main(argv: list[str] | None = None) -> None:
     )
     ap.add_argument("--no-before", action="store_true", help="skip the Base (and WorldTree) 'before' runs")
     a = ap.parse_args(argv)
-    from benchmarks.runner.config_overrides import sets_digest
+    from methods.config_overrides import sets_digest
 
     after_sets = AFTER_SETS + list(a.sets)
     after_tag = f"{a.preset}-after-s{a.seed}" + (f"-{sets_digest(a.sets)}" if a.sets else "")

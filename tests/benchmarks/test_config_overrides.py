@@ -1,4 +1,4 @@
-"""`--set KEY=VALUE` parsing (benchmarks.runner.config_overrides): every supported annotation, nested frozen
+"""`--set KEY=VALUE` parsing (methods.config_overrides): every supported annotation, nested frozen
 dataclasses, errors naming the key, __post_init__ checks, and the run-folder tag of a set list."""
 
 from __future__ import annotations
@@ -11,8 +11,8 @@ from typing import Literal
 
 import pytest
 
-from benchmarks.runner.config_overrides import apply_overrides, canonical_sets, sets_digest
 from benchmarks.runner.runs import run_tag
+from methods.config_overrides import apply_overrides, canonical_sets, sets_digest
 from methods.registry import get_method
 from worldtree.errors import UserError
 

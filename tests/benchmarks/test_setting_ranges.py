@@ -11,8 +11,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from benchmarks.runner.config_overrides import field_types
 from benchmarks.runner.runs import RunRequest, execute, resolve_config
+from methods.config_overrides import field_types
 from methods.registry import get_method, list_methods
 from worldtree.config_ranges import Range, config_problems, range_of
 from worldtree.errors import UserError
