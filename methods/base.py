@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import dataclasses
 import io
+import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -42,7 +43,7 @@ from methods.stages import Ablation, Stage, run_stages, with_ablations
 from methods.static3dgs import scene_extent
 from worldtree.atomic import atomic_write_bytes, atomic_write_json
 from worldtree.budget import node_budget
-from worldtree.dynamic import DynamicGaussians, gaussians_at
+from worldtree.dynamic import DynamicGaussians, between, gaussians_at
 from worldtree.errors import UserError
 from worldtree.gaussian_frame import GaussianFrame, RenderMode, render_frame
 from worldtree.gaussians import GaussianSet
@@ -587,6 +588,15 @@ def stage_test_pose(s: BaseState) -> None:
     s.info["test_pose_l1_after"] = res.loss_after
 
 
+def bracket_time(time: float, frames: int) -> tuple[int, float]:
+    """``(a, frac)``: ``time`` as ``a + frac`` with ``a`` a training frame and ``0 <= frac < 1``, clamped to the
+    ``frames`` training frames (``frac`` 0 at and beyond either end)."""
+    if time <= 0 or time >= frames - 1:
+        return (0 if time <= 0 else frames - 1), 0.0
+    a = math.floor(time)
+    return a, float(time - a)
+
+
 #: The Base method: its stages in order (``ablate`` replaces ``ba`` / ``sw`` by their ablated forms; ``prune``
 #: runs only with the Gaussian budget on).
 BASE_STAGES: tuple[Stage, ...] = (
@@ -717,8 +727,40 @@ class BaseMethod:
             t, m.detach(), q.detach(), ls.detach(), o.detach(), sh0.detach(), dyn, sim3, node=node
         )
 
-    def node_at(self, time: int) -> int | None:
+    def node_at(self, time: float) -> int | None:
         return None
+
+    @torch.no_grad()
+    def render_between(
+        self, K: torch.Tensor, w2c: torch.Tensor, width: int, height: int, time: float
+    ) -> torch.Tensor:
+        """``[height, width, 3]`` at a fractional ``time`` between training frames ``a = floor(time)`` and
+        ``a + 1`` (:meth:`methods.registry.Method.render_between`): every Gaussian between its positions at the
+        two frames (:func:`worldtree.dynamic.between`; means interpolated, rotations nlerped), the dynamic
+        opacities evaluated at ``time`` (they change with it only under temporal opacity; static Gaussians are
+        the same at both). The camera goes through the Sim(3) alignment, as a non-test camera in :meth:`render`.
+        An integer ``time`` (or one outside the training frames) is :meth:`render` of the nearest frame."""
+        a, frac = bracket_time(time, self.state.scene.num_frames)
+        if frac == 0.0:
+            return self.render(K, w2c, width, height, a)
+        ga, gb, o = self._between_lists(a, time)
+        m, q, ls, o, c = between(ga, gb, o, frac)
+        pose = self.model_w2c(w2c, a)
+        out = rasterize(m, q, ls, o, c, K.to(self.device, torch.float32), pose, width, height,
+                        backend=self.cfg.photometric.backend)  # fmt: skip
+        return out.rgb.clamp(0.0, 1.0)
+
+    def _between_lists(self, a: int, time: float) -> tuple[tuple, tuple, torch.Tensor]:
+        """The render lists at frames ``a`` and ``a + 1`` and the ``[N]`` opacities at ``time`` in between."""
+        s = self.state
+        if s.gaussians_at is None:
+            raise RuntimeError("render_between before fit (or load_model)")
+        ga = s.gaussians_at(a)
+        static, dynamic = self._model_sets()
+        o = ga[3]
+        if o.shape[0] == len(static) + len(dynamic):
+            o = torch.cat([o[: len(static)], dynamic.opacities_at(time)])
+        return ga, s.gaussians_at(a + 1), o
 
     def _model_sets(self) -> tuple[GaussianSet, DynamicGaussians]:
         """The fitted (or loaded) static and dynamic sets."""

@@ -14,6 +14,7 @@ Every config dataclass has the fields of :class:`CommonConfig` (``seed``, ``step
 from __future__ import annotations
 
 import importlib
+import math
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field, fields
 from pathlib import Path
@@ -130,13 +131,62 @@ class Method(Protocol):
         camera placed by :meth:`model_w2c`."""
         ...
 
-    def node_at(self, time: int) -> int | None:
-        """The tree node that draws ``time`` (WorldTree; 1 = root), None for a method without a tree."""
+    def node_at(self, time: float) -> int | None:
+        """The tree node that draws ``time`` (WorldTree; 1 = root), None for a method without a tree. A
+        fractional ``time`` names the node that :meth:`render_between` draws it with."""
+        ...
+
+    # Leave-one-out (benchmarks.evaluation.leave_one_out): a time the method never trained on. Optional: for a
+    # method without it the harness renders the nearer trained frame (:func:`render_between`).
+    def render_between(
+        self, K: torch.Tensor, w2c: torch.Tensor, width: int, height: int, time: float
+    ) -> torch.Tensor:
+        """Image ``[height, width, 3]`` in [0, 1] of camera ``K``/``w2c`` (scene frame, placed as
+        :meth:`model_w2c` places a camera that is neither a test view nor a training frame) at a fractional
+        ``time`` between the training frames ``floor(time)`` and ``floor(time) + 1`` (``2.5``: halfway between
+        frames 2 and 3); an integer ``time`` is that frame, as :meth:`render` draws it. A method with motion
+        draws its own motion there (Base: every Gaussian between its two positions); one that cannot interpolate
+        draws the nearer trained frame, the later one at exactly halfway (:func:`nearer_frame`), as the harness
+        does for a method without this."""
         ...
 
     def stats(self) -> dict[str, Any]:
         """Numbers for ``timing.json``: at least ``num_gaussians`` and ``backend``."""
         ...
+
+
+def nearer_frame(time: float) -> int:
+    """The training frame nearest to ``time``; exactly halfway between two frames, the later one."""
+    return math.floor(time + 0.5)
+
+
+def render_between(
+    method: Method, K: torch.Tensor, w2c: torch.Tensor, width: int, height: int, time: float
+) -> torch.Tensor:
+    """``method.render_between(...)`` (:meth:`Method.render_between`), or for a method without it its
+    :meth:`Method.render` at the :func:`nearer_frame`."""
+    own = getattr(method, "render_between", None)
+    if callable(own):
+        return own(K, w2c, width, height, time)
+    return method.render(K, w2c, width, height, nearer_frame(time))
+
+
+def render_training_frame(
+    method: Method, K: torch.Tensor, w2c: torch.Tensor, width: int, height: int, frame: int
+) -> torch.Tensor:
+    """``[height, width, 3]`` of training frame ``frame`` through the camera the method trained it with
+    (:meth:`Method.render_mode` with ``frame``: a fitted pose where the method refines its cameras), or
+    :meth:`Method.render` of the given camera for a method without ``render_mode``."""
+    own = getattr(method, "render_mode", None)
+    if callable(own):
+        return own(K, w2c, width, height, frame, "rgb", frame=frame)
+    return method.render(K, w2c, width, height, frame)
+
+
+def node_at(method: Method, time: float) -> int | None:
+    """``method.node_at(time)``, None for a method without it."""
+    own = getattr(method, "node_at", None)
+    return own(time) if callable(own) else None
 
 
 @dataclass(frozen=True)

@@ -376,8 +376,15 @@ class StaticGaussians(DensifiedGaussianTrainable):
         return render_frame(self.gaussians_at(time), K, self.model_w2c(w2c, time), width, height, mode,
                             self.cfg.backend, self.background)  # fmt: skip
 
-    def node_at(self, time: int) -> int | None:
+    def node_at(self, time: float) -> int | None:
         return None
+
+    @torch.no_grad()
+    def render_between(
+        self, K: torch.Tensor, w2c: torch.Tensor, width: int, height: int, time: float
+    ) -> torch.Tensor:
+        """:meth:`render`: the one model draws every time the same, a time it never trained on included."""
+        return self.render(K, w2c, width, height, 0)
 
     def stats(self) -> dict[str, Any]:
         return {

@@ -45,6 +45,7 @@ from methods.base import (
     BaseConfig,
     BaseMethod,
     BaseState,
+    bracket_time,
     paper_config,
     quick_config,
     smoke_config,
@@ -56,7 +57,7 @@ from methods.stages import Ablation, Stage
 from worldtree.atomic import atomic_write_json
 from worldtree.budget import BudgetConfig, inherited_prune_due, negligible
 from worldtree.config_json import read_config, write_config
-from worldtree.dynamic import gaussians_at, halfway
+from worldtree.dynamic import between, gaussians_at, halfway
 from worldtree.errors import UserError
 from worldtree.gaussians import GaussianSet, inverse_sigmoid
 from worldtree.optim import GroupedAdam, ScaledLR
@@ -81,7 +82,7 @@ from worldtree.tree.sac import (
     truncate_chain,
 )
 from worldtree.tree.split import SPLIT_STRATEGIES, ProfileAccumulator, flow_profile
-from worldtree.tree.tpt import Interval, TemporalPartitionTree, depth_of
+from worldtree.tree.tpt import Interval, TemporalPartitionTree, depth_of, parent
 from worldtree.tree.validate import HoldoutConfig, Verdict, holdout_frames, keep_child
 
 __all__ = ["ABLATIONS", "NodeFit", "NodeTrainConfig", "WorldTreeConfig", "WorldTreeMethod", "train_node"]
@@ -638,6 +639,34 @@ def _node_at(s: WorldTreeState, t: int) -> int:
     return j
 
 
+def tree_node_between(tree: TemporalPartitionTree, a: int) -> int:
+    """Index of the node of ``tree`` that renders the time between frames ``a`` and ``a + 1``: the deepest node
+    covering ``a`` whose interval also holds ``a + 1`` (its parent chain is walked up when a split falls
+    between them)."""
+    j = tree.covering(a)
+    while j != 1 and not tree.interval(j).contains(a + 1):
+        j = parent(j)
+    return j
+
+
+def node_between(s: WorldTreeState, a: int) -> int:
+    """The node that draws the time between frames ``a`` and ``a + 1``: :func:`tree_node_between` (the root
+    without a tree), its parent where it has no trained state (as :func:`_node_at`)."""
+    j = tree_node_between(s.tree, a) if s.tree is not None else 1
+    while j > 1 and j not in s.states:
+        j //= 2
+    return j
+
+
+def node_opacities_at(st: NodeState, a: int, frac: float, chain_length: int | None) -> torch.Tensor:
+    """``[N]`` opacities of tree node ``st``'s render list (static, own dynamic, ancestors nearest first) at the
+    time ``a + frac`` (global frames), each set's at its own local time: the temporal falloff evaluated there
+    (as the Base method's ``render_between``), not the average of the two frames'."""
+    parts = [st.static.opacities, st.dynamic.opacities_at(st.local_time(a) + frac)]
+    parts += [c.dynamic.opacities_at(c.local_time(a) + frac) for c in truncate_chain(st.chain, chain_length)]
+    return torch.cat(parts)
+
+
 def _tree_gaussians(s: WorldTreeState):
     """``gaussians_at(t)``: the deepest node covering frame ``t`` with its chain (``chain_length``)."""
 
@@ -833,9 +862,35 @@ class WorldTreeMethod(BaseMethod):
                 self.state.runner = None
 
     # ------------------------------------------------------------------ outputs
-    def node_at(self, time: int) -> int | None:
-        """The tree node (1 = root) that renders ``time`` (clamped to the training frames)."""
-        return _node_at(self.state, time)
+    def node_at(self, time: float) -> int | None:
+        """The tree node (1 = root) that renders ``time`` (clamped to the training frames); for a fractional
+        ``time``, the node that :meth:`render_between` draws it with (:func:`node_between`)."""
+        a, frac = bracket_time(time, self.state.scene.num_frames)
+        return _node_at(self.state, a) if frac == 0.0 else node_between(self.state, a)
+
+    @torch.no_grad()
+    def render_between(
+        self, K: torch.Tensor, w2c: torch.Tensor, width: int, height: int, time: float
+    ) -> torch.Tensor:
+        """The Base method's :meth:`~methods.base.BaseMethod.render_between`, drawn by the node that holds both
+        frames ``a = floor(time)`` and ``a + 1`` (:func:`node_between`) with its chain (``chain_length``),
+        every Gaussian between its two positions and the opacities at ``time``, each set's at its own local
+        time (:func:`node_opacities_at`)."""
+        s = self.state
+        a, frac = bracket_time(time, s.scene.num_frames)
+        if frac == 0.0:
+            return self.render(K, w2c, width, height, a)
+        j = node_between(s, a)
+        st = s.states[j]
+        if j not in s.caches:
+            s.caches[j] = st.dynamic.attach(st.scaffold)
+        ga = st.gaussians_at(a, s.cfg.chain_length, s.caches[j])
+        gb = st.gaussians_at(a + 1, s.cfg.chain_length, s.caches[j])
+        m, q, ls, o, c = between(ga, gb, node_opacities_at(st, a, frac, s.cfg.chain_length), frac)
+        pose = self.model_w2c(w2c, a)
+        out = rasterize(m, q, ls, o, c, K.to(self.device, torch.float32), pose, width, height,
+                        backend=s.cfg.photometric.backend)  # fmt: skip
+        return out.rgb.clamp(0.0, 1.0)
 
     def _frame_colours(self, t: int) -> tuple[torch.Tensor, int, int | None]:
         s = self.state

@@ -157,14 +157,21 @@ def gaussians_at(
     return tuple(torch.cat(xs) for xs in zip(*parts, strict=True))  # type: ignore[return-value]
 
 
-def halfway(ga: RenderList, gb: RenderList, opacities: torch.Tensor) -> RenderList:
-    """The render list halfway between two render lists ``ga``, ``gb`` of the same Gaussians (e.g. one model at
-    frames ``t - 1`` and ``t + 1``): means averaged, rotations nlerped (``gb``'s flipped into ``ga``'s
-    hemisphere first, so antipodal quaternions do not cancel), the given ``opacities`` ``[N]`` (the caller's,
-    at the middle time), log-scales and colours of ``ga``."""
+def between(ga: RenderList, gb: RenderList, opacities: torch.Tensor, frac: float) -> RenderList:
+    """The render list ``frac`` of the way from ``ga`` to ``gb``, two render lists of the same Gaussians (e.g.
+    one model at frames ``t`` and ``t + 1``): means interpolated linearly, rotations nlerped (``gb``'s flipped
+    into ``ga``'s hemisphere first, so antipodal quaternions do not cancel), the given ``opacities`` ``[N]``
+    (the caller's, at that time), log-scales and colours of ``ga``."""
     ma, qa, ls, _, c = ga
     mb, qb, _, _, _ = gb
     qb = torch.where((qa * qb).sum(-1, keepdim=True) < 0, -qb, qb)
-    q = qa + qb
+    q = (1.0 - frac) * qa + frac * qb
     q = q / q.norm(dim=-1, keepdim=True).clamp_min(1e-12)
-    return 0.5 * (ma + mb), q, ls, opacities, c
+    return (1.0 - frac) * ma + frac * mb, q, ls, opacities, c
+
+
+def halfway(ga: RenderList, gb: RenderList, opacities: torch.Tensor) -> RenderList:
+    """:func:`between` at ``frac = 0.5``: means averaged, rotations nlerped, the caller's ``opacities`` at the
+    middle time (e.g. one model at frames ``t - 1`` and ``t + 1`` predicting frame ``t``). Halving is exact in
+    floating point, so this is bit for bit ``(ma + mb) / 2`` and the nlerp of ``qa + qb``."""
+    return between(ga, gb, opacities, 0.5)
