@@ -36,10 +36,6 @@ BENCHMARKS_ORDER = (
 
 #: (importing node, imported node) -> why the edge stays for now.
 ALLOWED = {
-    ("benchmarks.evaluation", "benchmarks.runner"): (
-        "evaluation/leave_one_out.py trains methods and parses --set with runner.config_overrides: it is a "
-        "protocol of the harness, to move above the runner with the method-agnostic leave-one-out (issue 29)"
-    ),
     ("worldtree.motion", "worldtree.dynamic"): (
         "motion/model_tracks.py (a diagnostic of a fitted model, used by benchmarks.speed.motion_proof) reads "
         "dynamic Gaussians, which are skinned by motion.scaffold; to move out of motion/"

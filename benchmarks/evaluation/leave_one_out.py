@@ -1,30 +1,32 @@
 """Leave-one-out scoring on a real capture without its test views (e.g. Balloon1 in the DynamicNeRF layout).
 
 For each held-out training frame k: train a method on the other frames (re-indexed 0..T-2, times kept in
-order), render frame k's camera at time k -- a view and a time the model never saw -- and score it against
-frame k at the method's working size: PSNR on uint8 images, and masked PSNR (`worldtree` protocol: pixels
-outside the mask set to white in both) when the scene has a mask for frame k (``--masks DIR``, one per frame).
+order), render frame k's camera at frame k's time -- a view and a time the model never saw -- and score it
+against frame k at the method's working size: PSNR on the uint8 images, and masked PSNR (the `worldtree`
+protocol's: PSNR of the masked pixels' values) when the scene has a mask for frame k (``--masks DIR``, one
+per frame); both from :mod:`benchmarks.evaluation.metrics`.
 
-Time k lies between the kept frames k-1 and k+1 (new indices k-1 and k), so a method with motion (Base) is
-rendered with every Gaussian at the midpoint of its positions at those two frames (rotations nlerped): the
-model's own motion, interpolated; the static model ignores time. k must have both neighbours (1..T-2). The
-held-out camera's pose is the given one mapped by the method's Sim(3) alignment (no test-time pose
-refinement, which would look at frame k). The kept neighbours k-1 and k+1 are rendered at their own
-training frames too (``k<k>_<method>_prev.png`` / ``_next.png``, ``psnr_train_neighbours``): a blur there
-is a fitting problem, a sharp fit there and a blur at k an interpolation problem. Imported priors (``--depth-maps``, ``--flow``, ``--masks``: the
-folders `nvls import` writes) are re-indexed without frame k (flow pairs touching k are dropped).
+A protocol of the harness, through :class:`methods.registry.Method` alone: frame k's time is ``k - 0.5`` of
+the kept frames (between k-1 and k+1, re-indexed k-1 and k), drawn by the method's ``render_between`` (a
+method without it: its ``render`` of the nearer kept frame, :func:`methods.registry.render_between`); the
+camera is the given one as the method places a camera it did not train with (no test-time pose refinement,
+which would look at frame k). k must have both neighbours (1..T-2). The kept neighbours k-1 and k+1 are
+rendered at their own training frames through the cameras the method trained them with
+(:func:`methods.registry.render_training_frame`; ``k<k>_<method>_prev.png`` / ``_next.png``,
+``psnr_train_neighbours``): a blur there is a fitting problem, a sharp fit there and a blur at k an
+interpolation problem. A method whose ``node_at`` names a tree node records the one that drew time k
+(``tree.rendered_by``). Imported priors (``--depth-maps``, ``--flow``, ``--masks``: the folders `nvls
+import` writes) are re-indexed without frame k (flow pairs touching k are dropped) for a method whose config
+has ``priors``.
 
-WorldTree (``--methods worldtree``) is rendered at time k by the node that covers both kept neighbours: the
-leaf holding them, or, when the tree's split falls between them, the lowest node whose frames hold both (its
-Gaussians exist at both times), with its ancestral chain, halfway as above. A 12-frame
-capture leaves 11 training frames and the tree splits a node only when it has at least ``min_len`` (12)
-frames, so by default the tree is the root alone (the Base stages); ``--set min_len=11`` gives the one split
-the full 12 frames would get (two children of 5 and 6 frames).
+What each method draws between two frames is its own (its ``render_between``; this repository's methods:
+docs/evaluation.md).
 
 Usage (results appended to OUT/loo.json; a finished (label, k, method) result is reused only when it was
 computed with the same configuration -- preset, steps, seed, downscale, every ``--set``, the depth options,
 the scene and the prior folders, hashed into its ``config_key`` -- so an interrupted run resumes and a changed
-one computes again; ``--set`` keys are checked like ``wtbench run``'s, before any work)::
+one computes again; ``--set`` keys are checked like ``wtbench run``'s, before any work; ``--set
+NAME:KEY=VALUE`` and ``--NAME-steps N`` change one method's config only)::
 
     nice python -m benchmarks.evaluation.leave_one_out SCENE --frames 3,6,9 --methods static,base -o runs/loo \\
         [--preset quick] [--steps N] [--depth-maps DIR --depth-kind disparity --depth-fit] [--flow DIR]
@@ -50,9 +52,9 @@ import numpy as np
 import torch
 
 import worldtree
+from methods.registry import list_methods, node_at, render_between, render_training_frame
 from worldtree.atomic import atomic_write_json
 from worldtree.device import pick_device
-from worldtree.dynamic import halfway
 from worldtree.errors import UserError
 from worldtree.imageio import read_mask, write_image
 from worldtree.scene import Scene, load_scene
@@ -104,108 +106,21 @@ def subset_priors(folders: dict[str, Path], k: int, T: int, tmp: Path) -> dict[s
     return out
 
 
-def psnr_u8(a: np.ndarray, b: np.ndarray) -> float:
-    """PSNR (dB) of two uint8 images, peak 255."""
-    mse = float(np.mean((a.astype(np.float64) - b.astype(np.float64)) ** 2))
-    return float("inf") if mse == 0 else 10.0 * np.log10(255.0**2 / mse)
+def score(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray | None = None) -> float | None:
+    """PSNR (dB, peak 255) of two uint8 images ``[H, W, 3]`` (:func:`benchmarks.evaluation.metrics.psnr`); with
+    ``mask`` ``[H, W]``, the `worldtree` protocol's mPSNR, PSNR of the masked pixels' values
+    (:func:`~benchmarks.evaluation.metrics.masked_psnr`), None for an empty mask."""
+    from benchmarks.evaluation.metrics import masked_psnr, psnr
 
-
-def masked_psnr_u8(a: np.ndarray, b: np.ndarray, mask: np.ndarray) -> float | None:
-    """The `worldtree` protocol's mPSNR: pixels outside ``mask`` [H, W] white in both, PSNR over the masked
-    pixels' values; None for an empty mask."""
-    if not mask.any():
-        return None
-    return psnr_u8(a[mask], b[mask])
-
-
-@torch.no_grad()
-def render_between(
-    method, K: torch.Tensor, w2c: torch.Tensor, width: int, height: int, a: int
-) -> torch.Tensor:
-    """``[H, W, 3]`` of a Base-family model halfway between its frames ``a`` and ``a + 1``: every Gaussian at
-    the midpoint of its two positions, rotations nlerped, dynamic opacities at time ``a + 0.5`` (static
-    Gaussians are the same at both)."""
-    from worldtree.render import rasterize
-
-    fit = method.state.fit
-    ga = fit.gaussians_at(a)
-    o = ga[3]
-    n_s, n_d = len(fit.static), len(fit.dynamic)
-    if o.shape[0] == n_s + n_d:  # the dynamic opacities halfway too (they change only with temporal opacity)
-        o = torch.cat([o[:n_s], fit.dynamic.opacities_at(a + 0.5)])
-    m, q, ls, o, c = halfway(ga, fit.gaussians_at(a + 1), o)
-    pose = method.state.sim3.apply_w2c(w2c.to(method.device, torch.float32))
-    out = rasterize(m, q, ls, o, c, K.to(method.device, torch.float32), pose, width, height,
-                    backend=fit.cfg.backend)  # fmt: skip
-    return out.rgb.clamp(0.0, 1.0)
-
-
-def node_opacities_halfway(st, a: int, chain_length: int | None) -> torch.Tensor:
-    """``[N]`` opacities of tree node ``st``'s render list (static, own dynamic, ancestors nearest first) at
-    the half-frame time ``a + 0.5`` (global frames), each set at its own local time: the temporal falloff
-    evaluated there, as Base's :func:`render_between` does, rather than the average of the two frames'."""
-    from worldtree.tree.sac import truncate_chain
-
-    parts = [st.static.opacities, st.dynamic.opacities_at(st.local_time(a) + 0.5)]
-    parts += [c.dynamic.opacities_at(c.local_time(a) + 0.5) for c in truncate_chain(st.chain, chain_length)]
-    return torch.cat(parts)
-
-
-def tree_node_between(tree, a: int) -> int:
-    """Index of the node that renders the time between frames ``a`` and ``a + 1``: the deepest node covering
-    ``a`` whose interval also holds ``a + 1`` (its parent chain is walked up when a split falls between)."""
-    from worldtree.tree.tpt import parent
-
-    j = tree.covering(a)
-    while j != 1 and not tree.interval(j).contains(a + 1):
-        j = parent(j)
-    return j
-
-
-@torch.no_grad()
-def render_between_tree(
-    method, K: torch.Tensor, w2c: torch.Tensor, width: int, height: int, a: int
-) -> torch.Tensor:
-    """``[H, W, 3]`` of a WorldTree model halfway between its frames ``a`` and ``a + 1``, rendered by
-    :func:`tree_node_between`'s node with its chain (``chain_length``), every Gaussian halfway (opacities at
-    the half-frame time, :func:`node_opacities_halfway`)."""
-    from worldtree.render import rasterize
-
-    s = method.state
-    j = tree_node_between(s.tree, a)
-    st = s.states[j]
-    if j not in s.caches:
-        s.caches[j] = st.dynamic.attach(st.scaffold)
-    ga = st.gaussians_at(a, s.cfg.chain_length, s.caches[j])
-    gb = st.gaussians_at(a + 1, s.cfg.chain_length, s.caches[j])
-    m, q, ls, o, c = halfway(ga, gb, node_opacities_halfway(st, a, s.cfg.chain_length))
-    pose = s.sim3.apply_w2c(w2c.to(method.device, torch.float32))
-    out = rasterize(m, q, ls, o, c, K.to(method.device, torch.float32), pose, width, height,
-                    backend=s.cfg.photometric.backend)  # fmt: skip
-    return out.rgb.clamp(0.0, 1.0)
-
-
-@torch.no_grad()
-def render_training_frame(method, sub: Scene, t: int) -> torch.Tensor:
-    """``[H, W, 3]`` of the trained model at its own training frame ``t`` (of ``sub``), through the camera it
-    trained with: the optimised pose for a Base-family model, the given one otherwise."""
-    from worldtree.render import rasterize
-
-    H, W = sub.height, sub.width
-    state = getattr(method, "state", None)
-    fit = getattr(state, "fit", None)  # a Base-family method's photometric fit
-    if fit is not None and getattr(state, "tree", None) is not None:  # WorldTree: the covering node renders
-        m, q, ls, o, c = state.gaussians_at(t)
-        out = rasterize(m, q, ls, o, c, sub.Ks[t].to(method.device, torch.float32), fit.cameras()[t], W, H,
-                        backend=state.cfg.photometric.backend)  # fmt: skip
-        return out.rgb.clamp(0.0, 1.0)
-    if fit is not None and hasattr(fit, "cameras"):
-        out = fit.render(sub.Ks[t].to(method.device, torch.float32), fit.cameras()[t], W, H, t)
-        return out.rgb.clamp(0.0, 1.0)
-    return method.render(sub.Ks[t], sub.w2cs[t], W, H, t)
+    a, b = (torch.from_numpy(np.ascontiguousarray(x))[None] for x in (pred, gt))
+    if mask is None:
+        return float(psnr(a, b, 255.0)[0])
+    value = float(masked_psnr(a, b, torch.from_numpy(np.ascontiguousarray(mask))[None], 255.0)[0])
+    return None if np.isnan(value) else value
 
 
 def _to_u8(img: torch.Tensor) -> np.ndarray:
+    """``[H, W, 3]`` in [0, 1] -> uint8, rounded: every score is on the 8-bit images, as written to disk."""
     return np.clip(np.round(img.detach().cpu().numpy() * 255.0), 0, 255).astype(np.uint8)
 
 
@@ -231,31 +146,24 @@ def run_one(args, spec, cfg, scene: Scene, k: int, device, prior_dirs: dict[str,
         train_s = time.perf_counter() - t0
     H, W = scene.height, scene.width
     K, w2c = scene.Ks[k], scene.w2cs[k]
-    row_tree = None
-    state = getattr(method, "state", None)  # a Base-family method (methods.base.BaseState)
-    if getattr(state, "tree", None) is not None and getattr(state, "sim3", None) is not None:
-        img = render_between_tree(method, K, w2c, W, H, k - 1)
-        row_tree = {"tree_nodes": sorted(state.states), "rendered_by": tree_node_between(state.tree, k - 1)}
-        auto = (getattr(state, "info", None) or {}).get("tree", {}).get("auto")
-        if auto is not None:  # --depth auto: what the criterion measured and decided, per node
-            row_tree["auto"] = auto
-    elif getattr(state, "fit", None) is not None and getattr(state, "sim3", None) is not None:
-        img = render_between(method, K, w2c, W, H, k - 1)
-    else:
-        img = method.render(K, w2c, W, H, k)
-    pred, gt = _to_u8(img), _to_u8(scene.images[k])
+    t_k = k - 0.5  # frame k's time: halfway between the kept frames k-1 and k+1, re-indexed k-1 and k
+    pred, gt = _to_u8(render_between(method, K, w2c, W, H, t_k)), _to_u8(scene.images[k])
     write_image(out / f"k{k:02d}_{spec.name}.png", pred)
-    row = {"k": k, "method": spec.name, "psnr": psnr_u8(pred, gt), "train_s": round(train_s, 1)}
-    if row_tree is not None:
-        row["tree"] = row_tree
+    row = {"k": k, "method": spec.name, "psnr": score(pred, gt), "train_s": round(train_s, 1)}
+    stats = method.stats()
+    node = node_at(method, t_k)
+    if node is not None:  # a method with a tree: the node that drew time k, the tree's nodes and decisions
+        tree = stats.get("tree") if isinstance(stats.get("tree"), dict) else {}
+        row["tree"] = {"tree_nodes": tree.get("nodes"), "rendered_by": node}
+        if tree.get("auto") is not None:  # --depth auto: what the criterion measured and decided, per node
+            row["tree"]["auto"] = tree["auto"]
     # How well the kept neighbours themselves are fitted: a blur at time k that is already a blur at k-1 and
     # k+1 is a fitting problem, a sharp fit there and a blur at k an interpolation problem.
     row["psnr_train_neighbours"] = {}
     for side, t in (("prev", k - 1), ("next", k)):
-        fit_img = render_training_frame(method, sub, t)
-        got = _to_u8(fit_img)
+        got = _to_u8(render_training_frame(method, sub.Ks[t], sub.w2cs[t], W, H, t))
         write_image(out / f"k{k:02d}_{spec.name}_{side}.png", got)
-        row["psnr_train_neighbours"][side] = psnr_u8(got, _to_u8(sub.images[t]))
+        row["psnr_train_neighbours"][side] = score(got, _to_u8(sub.images[t]))
     if args.masks is not None:
         files = sorted(p for p in Path(args.masks).iterdir() if p.is_file())
         m = read_mask(files[k])
@@ -263,8 +171,7 @@ def run_one(args, spec, cfg, scene: Scene, k: int, device, prior_dirs: dict[str,
             import cv2
 
             m = cv2.resize(m.astype(np.uint8) * 255, (W, H), interpolation=cv2.INTER_NEAREST) > 127
-        row["mpsnr"] = masked_psnr_u8(pred, gt, m)
-    stats = method.stats()
+        row["mpsnr"] = score(pred, gt, m)
     row["stats"] = {
         key: stats[key]
         for key in ("num_static", "num_dynamic", "scaffold_nodes_final", "migration")
@@ -288,7 +195,9 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("-o", "--out", type=Path, default=Path("runs/loo"))
     ap.add_argument("--preset", default="quick")
     ap.add_argument("--steps", type=int, default=None, help="Override the steps of every method.")
-    ap.add_argument("--static-steps", type=int, default=None, help="Override the static method's steps only.")
+    for spec in list_methods():  # --static-steps, --base-steps, ...: one method's steps (--set NAME:steps=N)
+        ap.add_argument(f"--{spec.name}-steps", type=int, default=None, metavar="N", dest=f"steps_of:{spec.name}",
+                        help=f"Override the steps of method {spec.name} only.")  # fmt: skip
     ap.add_argument("--seed", type=int, default=None)
     ap.add_argument("--downscale", type=int, default=None, help="Override the preset's image shrink.")
     ap.add_argument("--device", default="auto")
@@ -302,13 +211,15 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument(
         "--set", dest="sets", action="append", default=[], metavar="KEY=VALUE",
         help="Change a config field of the methods that have it (as wtbench run --set); repeatable. A key "
-        "no method of --methods has is an error.",
+        "no method of --methods has is an error. NAME:KEY=VALUE changes it for method NAME only (over the "
+        "common options: --set NAME:steps=N is --NAME-steps N).",
     )  # fmt: skip
     ap.add_argument(
         "--label", default="", help="Name of this configuration in the results (e.g. before/after)."
     )
     ap.add_argument("--progress", action="store_true")
     args = ap.parse_args(argv)
+    args.method_steps = {spec.name: getattr(args, f"steps_of:{spec.name}") for spec in list_methods()}
 
     from worldtree.folder_lock import FolderLock
     from worldtree.output_paths import check_output_folder
@@ -360,42 +271,79 @@ _OWN_OPTIONS = {"steps": "--steps", "seed": "--seed", "downscale": "--downscale"
                 "priors.masks_source": "--masks"}  # fmt: skip
 
 
+def split_scope(item: str) -> tuple[str | None, str]:
+    """``"NAME:KEY=VALUE"`` -> ``("NAME", "KEY=VALUE")``, a ``--set`` for method NAME only; an item without a
+    ``:`` before its ``=`` -> ``(None, item)``, a ``--set`` for every method that has KEY."""
+    if ":" not in item.partition("=")[0]:
+        return None, item
+    name, _, rest = item.partition(":")
+    return name.strip(), rest
+
+
 def resolve_configs(args) -> list[tuple]:
     """``(spec, config)`` of every method of ``--methods``: the preset, ``--steps``/``--seed``/
-    ``--downscale``, the ``--set`` assignments of the fields each method has, ``--static-steps`` and the
+    ``--downscale``, the ``--set KEY=VALUE`` assignments of the fields each method has, then its own ``--set
+    NAME:KEY=VALUE`` (and ``--NAME-steps``; these may override the common options for that method), and the
     depth import options. Like ``wtbench run``: a ``--set`` key that no method has, a malformed or repeated
     one, one that has its own option, a value that does not parse or a setting outside its range
     (:mod:`worldtree.config_ranges`) is a one-line :class:`UserError`, before any work."""
-    from benchmarks.runner.config_overrides import apply_overrides, canonical_sets, split_assignment
+    from methods.config_overrides import apply_overrides, canonical_sets, split_assignment
     from methods.registry import get_method
     from worldtree.config_ranges import check_config_ranges
 
-    canonical_sets(args.sets)  # malformed items, keys given twice
-    own = {"steps": args.steps, "seed": args.seed, "downscale": args.downscale,
-           "priors.depth_source": args.depth_maps, "priors.flow_source": args.flow,
-           "priors.masks_source": args.masks}  # fmt: skip
-    for item in args.sets:
-        key, _ = split_assignment(item)
-        if own.get(key) is not None:
-            raise UserError(f"--set {item}: {key} is also given by {_OWN_OPTIONS[key]}; keep one of them")
     names = [n.strip() for n in args.methods.split(",") if n.strip()]
     if not names:
         raise UserError(f"--methods {args.methods!r}: give method names, e.g. static,base")
+    common, scoped = [], {n: {} for n in names}  # scoped: method -> {KEY=VALUE: how it was given}
+    for item in args.sets:
+        name, rest = split_scope(item)
+        if name is None:
+            common.append(item)
+        elif name not in scoped:
+            raise UserError(f"--set {item}: {name!r} is not among --methods {','.join(names)}")
+        else:
+            scoped[name][rest] = f"--set {item}"
+    for name, steps in sorted((getattr(args, "method_steps", None) or {}).items()):
+        if steps is None:
+            continue
+        if name not in scoped:
+            raise UserError(f"--{name}-steps {steps}: {name!r} is not among --methods {','.join(names)}")
+        scoped[name][f"steps={steps}"] = f"--{name}-steps {steps}"
+    canonical_sets(common)  # malformed items, keys given twice
+    own = {"steps": args.steps, "seed": args.seed, "downscale": args.downscale,
+           "priors.depth_source": args.depth_maps, "priors.flow_source": args.flow,
+           "priors.masks_source": args.masks}  # fmt: skip
+    for item in common:
+        key, _ = split_assignment(item)
+        if own.get(key) is not None:
+            raise UserError(f"--set {item}: {key} is also given by {_OWN_OPTIONS[key]}; keep one of them")
+    for name, items in scoped.items():
+        for rest, how in items.items():
+            key, _ = split_assignment(rest)
+            if key.startswith("priors.") and own.get(key) is not None:  # a prior folder: its option alone
+                raise UserError(f"{how}: {key} is also given by {_OWN_OPTIONS[key]}; keep one of them")
+        try:
+            canonical_sets(list(items))
+        except UserError as e:
+            raise UserError(f"{e} (method {name}: --set {name}:KEY=VALUE or --{name}-steps)") from None
     options = {"steps": args.steps, "seed": args.seed, "downscale": args.downscale}
     plans, owned = [], set()
     for name in names:
         spec = get_method(name)
         cfg = spec.config(args.preset)
         cfg = dataclasses.replace(cfg, **{k: v for k, v in options.items() if v is not None})
-        mine = [item for item in args.sets if _has_field(cfg, split_assignment(item)[0])]
+        mine = [item for item in common if _has_field(cfg, split_assignment(item)[0])]
         owned |= set(mine)
         if mine:
             cfg = apply_overrides(cfg, mine)
         given = {split_assignment(item)[0]: f"--set {item}" for item in mine}
         given |= {k: f"--{k} {v}" for k, v in options.items() if v is not None}
-        if spec.name == "static" and args.static_steps is not None:
-            cfg = dataclasses.replace(cfg, steps=args.static_steps)
-            given["steps"] = f"--static-steps {args.static_steps}"
+        if scoped[name]:
+            try:
+                cfg = apply_overrides(cfg, list(scoped[name]))
+            except UserError as e:
+                raise UserError(f"{e} (method {name})") from None
+            given |= {split_assignment(rest)[0]: how for rest, how in scoped[name].items()}
         if hasattr(cfg, "priors"):
             cfg = dataclasses.replace(
                 cfg, priors=dataclasses.replace(cfg.priors, depth_import=dataclasses.replace(
@@ -405,7 +353,7 @@ def resolve_configs(args) -> list[tuple]:
                 raise UserError(f"{given.get(k, f'setting {k}')}: must be at least 1")
         check_config_ranges(cfg, given)
         plans.append((spec, cfg))
-    for item in args.sets:
+    for item in common:
         if item not in owned:
             try:  # the first method's message names its fields and the closest one
                 apply_overrides(plans[0][1], [item])

@@ -1,4 +1,6 @@
-"""Leave-one-out scoring pieces: the held-out frame leaves the scene and its priors; the scores are PSNRs."""
+"""Leave-one-out scoring pieces: the held-out frame leaves the scene and its priors; the scores are PSNRs of
+`benchmarks.evaluation.metrics`; what is rendered comes from the `Method` protocol (render_between, node_at,
+render_mode with the training frame), implemented by each method."""
 
 from __future__ import annotations
 
@@ -6,7 +8,7 @@ import numpy as np
 import torch
 from skimage.metrics import peak_signal_noise_ratio
 
-from benchmarks.evaluation.leave_one_out import drop_frame, masked_psnr_u8, psnr_u8, subset_priors
+from benchmarks.evaluation.leave_one_out import drop_frame, score, subset_priors
 from benchmarks.fixtures.planar_scene import PlanarScene, PlanarSceneConfig
 
 
@@ -34,49 +36,59 @@ def test_subset_priors_drops_and_renames(tmp_path):
     assert [float(np.load(p)[0, 0]) for p in sorted(out["depth"].iterdir())] == [0.0, 1.0, 3.0]
 
 
-def test_psnr_against_scikit_image():
+def test_scores_against_scikit_image_and_the_old_uint8_formula():
     rng = np.random.default_rng(1)
     a = rng.integers(0, 256, (20, 30, 3), dtype=np.uint8)
     b = np.clip(a.astype(int) + rng.integers(-20, 21, a.shape), 0, 255).astype(np.uint8)
-    np.testing.assert_allclose(psnr_u8(a, b), peak_signal_noise_ratio(a, b, data_range=255), rtol=1e-9)
+    np.testing.assert_allclose(score(a, b), peak_signal_noise_ratio(a, b, data_range=255), rtol=1e-9)
+    # The formula the harness had before it scored with evaluation.metrics: the same float64 MSE.
+    mse = float(np.mean((a.astype(np.float64) - b.astype(np.float64)) ** 2))
+    np.testing.assert_allclose(score(a, b), 10.0 * np.log10(255.0**2 / mse), rtol=1e-12)
     m = np.zeros((20, 30), bool)
     m[5:10, 3:20] = True
-    np.testing.assert_allclose(masked_psnr_u8(a, b, m), peak_signal_noise_ratio(a[m], b[m], data_range=255))
-    assert masked_psnr_u8(a, b, np.zeros_like(m)) is None
+    np.testing.assert_allclose(score(a, b, m), peak_signal_noise_ratio(a[m], b[m], data_range=255))
+    assert score(a, b, np.zeros_like(m)) is None
+    assert score(a, a) == float("inf")
 
 
 def test_training_frame_render_uses_the_camera_the_model_trained_with():
-    from types import SimpleNamespace
-
-    from benchmarks.evaluation.leave_one_out import render_training_frame
+    from methods.registry import render_training_frame
 
     sc = PlanarScene(PlanarSceneConfig(width=16, height=12, num_frames=4, supersample=1)).to_scene()
     seen = []
-    optimised = torch.eye(4).repeat(4, 1, 1) * 2.0  # distinguishable from every given pose
 
-    def fit_render(K, w2c, W, H, t):
-        seen.append(("fit", w2c.clone(), W, H, t))
-        return SimpleNamespace(rgb=torch.full((H, W, 3), 2.0))  # clamped to 1 by the caller
+    class Fitted:  # a method that refines its cameras: render_mode places training frame `frame` itself
+        def render_mode(self, K, w2c, W, H, t, mode="rgb", test_view=False, frame=None):
+            seen.append(("mode", t, mode, test_view, frame))
+            return torch.zeros(H, W, 3)
 
-    base_like = SimpleNamespace(
-        state=SimpleNamespace(fit=SimpleNamespace(cameras=lambda: optimised, render=fit_render)),
-        device=torch.device("cpu"),
-    )
-    img = render_training_frame(base_like, sc, 2)
-    assert img.shape == (12, 16, 3) and float(img.max()) == 1.0
-    assert seen[-1][0] == "fit" and torch.equal(seen[-1][1], optimised[2]) and seen[-1][4] == 2
+    img = render_training_frame(Fitted(), sc.Ks[2], sc.w2cs[2], 16, 12, 2)
+    assert img.shape == (12, 16, 3) and seen[-1] == ("mode", 2, "rgb", False, 2)
 
-    def method_render(K, w2c, W, H, t):
-        seen.append(("given", w2c.clone(), W, H, t))
-        return torch.zeros(H, W, 3)
+    class Plain:  # no render_mode: the given camera through render
+        def render(self, K, w2c, W, H, t, test_view=False):
+            seen.append(("given", w2c.clone(), t))
+            return torch.zeros(H, W, 3)
 
-    static_like = SimpleNamespace(render=method_render)
-    render_training_frame(static_like, sc, 1)
-    assert seen[-1][0] == "given" and torch.equal(seen[-1][1], sc.w2cs[1]) and seen[-1][4] == 1
+    render_training_frame(Plain(), sc.Ks[1], sc.w2cs[1], 16, 12, 1)
+    assert seen[-1][0] == "given" and torch.equal(seen[-1][1], sc.w2cs[1]) and seen[-1][2] == 1
+
+
+def test_a_method_without_render_between_draws_the_nearer_frame():
+    from methods.registry import nearer_frame, node_at, render_between
+
+    class Plain:
+        def render(self, K, w2c, W, H, t, test_view=False):
+            return torch.full((H, W, 3), float(t))
+
+    K, w2c = torch.eye(3), torch.eye(4)
+    assert [nearer_frame(t) for t in (2.0, 2.49, 2.5, 2.51)] == [2, 2, 3, 3]  # halfway: the later frame
+    assert float(render_between(Plain(), K, w2c, 4, 3, 4.5)[0, 0, 0]) == 5.0
+    assert node_at(Plain(), 4.5) is None
 
 
 def test_tree_node_between_walks_up_across_a_split():
-    from benchmarks.evaluation.leave_one_out import tree_node_between
+    from methods.worldtree import tree_node_between
     from worldtree.tree.tpt import TemporalPartitionTree
 
     tree = TemporalPartitionTree(11, min_len=11)
@@ -104,6 +116,28 @@ def test_halfway_means_and_antipodal_rotations():
     assert torch.equal(ls, ga[2]) and torch.equal(c, ga[4]) and torch.isfinite(qh).all()
 
 
+def test_between_is_halfway_at_one_half_bit_for_bit_and_the_ends_at_zero_and_one():
+    from worldtree.dynamic import between, halfway
+
+    g = torch.Generator().manual_seed(0)
+    n = 1000
+    ga = (torch.randn(n, 3, generator=g) * 7, torch.randn(n, 4, generator=g), torch.randn(n, 3, generator=g),
+          torch.rand(n, generator=g), torch.rand(n, 3, generator=g))  # fmt: skip
+    gb = (torch.randn(n, 3, generator=g) * 7, torch.randn(n, 4, generator=g), *ga[2:])
+    o = torch.rand(n, generator=g)
+    # The formula the leave-one-out had before `between`: (ma + mb) / 2 and the nlerp of qa + qb.
+    qb = torch.where((ga[1] * gb[1]).sum(-1, keepdim=True) < 0, -gb[1], gb[1])
+    q = ga[1] + qb
+    for got, want in zip(between(ga, gb, o, 0.5), (0.5 * (ga[0] + gb[0]), q / q.norm(dim=-1, keepdim=True), *ga[2:3], o, ga[4]), strict=True):  # fmt: skip
+        assert torch.equal(got, want)
+    assert all(torch.equal(x, y) for x, y in zip(halfway(ga, gb, o), between(ga, gb, o, 0.5), strict=True))
+    m0, q0, *_ = between(ga, gb, o, 0.0)
+    m1, q1, *_ = between(ga, gb, o, 1.0)
+    assert torch.equal(m0, ga[0]) and torch.equal(m1, gb[0])
+    torch.testing.assert_close(q0, ga[1] / ga[1].norm(dim=-1, keepdim=True))
+    torch.testing.assert_close(q1, qb / qb.norm(dim=-1, keepdim=True))
+
+
 def _dyn(t_ref: list[float], std: list[float], logits: list[float]):
     from worldtree.dynamic import DynamicGaussians
 
@@ -115,10 +149,10 @@ def _dyn(t_ref: list[float], std: list[float], logits: list[float]):
     })  # fmt: skip
 
 
-def test_node_opacities_halfway_use_each_sets_local_time():
+def test_node_opacities_between_frames_use_each_sets_local_time():
     from types import SimpleNamespace
 
-    from benchmarks.evaluation.leave_one_out import node_opacities_halfway
+    from methods.worldtree import node_opacities_at
 
     # A node over global frames 5-10 (local = global - 5) with one ancestor over 0-10 (local = global).
     own = _dyn([1.0, 2.0], [1.0, 0.5], [0.0, 2.0])
@@ -129,14 +163,14 @@ def test_node_opacities_halfway_use_each_sets_local_time():
         local_time=lambda t: t - 5,
         chain=[SimpleNamespace(dynamic=anc, local_time=lambda t: t)],
     )
-    got = node_opacities_halfway(st, 6, None)  # halfway between global frames 6 and 7
+    got = node_opacities_at(st, 6, 0.5, None)  # halfway between global frames 6 and 7
 
     def expect(logit, t_ref, std, t):
         return 1.0 / (1.0 + np.exp(-logit)) * np.exp(-0.5 * ((t - t_ref) / std) ** 2)
 
     want = [0.3, expect(0.0, 1.0, 1.0, 1.5), expect(2.0, 2.0, 0.5, 1.5), expect(1.0, 6.0, 2.0, 6.5)]
     np.testing.assert_allclose(got.detach().numpy(), want, rtol=1e-5)
-    assert node_opacities_halfway(st, 6, 0).shape == (3,)  # chain_length 0: no ancestor
+    assert node_opacities_at(st, 6, 0.5, 0).shape == (3,)  # chain_length 0: no ancestor
 
 
 # ---------------------------------------------------------------------------------------------- the command
@@ -170,6 +204,12 @@ def test_set_keys_and_ranges_are_checked_before_any_work(tmp_path):
         (["--steps", "0"], "--steps 0"),
         (["--seed", "1" * 20], "--seed"),
         (["--frames", "4"], "needs a frame on each side"),
+        (["--set", "worldtree:min_len=3"], "'worldtree' is not among --methods static,base"),
+        (["--set", "static:nope=1"], "(method static)"),
+        (["--static-steps", "0"], "--static-steps 0: must be at least 1"),
+        (["--set", "base:steps=0"], "--set base:steps=0: must be at least 1"),
+        (["--set", "static:steps=5", "--static-steps", "6"], "given more than once"),
+        (["--set", "base:priors.flow_source=x", "--flow", str(tmp_path)], "also given by --flow"),
     ]
     for extra, match in cases:
         argv = base + extra if extra[0] != "--frames" else [str(scene), *extra, "-o", str(out)]
@@ -215,6 +255,27 @@ def test_finished_results_are_keyed_by_their_whole_configuration(tmp_path, monke
     (out / f"{loo.TMP_PREFIX}abc123").mkdir()
     loo.main(argv)
     assert not list(out.glob(f"{loo.TMP_PREFIX}*"))
+
+
+def test_one_methods_settings(tmp_path, monkeypatch):
+    """``--set NAME:KEY=VALUE`` and ``--NAME-steps N`` (what ``--static-steps`` was) change one method's config,
+    over the common options; an unscoped ``--set`` changes every method that has the key."""
+    from benchmarks.evaluation import leave_one_out as loo
+
+    scene = _tiny_scene(tmp_path / "scene")
+    seen = {}
+
+    def fake_run_one(args, spec, cfg, scene, k, device, prior_dirs, out_):
+        seen[spec.name] = cfg
+        return {"k": k, "method": spec.name, "psnr": 1.0, "train_s": 0.0,
+                "psnr_train_neighbours": {"prev": 1.0, "next": 1.0}}  # fmt: skip
+
+    monkeypatch.setattr(loo, "run_one", fake_run_one)
+    argv = [str(scene), "--frames", "2", "--methods", "static,base", "--preset", "quick", "--steps", "5"]
+    loo.main([*argv, "-o", str(tmp_path / "a"), "--static-steps", "7", "--set", "base:dynamic_max_init=99"])
+    assert (seen["static"].steps, seen["base"].steps, seen["base"].dynamic_max_init) == (7, 5, 99)
+    loo.main([*argv, "-o", str(tmp_path / "b"), "--set", "base:steps=9", "--set", "seed=3"])
+    assert (seen["static"].steps, seen["base"].steps, seen["static"].seed, seen["base"].seed) == (5, 9, 3, 3)
 
 
 def test_priors_are_part_of_the_key(tmp_path, monkeypatch):
@@ -301,3 +362,75 @@ def test_sigterm_leaves_no_temporary_folder(tmp_path):
     assert rc == 143, err
     assert "Traceback" not in err and err.strip().splitlines()[-1].startswith("terminated:")
     assert sorted(p.name for p in out.iterdir()) == []
+
+
+# ------------------------------------------------------------------------ the methods' render_between, trained
+
+
+def _old_formula_base(method, K, w2c, W, H, a):
+    """What the harness computed before the protocol (Base family), reaching into the fitted state: every
+    Gaussian halfway between frames a and a + 1, dynamic opacities at a + 0.5, the Sim(3)-mapped camera."""
+    from worldtree.dynamic import halfway
+    from worldtree.render import rasterize
+
+    fit = method.state.fit
+    ga = fit.gaussians_at(a)
+    o = ga[3]
+    n_s, n_d = len(fit.static), len(fit.dynamic)
+    if o.shape[0] == n_s + n_d:
+        o = torch.cat([o[:n_s], fit.dynamic.opacities_at(a + 0.5)])
+    m, q, ls, o, c = halfway(ga, fit.gaussians_at(a + 1), o)
+    pose = method.state.sim3.apply_w2c(w2c.to(torch.float32))
+    return rasterize(m, q, ls, o, c, K.to(torch.float32), pose, W, H, backend=fit.cfg.backend).rgb.clamp(0, 1)
+
+
+def _fitted(name, scene_dir, **sets):
+    import dataclasses
+
+    from methods.registry import get_method
+    from worldtree.scene import load_scene
+    from worldtree.trainer import TrainContext
+
+    cfg = dataclasses.replace(get_method(name).config("smoke"), priors_cache=False, **sets)
+    torch.manual_seed(0)
+    method = get_method(name).build(cfg, load_scene(scene_dir), torch.device("cpu"))
+    method.fit(TrainContext(checkpoint_dir=None, progress=False))
+    return method
+
+
+def test_base_render_between_is_the_old_halfway_and_its_frames_at_integer_times(tmp_path):
+    method = _fitted("base", _tiny_scene(tmp_path / "scene"))
+    sc = method.state.scene
+    K, w2c, W, H = sc.Ks[0], sc.w2cs[0], sc.width, sc.height
+    for a in (0, 2):
+        got = method.render_between(K, w2c, W, H, a + 0.5)
+        assert torch.equal(got, _old_formula_base(method, K, w2c, W, H, a))
+        assert torch.equal(method.render_between(K, w2c, W, H, float(a)), method.render(K, w2c, W, H, a))
+    # Just after a frame it draws (nearly) that frame: the interpolation starts where the frame is.
+    torch.testing.assert_close(method.render_between(K, w2c, W, H, 1 + 1e-6), method.render(K, w2c, W, H, 1),
+                               atol=1e-3, rtol=0)  # fmt: skip
+    assert method.node_at(1.5) is None
+
+
+def test_worldtree_render_between_uses_the_node_holding_both_frames(tmp_path):
+    from methods.worldtree import node_opacities_at, tree_node_between
+    from worldtree.dynamic import halfway
+    from worldtree.render import rasterize
+
+    method = _fitted("worldtree", _tiny_scene(tmp_path / "scene"), min_len=2, sequential=True)
+    s = method.state
+    assert s.tree is not None and len(s.states) > 1
+    sc = s.scene
+    K, w2c, W, H = sc.Ks[1], sc.w2cs[1], sc.width, sc.height
+    for a in range(sc.num_frames - 1):
+        j = tree_node_between(s.tree, a)
+        assert method.node_at(a + 0.5) == j
+        st = s.states[j]
+        cache = st.dynamic.attach(st.scaffold)
+        ga = st.gaussians_at(a, s.cfg.chain_length, cache)
+        gb = st.gaussians_at(a + 1, s.cfg.chain_length, cache)
+        m, q, ls, o, c = halfway(ga, gb, node_opacities_at(st, a, 0.5, s.cfg.chain_length))
+        pose = s.sim3.apply_w2c(w2c)
+        want = rasterize(m, q, ls, o, c, K, pose, W, H, backend=s.cfg.photometric.backend).rgb.clamp(0, 1)
+        assert torch.equal(method.render_between(K, w2c, W, H, a + 0.5), want)
+    assert method.node_at(2) == method.node_at(2.0)

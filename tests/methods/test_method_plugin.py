@@ -117,3 +117,31 @@ def test_a_broken_plugin_breaks_no_other_method(tmp_path):
         "error: --method broken: its plug-in failed to load (broken_method: ImportError: needs a library that is "
         "not installed); fix or uninstall it"
     )
+
+
+def test_installed_method_scores_leave_one_out(plugin_env, tmp_path, write_tiny_scene):
+    """`benchmarks.evaluation.leave_one_out` with the plug-in: it has no `render_between`, so the time between
+    two kept frames is drawn by its `render` of the nearer one (halfway: the later); its own setting through
+    `--set NAME:KEY=VALUE`."""
+    from skimage.metrics import peak_signal_noise_ratio
+
+    scene = write_tiny_scene(tmp_path / "scenes" / "tiny", frames=4)
+    meta = json.loads((scene / "cameras.json").read_text())
+    image = {fr["index"]: read_image(scene / fr["file"]) for fr in meta["frames"]}
+    for label, sets in (("lag0", []), ("lag1", ["--set", "frame-copy:lag=1"])):
+        done = subprocess.run(
+            [sys.executable, "-m", "benchmarks.evaluation.leave_one_out", str(scene), "--frames", "1,2",
+             "--methods", "frame-copy", "--preset", "quick", "--device", "cpu", "-o", "loo", "--label", label,
+             *sets],
+            capture_output=True, text=True, env=plugin_env, cwd=tmp_path,
+        )  # fmt: skip
+        assert done.returncode == 0, done.stderr
+    rows = {(r["label"], r["k"]): r for r in json.loads((tmp_path / "loo" / "loo.json").read_text())["runs"]}
+    assert len(rows) == 4
+    for k in (1, 2):
+        # Kept frames k-1 and k+1; frame k's time is halfway: lag 0 draws the later kept frame, lag 1 the earlier.
+        for label, shown in (("lag0", k + 1), ("lag1", k - 1)):
+            row = rows[(label, k)]
+            want = peak_signal_noise_ratio(image[k], image[shown], data_range=255)
+            assert abs(row["psnr"] - want) < 1e-9 and row["method"] == "frame-copy" and "tree" not in row
+        assert rows[("lag0", k)]["psnr_train_neighbours"] == {"prev": float("inf"), "next": float("inf")}
