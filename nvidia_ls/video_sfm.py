@@ -30,7 +30,10 @@ from nvidia_ls.writer import save_image
 from worldtree.errors import UserError
 
 MASK_WORK_SIDE = 320
-"""The masks are computed on frames shrunk to at most this many pixels on the longer side (flow is the cost)."""
+"""The masks are computed on frames shrunk to at most this many pixels on the longer side (flow is the cost).
+On the generated 480x270 clips SfM came out closer to the truth at 320 than at 480 (max rotation error 0.22-0.86
+against 0.38-0.95 deg over 5 seeds); on the real train clip at 320 the masks miss most of the slow train (0.4 %
+of the pixels masked against 6 % at 480), with the same 80 of 80 frames registered and the same focal."""
 MASK_DILATE_FRAC = 0.01
 """Masks grow by this fraction of the longer image side: SIFT's support reaches past an object's border."""
 MAX_MASKED_FRAC = 0.5
