@@ -74,7 +74,10 @@ def _client(viewer, timeout: float = TIMEOUT):
 
 def _set_time_in_page(driver, index: int) -> None:
     """Move the page's time slider to ``index`` with the keyboard (Home, then Right ``index`` times)."""
-    from selenium.webdriver.common.keys import Keys
+    try:
+        from selenium.webdriver.common.keys import Keys
+    except ImportError:  # only reached once the browser started, which needs selenium
+        raise UserError("selenium is not installed (pip install selenium)") from None
 
     slider = driver.find_element("css selector", "[role=slider]")
     slider.send_keys(Keys.HOME)
