@@ -102,26 +102,39 @@ def _run_once(images_dir: Path, work: Path, names: list[str], camera_model: str,
         extraction_options=extraction,
         device=pycolmap.Device.cpu,
     )
-    matching = pycolmap.FeatureMatchingOptions()
-    matching.num_threads = threads
-    matching.use_gpu = False
-    pycolmap.match_exhaustive(db, matching_options=matching, device=pycolmap.Device.cpu)
-    opts = pycolmap.IncrementalPipelineOptions()
-    opts.num_threads = threads
-    opts.random_seed = seed
-    opts.multiple_models = False
-    # A rig is a narrow-baseline capture (neighbouring cameras a few degrees apart): COLMAP's defaults for
-    # wide-baseline photo collections discard most of its points. Accept smaller triangulation angles.
-    opts.mapper.filter_min_tri_angle = 0.5
-    opts.mapper.init_min_tri_angle = 4.0
+    pycolmap.match_exhaustive(
+        db, matching_options=cpu_matching(pycolmap, threads), device=pycolmap.Device.cpu
+    )
+    opts = narrow_baseline_mapping(pycolmap, threads, seed)
     opts.mapper.abs_pose_min_num_inliers = 20
-    opts.triangulation.min_angle = 0.5
     out = work / "sparse"
     out.mkdir(exist_ok=True)
     recs = pycolmap.incremental_mapping(db, images_dir, out, options=opts)
     if not recs:
         return None
     return max(recs.values(), key=lambda r: r.num_reg_images())
+
+
+def cpu_matching(pycolmap, threads: int):
+    """pycolmap's feature-matching options on the CPU with ``threads`` threads."""
+    matching = pycolmap.FeatureMatchingOptions()
+    matching.num_threads = threads
+    matching.use_gpu = False
+    return matching
+
+
+def narrow_baseline_mapping(pycolmap, threads: int, seed: int):
+    """pycolmap's incremental-mapping options for captures whose neighbouring views are a few degrees apart (a
+    rig, a hand-held clip): one model, seeded, and smaller triangulation angles than COLMAP's defaults for
+    wide-baseline photo collections (16 deg to start, 1.5 deg to keep a point), which discard most points."""
+    opts = pycolmap.IncrementalPipelineOptions()
+    opts.num_threads = threads
+    opts.random_seed = seed
+    opts.multiple_models = False
+    opts.mapper.init_min_tri_angle = 4.0
+    opts.mapper.filter_min_tri_angle = 0.5
+    opts.triangulation.min_angle = 0.5
+    return opts
 
 
 def run_sfm(

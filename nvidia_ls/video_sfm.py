@@ -25,7 +25,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from nvidia_ls.sfm import _camera_to_opencv
+from nvidia_ls.sfm import _camera_to_opencv, cpu_matching, narrow_baseline_mapping
 from nvidia_ls.writer import save_image
 from worldtree.errors import UserError
 
@@ -152,25 +152,18 @@ def clip_sfm(
         extraction_options=extraction, device=pycolmap.Device.cpu,
     )  # fmt: skip
     say("sfm: matching", 0, T)
-    matching = pycolmap.FeatureMatchingOptions()
-    matching.num_threads = threads
-    matching.use_gpu = False
     pairing = pycolmap.SequentialPairingOptions()
     pairing.overlap = SEQUENTIAL_OVERLAP
     pairing.quadratic_overlap = True
     pycolmap.match_sequential(
-        db, matching_options=matching, pairing_options=pairing, device=pycolmap.Device.cpu
+        db,
+        matching_options=cpu_matching(pycolmap, threads),
+        pairing_options=pairing,
+        device=pycolmap.Device.cpu,
     )
 
-    opts = pycolmap.IncrementalPipelineOptions()
-    opts.num_threads = threads
-    opts.random_seed = seed
-    opts.multiple_models = False
-    # A hand-held clip moves a little per frame: COLMAP's wide-baseline defaults (16 deg to start, 1.5 deg
-    # to keep a point) discard most of it. The rig's settings (nvidia_ls.sfm) hold here too.
-    opts.mapper.init_min_tri_angle = 4.0
-    opts.mapper.filter_min_tri_angle = 0.5
-    opts.triangulation.min_angle = 0.5
+    # A hand-held clip moves a little per frame, as the rig's cameras are a few degrees apart.
+    opts = narrow_baseline_mapping(pycolmap, threads, seed)
     # The intrinsics stay at COLMAP's guess while the frames register, and are refined at the end. Refined from
     # the first pair on (COLMAP's default), a short-baseline pair lets focal and k1 run off (focal x5 on the
     # generated clip) and no third frame registers; fixed, every frame registers, and the final bundle
