@@ -280,6 +280,10 @@ class NodeTrainConfig:
         return steps
 
 
+#: Most memory the frozen ancestors' per-frame Gaussians may hold in a node's memo (14 floats a Gaussian).
+_ANCESTOR_MEMO_BYTES = 512 * 2**20
+
+
 class NodeFit(PhotometricFit):
     """The photometric fit of one tree node: its own static/dynamic/scaffold plus its ancestor chain.
 
@@ -321,9 +325,20 @@ class NodeFit(PhotometricFit):
             a.apply_policy(self.policy)
             a.refresh_cache()
         self.anc_opt = ancestor_optimizer(self.chain, self.policy, lrs)
+        # Frozen ancestors draw the same Gaussians at a frame every step: deform them once per frame (their
+        # re-attachment is deterministic, so the memo stays exact) unless that would hold too much memory.
+        n = sum(len(a.dynamic) for a in self.chain)
+        frozen = self.anc_opt is None and not any(a.trainable for a in self.chain)
+        self._anc_memo: dict[int, tuple[torch.Tensor, ...]] | None = (
+            {} if frozen and n * self.T * 14 * 4 <= _ANCESTOR_MEMO_BYTES else None
+        )
 
     def _build_optimizers(self) -> None:
         super()._build_optimizers()
+        # A frozen background (rate 0) needs no gradient: Adam skips parameters without one, which leaves them
+        # exactly as a zero step would, and the backward pass no longer accumulates into them.
+        for v in self.static.params.values():
+            v.requires_grad_(self.static_lr != 0.0 and v.is_floating_point())
         if self.static_lr != 1.0:
             # The node's copy of the background trains at a fraction of the root's rates (0: kept as the root
             # fitted it from every frame; a node sees a few cameras only and would over-fit them).
@@ -332,9 +347,18 @@ class NodeFit(PhotometricFit):
 
     def gaussians_at(self, t: int, cache=None):
         """Static + own dynamic at node-local frame ``t``, then the ancestors at global ``t0 + t``."""
-        anc = chain_gaussians_at(self.chain, self.t0 + int(t))
+        anc = self._ancestors_at(int(t))
         own_cache = cache if cache is not None else self.cache
         return gaussians_at(self.static, self.dynamic, self.scaffold, t, own_cache, anc)
+
+    def _ancestors_at(self, t: int):
+        """The chain's Gaussians at node-local frame ``t`` (memoised per frame while the chain is frozen)."""
+        if self._anc_memo is None:
+            return chain_gaussians_at(self.chain, self.t0 + t)
+        if t not in self._anc_memo:
+            with torch.no_grad():
+                self._anc_memo[t] = chain_gaussians_at(self.chain, self.t0 + t)
+        return self._anc_memo[t]
 
     def coupling_extra(self, j: int):
         """The ancestors as they draw node-local frame ``j`` (fixed in the neighbour coupling)."""

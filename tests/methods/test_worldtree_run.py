@@ -20,6 +20,7 @@ from worldtree.imageio import read_image
 from worldtree.render import rasterize
 from worldtree.tree.node import NodeState, load_payload
 from worldtree.tree.parallel import NodeContext
+from worldtree.tree.sac import AncestorPolicy
 
 FRAMES = 26
 # Binary rule P = (L + R) // 2 by hand: [0, 25] -> P 12; [0, 11] -> P 5; [12, 25] -> P 18.
@@ -196,6 +197,43 @@ def test_interrupted_node_resumes_to_the_same_result(runs, tmp_path):
         assert torch.equal(x.dynamic.params["means"], y.dynamic.params["means"])
         assert torch.equal(x.scaffold.pos, y.scaffold.pos)
     assert torch.equal(full["profile"], resumed["profile"])
+
+
+def test_frozen_ancestor_memo_trains_the_same_node(runs, tmp_path, monkeypatch):
+    """With its ancestors frozen a node deforms each ancestor once per frame and reuses it: the trained node is
+    bit-identical to one that deforms them at every step (the memo switched off by a zero memory cap)."""
+    import dataclasses
+
+    import methods.worldtree as mw
+
+    src = runs["default"] / "checkpoints" / "tree"
+    cfg = read_config(src / "node_config.json", NodeTrainConfig)
+    cfg = dataclasses.replace(cfg, policy=AncestorPolicy(optimised_nearest=0), checkpoint_every=1000,
+                              layer_steps=(12, 12))  # fmt: skip
+
+    def run(name: str):
+        tree = tmp_path / name
+        (tree / "layer2" / "node6").mkdir(parents=True)
+        shutil.copy(src / "context.pt", tree / "context.pt")
+        write_config(tree / "node_config.json", cfg)
+        torch.manual_seed(6)
+        ctx = NodeContext(6, 6, "cpu", 1, str(tree / "layer2" / "node6"))
+        return NodeState.from_payload(mw.train_node(load_payload(src / "layer2" / "node6" / "input.pt"),
+                                                    ctx)["state"])  # fmt: skip
+
+    calls = []
+    real = mw.chain_gaussians_at
+    monkeypatch.setattr(mw, "chain_gaussians_at", lambda *a, **k: calls.append(1) or real(*a, **k))
+    memo = run("memo")
+    memo_calls = len(calls)
+    monkeypatch.setattr(mw, "_ANCESTOR_MEMO_BYTES", 0)
+    calls.clear()
+    plain = run("plain")
+    # One deformation per frame of node 6 with the memo; one per step (and more) without it.
+    assert memo_calls <= INTERVALS[6][1] - INTERVALS[6][0] + 1 < len(calls)
+    for k, v in plain.dynamic.params.items():
+        assert torch.equal(memo.dynamic.params[k], v), k
+    assert torch.equal(memo.scaffold.pos, plain.scaffold.pos)
 
 
 def test_depth_auto_grows_the_tree_its_decisions_say(runs):
