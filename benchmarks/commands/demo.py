@@ -79,6 +79,9 @@ def run_demo(
     wh = parse_size(size)
     if wh is None:
         raise UserError(f"--size {size!r}: give WxH, e.g. 160x90")
+    from worldtree.device import pick_device
+
+    kernel = _KernelBuild() if pick_device(device).type == "cpu" else None
     name = "SynthBalloon"
     raw = out / "raw" / name
     if not (raw / "gt" / "cameras.json").is_file():
@@ -107,12 +110,8 @@ def run_demo(
         priors = {"masks": str(gt_dir / "masks"), "tracks": str(gt_dir / "tracks.npz"),
                   "depth_maps": str(gt_dir / "depth")}  # fmt: skip
 
-    from worldtree.device import pick_device
-
-    if pick_device(device).type == "cpu":
-        from worldtree.render.cpu_kernel import prepare
-
-        target, seconds = prepare()
+    if kernel is not None:
+        target, seconds = kernel.result()
         what = f"{target} build" if target else "unavailable, using the PyTorch reference"
         console.print(f"C++ rasterizer: {what} ({seconds:.0f} s; compiled once per machine, then cached)")
     for m in methods:
@@ -143,6 +142,37 @@ def run_demo(
     console.print(f"wtbench table {out / 'runs'} -o {csv}")
     export_tables([out / "runs"], csv)
     return csv
+
+
+class _KernelBuild:
+    """The CPU rasterizer's build (or cached load) in a background thread, started before the capture and the
+    scene build: the compiler runs as a subprocess without the GIL, so its first build (about half a minute)
+    overlaps them instead of coming before the training. A daemon thread: Ctrl-C does not wait for it (the
+    build lock dies with the process, and a half-finished build is redone by the next run)."""
+
+    def __init__(self) -> None:
+        import threading
+
+        self._out: tuple[str | None, float] | None = None
+        self._error: BaseException | None = None
+        self._thread = threading.Thread(target=self._run, name="kernel-build", daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        from worldtree.render.cpu_kernel import prepare
+
+        try:
+            self._out = prepare()
+        except BaseException as e:  # handed to the main thread by result()
+            self._error = e
+
+    def result(self) -> tuple[str | None, float]:
+        """``cpu_kernel.prepare()``'s (target, seconds), once the build is done; re-raises its error."""
+        self._thread.join()
+        if self._error is not None:
+            raise self._error
+        assert self._out is not None
+        return self._out
 
 
 def _uses_priors(method: str, preset: str) -> bool:

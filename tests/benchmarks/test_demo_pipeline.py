@@ -79,3 +79,33 @@ def test_tree_summary_depth_nodes_leaves_and_reasons(tmp_path):
         tree_summary(_timing(tmp_path, root))
         == "--depth auto chose tree depth 0, 1 node (node 1: leaf (near-static))"
     )
+
+
+def test_kernel_build_runs_beside_the_demo_and_hands_back_its_result_or_error(monkeypatch):
+    import threading
+
+    import pytest
+
+    from benchmarks.commands import demo
+    from worldtree.render import cpu_kernel
+
+    started, release = threading.Event(), threading.Event()
+
+    def slow_prepare():
+        started.set()
+        release.wait(10)
+        return "native", 1.5
+
+    monkeypatch.setattr(cpu_kernel, "prepare", slow_prepare)
+    build = demo._KernelBuild()
+    # The build is under way while the caller goes on (the capture and scene build run meanwhile).
+    assert started.wait(10) and build._thread.is_alive()
+    release.set()
+    assert build.result() == ("native", 1.5)
+
+    def failing_prepare():
+        raise RuntimeError("compiler exploded")
+
+    monkeypatch.setattr(cpu_kernel, "prepare", failing_prepare)
+    with pytest.raises(RuntimeError, match="compiler exploded"):
+        demo._KernelBuild().result()
