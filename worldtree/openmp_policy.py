@@ -2,10 +2,8 @@
 
 PyTorch's CPU operators and the C++ rasterizer run their parallel loops on OpenMP threads. Between two loops
 GNU OpenMP's threads spin (busy-wait) for a while by default, which costs nothing on an idle machine but, when
-more runnable processes than cores compete, burns the time slices the working threads need. Measured on a
-2-core machine at load average ~14 (``benchmarks.speed``-style A/B of one photometric step's skinning and
-motion regularisers, 2 torch threads): with the default policy the skinning forward+backward took 600 ms of
-CPU and 6.7 s of wall time per call, with ``OMP_WAIT_POLICY=PASSIVE`` 33 ms of CPU and 0.24 s of wall time.
+more runnable processes than cores compete, burns the time slices the working threads need (measurements:
+docs/running.md, "Timing and memory").
 
 The policy is read once, when the OpenMP runtime starts (the first ``import torch``), so the command-line entry
 points call :func:`configure` before importing torch. A policy the user set is never changed.

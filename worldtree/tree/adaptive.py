@@ -27,17 +27,12 @@ The node is split when all of these hold (otherwise ``reason`` names the first t
 2. ``dynamic_fraction >= min_dynamic_fraction`` (a near-static interval has nothing for children to add);
 3. ``motion_px >= min_motion_frac * max(H, W)`` (default 10 % of the image's larger side, 16 px at 160x90)
    when the motion was measured: content that moves less than that over the interval is held by one
-   scaffold and canonical space whatever its residual. Ground truth of the generated scenes at 160x90 over
-   40 frames: ``near_static`` about 5 px, ``slow`` 50 px, ``slow_fast`` 38 px in its first half and 88 px in
-   its second, ``fast`` 60-90 px in any half; measured on the root scaffolds of quick-preset runs: ``near_static``
-   3.3 px at 80x45 (threshold 8), the demo (``slow_fast``, 160x90) 42.5 px over the clip, 15.5 px in the
-   first half and 29.9 px in the second (threshold 16: the calm half stays a leaf, the fast half splits);
+   scaffold and canonical space whatever its residual;
 4. ``excess >= max(min(min_excess, min_excess_rel * static_error), min_excess_floor)`` (defaults 0.01, i.e.
    2.6 grey levels of 255 on average over the moving pixels; half the static pixels' own error; never under
-   0.002, half a grey level): the moving regions are fit
-   clearly worse than the static ones. The relative part keeps scenes of smooth texture, whose static pixels
-   fit to well under 0.01, from being judged by a bar set for fine texture (a generated scene of smooth
-   texture: static error 0.0050, excess 0.0094; the root alone scored 1.3 dB under the grown tree).
+   0.002, half a grey level): the moving regions are fit clearly worse than the static ones. The relative
+   part keeps scenes of smooth texture, whose static pixels fit to well under 0.01, from being judged by a bar
+   set for fine texture.
 
 Intervals where the model already follows the motion stay leaves, so branches of one tree differ. Every
 quantity is recorded with the decision (``SplitDecision.to_dict``) for ``timing.json``.
@@ -49,8 +44,10 @@ are applied to the *parent's* fit restricted to the child's frames: the parent's
 less than the threshold, or fit as well as the static pixels) is not trained: the parent goes on rendering its
 frames (:meth:`worldtree.tree.tpt.TemporalPartitionTree.own_frames`). When neither child needs training, the
 node stays a leaf. The test on a child has no minimum length (that test is about whether a node may have
-children). On the demo (``slow_fast``, 160x90) the root's scaffold moves 15.5 px over the calm half (under
-16 px: that child is not trained) and 29.9 px over the fast half.
+children).
+
+The thresholds' measurements (the generated scenes' motion against ground truth, the demo's halves, the
+smooth-texture scene) are in docs/worldtree_method.md, "Modelling only what a scene needs".
 """
 
 from __future__ import annotations
