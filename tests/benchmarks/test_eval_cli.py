@@ -16,9 +16,9 @@ from skimage.metrics import structural_similarity as sk_ssim
 import worldtree
 from benchmarks import cli
 from benchmarks.evaluation.evaluate import evaluate_folder, pair_files
-from worldtree.errors import UserError
-from worldtree.hashing import sha256_files
 from worldtree.imageio import write_image
+from worldtree.infra.errors import UserError
+from worldtree.infra.hashing import sha256_files
 
 H, W = 30, 40
 
