@@ -35,12 +35,7 @@ BENCHMARKS_ORDER = (
 )
 
 #: (importing node, imported node) -> why the edge stays for now.
-ALLOWED = {
-    ("worldtree.motion", "worldtree.dynamic"): (
-        "motion/model_tracks.py (a diagnostic of a fitted model, used by benchmarks.speed.motion_proof) reads "
-        "dynamic Gaussians, which are skinned by motion.scaffold; to move out of motion/"
-    ),
-}
+ALLOWED: dict[tuple[str, str], str] = {}
 
 
 def _module_name(path: Path) -> str:
