@@ -31,8 +31,8 @@ from typing import Any, Literal
 import numpy as np
 import torch
 
-from worldtree.errors import UserError
 from worldtree.gaussian_frame import RENDER_MODES, GaussianFrame, RenderMode
+from worldtree.infra.errors import UserError
 
 __all__ = ["Camera", "LoadedRun", "config_digest", "load_run"]
 
@@ -227,7 +227,7 @@ def _settable(cls: Any, data: Any) -> Any:
 
 
 def _rebuild_config(spec, record: dict[str, Any], path: Path) -> Any:
-    from worldtree.config_json import from_dict
+    from worldtree.infra.config_json import from_dict
 
     try:
         return from_dict(spec.config_cls, _settable(spec.config_cls, record["config"]))
@@ -279,7 +279,7 @@ def load_run(
     """
     from methods.registry import get_method
     from worldtree.checkpoint import seed_everything
-    from worldtree.device import pick_device
+    from worldtree.infra.device import pick_device
     from worldtree.scene import load_scene
 
     folder = Path(run_dir)

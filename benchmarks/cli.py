@@ -11,7 +11,7 @@ import sys
 
 import typer
 
-from worldtree.cli_runner import run_cli
+from worldtree.infra.cli_runner import run_cli
 
 COMMAND_MODULES = (
     "eval",
@@ -46,7 +46,7 @@ for _name in COMMAND_MODULES:
 
 def main() -> None:
     """Console-script entry point."""
-    from worldtree import openmp_policy
+    from worldtree.infra import openmp_policy
 
     openmp_policy.configure()  # before torch is imported: OpenMP threads sleep on an oversubscribed machine
     command = next((a for a in sys.argv[1:] if not a.startswith("-")), None)

@@ -41,12 +41,14 @@ from methods.model_folder import read_model_json
 from methods.registry import CommonConfig, MethodSpec, register_method, settings_of
 from methods.stages import Ablation, Stage, run_stages, with_ablations
 from methods.static3dgs import scene_extent
-from worldtree.atomic import atomic_write_bytes, atomic_write_json
 from worldtree.budget import node_budget
 from worldtree.dynamic import DynamicGaussians, between, gaussians_at
-from worldtree.errors import UserError
 from worldtree.gaussian_frame import GaussianFrame, RenderMode, render_frame
 from worldtree.gaussians import GaussianSet
+from worldtree.infra.atomic import atomic_write_bytes, atomic_write_json
+from worldtree.infra.errors import UserError
+from worldtree.infra.timing import StageClock
+from worldtree.infra.torchfile import load_torch, save_torch
 from worldtree.motion.lift import lift_tracks, sample_depth
 from worldtree.motion.scaffold import Scaffold, ScaffoldConfig, SkinCache, build_scaffold
 from worldtree.motion.track_completion import complete_trajectories
@@ -76,8 +78,6 @@ from worldtree.stages.testview_pose import (
     refine_test_poses,
 )
 from worldtree.strategy import DensifyStrategy
-from worldtree.timing import StageClock
-from worldtree.torchfile import load_torch, save_torch
 from worldtree.trainer import TrainContext, Trainer, TrainerConfig, TrainSummary
 
 

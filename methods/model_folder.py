@@ -7,7 +7,7 @@ import json
 from pathlib import Path
 from typing import Any
 
-from worldtree.errors import UserError
+from worldtree.infra.errors import UserError
 
 
 def read_model_json(folder: str | Path, method: str) -> dict[str, Any]:

@@ -24,8 +24,8 @@ import torch
 
 from methods.plugin import Grid, MethodOption
 from worldtree.budget import BudgetConfig
-from worldtree.errors import UserError
 from worldtree.gaussian_frame import GaussianFrame, RenderMode
+from worldtree.infra.errors import UserError
 from worldtree.plateau import PlateauRule
 from worldtree.scene import Scene
 from worldtree.trainer import TrainContext, TrainSummary

@@ -2,7 +2,7 @@
 
 A stage is ``Stage(name, fn)`` with ``fn(state) -> None``: it reads what earlier stages left in the state and
 adds its own results. :func:`run_stages` calls them in order, each timed by the method's
-:class:`worldtree.timing.StageClock` (reported as ``method_stats.stages_s`` in ``timing.json``; the run's own
+:class:`worldtree.infra.timing.StageClock` (reported as ``method_stats.stages_s`` in ``timing.json``; the run's own
 clock times the method's whole ``fit`` as its ``train`` stage). An ablation replaces a stage by another of the same
 name or removes it (:class:`Ablation`); the config names ablations in one place, its ``ablate`` tuple.
 A run resumes at stage boundaries: a stage that trains checkpoints under the run's checkpoint folder and picks
@@ -15,7 +15,7 @@ from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
-from worldtree.timing import StageClock
+from worldtree.infra.timing import StageClock
 
 
 @dataclass(frozen=True)

@@ -21,11 +21,11 @@ import torch
 
 from methods.model_folder import read_model_json
 from methods.registry import CommonConfig, MethodSpec, register_method
-from worldtree.atomic import atomic_write_json
 from worldtree.budget import growth_cap, negligible, node_budget, render_contributions
-from worldtree.errors import UserError
 from worldtree.gaussian_frame import GaussianFrame, RenderMode, render_frame
 from worldtree.gaussians import GaussianSet
+from worldtree.infra.atomic import atomic_write_json
+from worldtree.infra.errors import UserError
 from worldtree.losses import photometric_loss
 from worldtree.optim import ConstantLR, GroupedAdam, gaussian_schedules
 from worldtree.render import rasterize

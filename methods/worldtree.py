@@ -54,18 +54,18 @@ from methods.model_folder import read_model_json
 from methods.plugin import Grid, GridPoint, MethodOption
 from methods.registry import MethodSpec, register_method, settings_of
 from methods.stages import Ablation, Stage
-from worldtree.atomic import atomic_write_json
 from worldtree.budget import BudgetConfig, inherited_prune_due, negligible
-from worldtree.config_json import read_config, write_config
 from worldtree.dynamic import between, gaussians_at, halfway
-from worldtree.errors import UserError
 from worldtree.gaussians import GaussianSet, inverse_sigmoid
+from worldtree.infra.atomic import atomic_write_json
+from worldtree.infra.config_json import read_config, write_config
+from worldtree.infra.errors import UserError
+from worldtree.infra.torchfile import save_torch
 from worldtree.optim import GroupedAdam, ScaledLR
 from worldtree.plateau import PlateauRule
 from worldtree.render import rasterize
 from worldtree.stages.photometric import PhotometricConfig, PhotometricFit
 from worldtree.strategy import DensifyStrategy, remove
-from worldtree.torchfile import save_torch
 from worldtree.trainer import TrainContext, Trainer, TrainerConfig, TrainSummary
 from worldtree.tree.adaptive import AutoSplitConfig, assess_fit
 from worldtree.tree.build import TreeConfig, TreeResult, grow_tree, node_output, read_node_input

@@ -27,18 +27,18 @@ from nvidia_ls.undistort import Undistorter
 from nvidia_ls.world_frame import apply_similarity, rig_similarity
 from nvidia_ls.writer import cameras_document, frame_file, mask_file, save_image, test_file
 from worldtree import __version__
-from worldtree.atomic import atomic_dir, atomic_write_bytes, atomic_write_json, remove_stale_partials
-from worldtree.errors import UserError
-from worldtree.folder_lock import FolderLock, lock_paths
 from worldtree.imageio import check_pixels
-from worldtree.losses import SSIM_WINDOW
-from worldtree.output_paths import (
+from worldtree.infra.atomic import atomic_dir, atomic_write_bytes, atomic_write_json, remove_stale_partials
+from worldtree.infra.errors import UserError
+from worldtree.infra.folder_lock import FolderLock, lock_paths
+from worldtree.infra.output_paths import (
     check_name,
     check_output_folder,
     check_replaceable,
     remove_new_folders_on_failure,
 )
-from worldtree.timing import StageClock
+from worldtree.infra.timing import StageClock
+from worldtree.losses import SSIM_WINDOW
 
 NORMALIZE = ("auto", "rig", "none")
 # Smallest stored image side: training's SSIM loss needs its whole window inside the image.

@@ -12,7 +12,7 @@ from pathlib import Path
 import typer
 
 from nvidia_ls.config_options import ConfigCommand, Shown, config_options
-from worldtree.cli_runner import INTERRUPTED_NO_CHECKPOINT, run_cli
+from worldtree.infra.cli_runner import INTERRUPTED_NO_CHECKPOINT, run_cli
 
 app = typer.Typer(
     name="nvls",
@@ -91,7 +91,7 @@ def synth(
     cfg=None,  # the SynthConfig made from the generated options (ConfigCommand)
 ) -> None:
     from nvidia_ls.synth import write_raw_scene
-    from worldtree.output_paths import check_output_folder
+    from worldtree.infra.output_paths import check_output_folder
 
     check_output_folder(out_dir, "OUT_DIR")  # OUT_DIR under a file: one line before rendering
     console = _console()
@@ -124,7 +124,7 @@ def gt_priors(
     from rich.progress import Progress
 
     from nvidia_ls.gt_priors import GtPriorsConfig, write_gt_priors
-    from worldtree.output_paths import check_output_folder
+    from worldtree.infra.output_paths import check_output_folder
 
     if out is not None:
         check_output_folder(out, "--out")
@@ -217,7 +217,7 @@ def verify(
     no_hash: bool = typer.Option(False, "--no-hash", help="Skip the sha256 checks (faster)."),
 ) -> None:
     from nvidia_ls.manifest import verify_scene
-    from worldtree.errors import UserError
+    from worldtree.infra.errors import UserError
 
     if not scene.is_dir():
         raise UserError(f"{scene}: not a folder; give a scene folder written by `nvls build`")
@@ -243,7 +243,7 @@ def info(scene: Path = typer.Argument(..., help="Scene folder written by `nvls b
 
 def main() -> None:
     """Console-script entry point."""
-    from worldtree import openmp_policy
+    from worldtree.infra import openmp_policy
 
     openmp_policy.configure()  # before torch is imported: OpenMP threads sleep on an oversubscribed machine
     # nvls keeps no checkpoints: every command writes its folder whole (atomic_dir) or removes it.

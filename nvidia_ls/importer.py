@@ -49,10 +49,10 @@ from nvidia_ls.video_frames import VideoConfig
 from nvidia_ls.world_frame import apply_similarity, rig_similarity
 from nvidia_ls.writer import cameras_document, frame_file, mask_file, save_image, test_file
 from worldtree import __version__
-from worldtree.atomic import atomic_dir, atomic_write_bytes, atomic_write_json
-from worldtree.errors import UserError
 from worldtree.imageio import read_image, read_mask
-from worldtree.output_paths import check_name, check_output_folder, check_replaceable
+from worldtree.infra.atomic import atomic_dir, atomic_write_bytes, atomic_write_json
+from worldtree.infra.errors import UserError
+from worldtree.infra.output_paths import check_name, check_output_folder, check_replaceable
 from worldtree.priors.imported import _load_array, read_flo, resize_flow
 
 LAYOUTS = ("auto", "dynamicnerf", "nvidia-ls")
@@ -290,7 +290,7 @@ def import_scene(
     video file or a folder of frames (cameras by SfM: :func:`nvidia_ls.video_import.import_clip`).
 
     Returns the scene folder. Everything is checked before anything is written, and the folder appears in
-    one rename when complete (:func:`worldtree.atomic.atomic_dir`).
+    one rename when complete (:func:`worldtree.infra.atomic.atomic_dir`).
     """
     from nvidia_ls.build import SCENE_MARKERS
     from nvidia_ls.video_import import import_clip, is_clip_source

@@ -7,7 +7,7 @@ from pathlib import Path
 
 from rich.table import Table
 
-from worldtree.errors import UserError
+from worldtree.infra.errors import UserError
 
 
 def _fmt(v) -> str:

@@ -18,8 +18,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from worldtree.errors import UserError
 from worldtree.imageio import IMAGE_SUFFIXES, check_pixels, read_image
+from worldtree.infra.errors import UserError
 
 VIDEO_SUFFIXES = (".mp4", ".mov", ".avi", ".mkv")
 _CAM_RE = re.compile(r"^cam(\d+)$", re.IGNORECASE)

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from worldtree.errors import UserError
+from worldtree.infra.errors import UserError
 
 
 def opencv_to_llff(

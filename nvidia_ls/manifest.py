@@ -17,8 +17,8 @@ from nvidia_ls.scene_checks import (
     pose_rows_problem,
     rotation_problem,
 )
-from worldtree.atomic import atomic_write_json
-from worldtree.hashing import sha256_file
+from worldtree.infra.atomic import atomic_write_json
+from worldtree.infra.hashing import sha256_file
 
 MANIFEST = "manifest.json"
 MANIFEST_SCHEMA = 1

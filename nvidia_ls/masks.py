@@ -19,8 +19,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from worldtree.errors import UserError
 from worldtree.imageio import IMAGE_SUFFIXES, read_mask
+from worldtree.infra.errors import UserError
 
 
 @dataclass

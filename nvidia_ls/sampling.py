@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from worldtree.errors import UserError
+from worldtree.infra.errors import UserError
 
 
 def sample_times(times: list[int], frames: int) -> list[int]:

@@ -129,7 +129,7 @@ def read_pose_rows(path: Path, option: str = "", rows: int | None = None) -> np.
     """An LLFF ``poses_bounds.npy`` read whole and checked (:func:`nvidia_ls.scene_checks.pose_rows_problem`):
     an empty, damaged or non-numeric file is a one-line :class:`UserError` naming it (and ``option``).
     ``rows``: the number of rows required (one per rig camera)."""
-    from worldtree.errors import UserError
+    from worldtree.infra.errors import UserError
 
     path = Path(path)
     shown = f"{option} {path}" if option else str(path)

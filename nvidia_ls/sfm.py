@@ -19,8 +19,8 @@ from pathlib import Path
 import numpy as np
 
 from nvidia_ls.layouts import RawCapture
-from worldtree.errors import UserError
 from worldtree.imageio import write_image
+from worldtree.infra.errors import UserError
 
 CAMERA_MODELS = ("shared", "per-camera")
 

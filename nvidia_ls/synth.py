@@ -31,11 +31,11 @@ from nvidia_ls import llff
 from nvidia_ls.raycast import Primitive, cast
 from nvidia_ls.writer import save_image
 from worldtree import __version__
-from worldtree.atomic import atomic_dir, atomic_write_json
-from worldtree.cores import available_cores
-from worldtree.errors import UserError
 from worldtree.imageio import check_pixels
-from worldtree.output_paths import check_replaceable
+from worldtree.infra.atomic import atomic_dir, atomic_write_json
+from worldtree.infra.cores import available_cores
+from worldtree.infra.errors import UserError
+from worldtree.infra.output_paths import check_replaceable
 
 FLOOR_Y = 1.0
 MOTIONS = ("constant", "slow_fast", "near_static", "slow", "fast")

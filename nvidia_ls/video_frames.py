@@ -15,8 +15,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from worldtree.errors import UserError
 from worldtree.imageio import read_image
+from worldtree.infra.errors import UserError
 
 VIDEO_SUFFIXES = (".mp4", ".mov", ".avi", ".mkv", ".webm", ".m4v")
 FRAME_SUFFIXES = (".png", ".jpg", ".jpeg")

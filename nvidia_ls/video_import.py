@@ -14,7 +14,7 @@ Steps (docs/nvidia_ls.md, "Your own video"):
    has no test views; frames use cameras 2..T+1), ``poses_bounds.npy``, ``preview.png``, ``manifest.json``.
 
 Everything, the SfM scratch files included, is written in a temporary folder beside the scene that is renamed
-into place when complete (:func:`worldtree.atomic.atomic_dir`).
+into place when complete (:func:`worldtree.infra.atomic.atomic_dir`).
 """
 
 from __future__ import annotations
@@ -38,15 +38,15 @@ from nvidia_ls.video_sfm import clip_sfm, frame_bounds, moving_masks
 from nvidia_ls.world_frame import apply_similarity, rig_similarity
 from nvidia_ls.writer import cameras_document, frame_file, save_image
 from worldtree import __version__
-from worldtree.atomic import atomic_dir, atomic_write_bytes, atomic_write_json
-from worldtree.errors import UserError
-from worldtree.output_paths import (
+from worldtree.infra.atomic import atomic_dir, atomic_write_bytes, atomic_write_json
+from worldtree.infra.errors import UserError
+from worldtree.infra.output_paths import (
     check_name,
     check_output_folder,
     check_replaceable,
     remove_new_folders_on_failure,
 )
-from worldtree.timing import StageClock
+from worldtree.infra.timing import StageClock
 
 SFM_WORK = ".sfm"
 """Scratch folder of pycolmap inside the scene's temporary folder (removed before the files are hashed)."""

@@ -27,7 +27,7 @@ import numpy as np
 
 from nvidia_ls.sfm import _camera_to_opencv, cpu_matching, narrow_baseline_mapping
 from nvidia_ls.writer import save_image
-from worldtree.errors import UserError
+from worldtree.infra.errors import UserError
 
 MASK_WORK_SIDE = 320
 """The masks are computed on frames shrunk to at most this many pixels on the longer side (flow is the cost).

@@ -94,7 +94,7 @@ def cameras_document(
 def save_image(path: str | Path, image: np.ndarray) -> None:
     """Write RGB uint8 ``[H, W, 3]`` or a bool/uint8 mask ``[H, W]`` (0/255) as PNG/JPG, without fsync.
 
-    Only for files inside a folder made by :func:`worldtree.atomic.atomic_dir`: the folder rename is what
+    Only for files inside a folder made by :func:`worldtree.infra.atomic.atomic_dir`: the folder rename is what
     makes the output atomic, and skipping a per-file fsync makes writing thousands of frames much faster.
     """
     path = Path(path)

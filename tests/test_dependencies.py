@@ -135,7 +135,7 @@ def test_the_checker_flags_undeclared_and_unguarded_imports():
         "    import skimage\n"  # extra, guarded: fine
         "except ImportError:\n"
         "    skimage = None\n"
-        "import json, worldtree.atomic\n"  # stdlib and local: ignored
+        "import json, worldtree.infra.atomic\n"  # stdlib and local: ignored
     )
     problems = undeclared({"pkg/m.py": src}, deps, extras, ("worldtree",))
     assert problems == [

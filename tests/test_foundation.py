@@ -9,10 +9,10 @@ import sys
 import numpy as np
 import pytest
 
-from worldtree.atomic import atomic_dir, atomic_write_json
-from worldtree.errors import UserError
-from worldtree.hashing import sha256_file, sha256_files
 from worldtree.imageio import read_image, read_mask, write_image
+from worldtree.infra.atomic import atomic_dir, atomic_write_json
+from worldtree.infra.errors import UserError
+from worldtree.infra.hashing import sha256_file, sha256_files
 
 
 @pytest.mark.parametrize(
@@ -96,7 +96,7 @@ def test_unreadable_image_is_user_error(tmp_path):
 def test_run_cli_exit_codes(capsys):
     import typer
 
-    from worldtree.cli_runner import run_cli
+    from worldtree.infra.cli_runner import run_cli
 
     app = typer.Typer()
 

@@ -1,11 +1,14 @@
 """The import graph of the four packages, read from their source (every import statement, those inside
 functions included): no package imports one above it, no sub-package of ``benchmarks`` imports one above it,
-and no cycle among the sub-packages and top-level modules of any package.
+``worldtree.infra`` imports nothing else of ``worldtree``, nothing else of ``worldtree`` imports
+``worldtree.diagnostics``, and no cycle among the sub-packages and top-level modules of any package.
 
 Package order: ``worldtree`` (the library) < ``methods`` and ``nvidia_ls`` (each on the library alone) <
 ``benchmarks`` (the harness, on all three). Inside ``benchmarks``: fixtures < evaluation < runner < api (a
-finished run loaded) < reporting < viewer < commands < speed < cli. A known upward edge is listed in :data:`ALLOWED` with why it is there;
-an entry that no longer matches an import fails, so the list only shrinks.
+finished run loaded) < reporting < viewer < commands < speed < cli. Inside ``worldtree``: ``infra`` (errors,
+atomic files, locks, clocks: what the model uses) at the bottom, ``diagnostics`` (reads a fitted model) at the
+top. A known upward edge is listed in :data:`ALLOWED` with why it is there; an entry that no longer matches an
+import fails, so the list only shrinks.
 """
 
 from __future__ import annotations
@@ -33,14 +36,13 @@ BENCHMARKS_ORDER = (
     "speed",
     "cli",
 )
+#: Sub-packages of ``worldtree`` that import nothing else of ``worldtree`` (the bottom layer).
+WORLDTREE_BOTTOM = ("worldtree.infra",)
+#: Sub-packages of ``worldtree`` that nothing else of ``worldtree`` imports (the top layer).
+WORLDTREE_TOP = ("worldtree.diagnostics",)
 
 #: (importing node, imported node) -> why the edge stays for now.
-ALLOWED = {
-    ("worldtree.motion", "worldtree.dynamic"): (
-        "motion/model_tracks.py (a diagnostic of a fitted model, used by benchmarks.speed.motion_proof) reads "
-        "dynamic Gaussians, which are skinned by motion.scaffold; to move out of motion/"
-    ),
-}
+ALLOWED: dict[tuple[str, str], str] = {}
 
 
 def _module_name(path: Path) -> str:
@@ -48,8 +50,14 @@ def _module_name(path: Path) -> str:
     return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
 
 
+def _is_module(name: str) -> bool:
+    path = ROOT.joinpath(*name.split("."))
+    return path.with_suffix(".py").is_file() or (path / "__init__.py").is_file()
+
+
 def import_edges() -> list[tuple[str, str, str]]:
-    """``(importing module, imported module, "file:line")`` of every import of the four packages."""
+    """``(importing module, imported module, "file:line")`` of every import of the four packages; ``from pkg
+    import sub`` of a module ``sub`` counts as an import of ``pkg.sub``."""
     edges = []
     for pkg in PACKAGES:
         for path in sorted((ROOT / pkg).rglob("*.py")):
@@ -61,9 +69,11 @@ def import_edges() -> list[tuple[str, str, str]]:
                 elif isinstance(node, ast.ImportFrom):
                     if node.level:
                         base = here[: len(here) - node.level + 1]
-                        targets = [".".join([*base, *([node.module] if node.module else [])])]
+                        module = ".".join([*base, *([node.module] if node.module else [])])
                     else:
-                        targets = [node.module]
+                        module = node.module
+                    subs = [f"{module}.{a.name}" for a in node.names]
+                    targets = [sub if _is_module(sub) else module for sub in subs]
                 else:
                     continue
                 where = f"{path.relative_to(ROOT)}:{node.lineno}"
@@ -102,6 +112,26 @@ def test_no_benchmarks_subpackage_imports_one_above_it():
         if rank[a] < rank[b] and (a, b) not in ALLOWED:
             bad.append(f"{a} imports {b} ({', '.join(where)})")
     assert not bad, "\n".join(bad)
+
+
+def test_worldtree_layers_inside():
+    bad = []
+    for a, b, where in import_edges():
+        na, nb = node_of(a), node_of(b)
+        if na == nb or a.split(".")[0] != "worldtree" or b.split(".")[0] != "worldtree":
+            continue
+        if na in WORLDTREE_BOTTOM:
+            bad.append(f"{where}: {a} imports {b} ({na} may import nothing else of worldtree)")
+        if nb in WORLDTREE_TOP:
+            bad.append(f"{where}: {a} imports {b} (nothing else of worldtree may import {nb})")
+    assert not bad, "\n".join(bad)
+
+
+def test_worldtree_layers_exist():
+    """The layers named above are sub-packages (a renamed one would make the check above vacuous)."""
+    layers = (*WORLDTREE_BOTTOM, *WORLDTREE_TOP)
+    missing = [n for n in layers if not (ROOT.joinpath(*n.split(".")) / "__init__.py").is_file()]
+    assert not missing, f"not sub-packages: {missing}"
 
 
 def _cycles(graph: dict[str, set[str]]) -> list[list[str]]:

@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from worldtree.torchfile import load_torch, save_torch
+from worldtree.infra.torchfile import load_torch, save_torch
 
 _NAME = re.compile(r"^ckpt_(\d+)\.pt$")
 

@@ -122,7 +122,7 @@ class DynamicGaussians(GaussianSet):
 
     @classmethod
     def load(cls, path, device: torch.device | str = "cpu") -> DynamicGaussians:
-        from worldtree.errors import UserError
+        from worldtree.infra.errors import UserError
 
         data = cls.read_params(path, device)
         if "t_ref" not in data:

@@ -24,9 +24,9 @@ import numpy as np
 import torch
 from torch import nn
 
-from worldtree.atomic import atomic_write_bytes
-from worldtree.errors import UserError
-from worldtree.torchfile import load_torch, save_torch
+from worldtree.infra.atomic import atomic_write_bytes
+from worldtree.infra.errors import UserError
+from worldtree.infra.torchfile import load_torch, save_torch
 
 # Degree-0 real spherical harmonic, 1 / (2 sqrt(pi)); the PLY files of 3DGS viewers use this convention.
 SH_C0 = 0.28209479177387814

@@ -14,8 +14,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from worldtree.atomic import atomic_write_bytes
-from worldtree.errors import UserError
+from worldtree.infra.atomic import atomic_write_bytes
+from worldtree.infra.errors import UserError
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
 # The largest image (file read, or output size asked for) in megapixels, and the variable that raises it.

@@ -13,8 +13,8 @@ import cv2
 import numpy as np
 import torch
 
-from worldtree.errors import UserError
 from worldtree.imageio import read_image, read_mask
+from worldtree.infra.errors import UserError
 from worldtree.scene_schema import read_cameras, resolve_inside
 
 

@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from worldtree.errors import UserError
+from worldtree.infra.errors import UserError
 
 SCHEMA_VERSION = 1
 CAMERAS_JSON = "cameras.json"

@@ -36,7 +36,7 @@ from worldtree.checkpoint import (
     restore_rng_state,
     save_checkpoint,
 )
-from worldtree.errors import UserError
+from worldtree.infra.errors import UserError
 from worldtree.plateau import PlateauDetector
 
 

@@ -43,7 +43,7 @@ def register(app: typer.Typer) -> None:
             "frames need it) or a fixed depth, e.g. 2 (the paper's).",
         ),
     ) -> None:
-        from worldtree.output_paths import check_output_folder
+        from worldtree.infra.output_paths import check_output_folder
 
         check_output_folder(out, "-o")
         run_demo(out, methods, steps, size, device, preset, gt_priors=gt_priors, depth=depth)
@@ -73,13 +73,13 @@ def run_demo(
     from nvidia_ls.build import BuildConfig, build_scene, parse_size
     from nvidia_ls.gt_priors import GtPriorsConfig, write_gt_priors
     from nvidia_ls.synth import SynthConfig, write_raw_scene
-    from worldtree.errors import UserError
+    from worldtree.infra.errors import UserError
 
     console = Console()
     wh = parse_size(size)
     if wh is None:
         raise UserError(f"--size {size!r}: give WxH, e.g. 160x90")
-    from worldtree.device import pick_device
+    from worldtree.infra.device import pick_device
 
     kernel = _KernelBuild() if pick_device(device).type == "cpu" else None
     name = "SynthBalloon"

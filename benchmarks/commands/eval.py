@@ -65,10 +65,10 @@ def register(app: typer.Typer) -> None:
         get_protocol(protocol)  # fail on a bad name before reading anything
         out_csv = out if out is not None else pred_dir.resolve().parent / "metrics.csv"
         if out_csv.suffix.lower() != ".csv":
-            from worldtree.errors import UserError
+            from worldtree.infra.errors import UserError
 
             raise UserError(f"--out {out_csv}: the table is written as CSV; give a file name ending in .csv")
-        from worldtree.output_paths import check_output_file
+        from worldtree.infra.output_paths import check_output_file
 
         # Before the scoring, not after it: the CSV and its JSON record beside it must be writable.
         check_output_file(out_csv, "--out")

@@ -53,7 +53,7 @@ def register(app: typer.Typer) -> None:
         )
         from benchmarks.reporting.results import GROUP_KEYS, collect_runs, select
         from benchmarks.reporting.tables import parse_list
-        from worldtree.output_paths import check_output_file
+        from worldtree.infra.output_paths import check_output_file
 
         check_output_file(out, "-o")
         keys = parse_list(group_by, "--group-by", GROUP_KEYS)

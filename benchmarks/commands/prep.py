@@ -6,7 +6,7 @@ from pathlib import Path
 
 import typer
 
-from worldtree.errors import UserError
+from worldtree.infra.errors import UserError
 from worldtree.priors.config import (  # light: dataclasses only
     DepthConfig,
     DepthImportConfig,

@@ -45,7 +45,7 @@ def register(app: typer.Typer) -> None:
         method_options: dict | None = None,
     ) -> None:
         from benchmarks.runner.runs import execute
-        from worldtree.errors import UserError
+        from worldtree.infra.errors import UserError
 
         if list_:
             _print_methods()

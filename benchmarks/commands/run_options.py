@@ -14,7 +14,7 @@ from typing import Any
 
 import typer
 
-from worldtree.cli_runner import one_line_warning
+from worldtree.infra.cli_runner import one_line_warning
 
 __all__ = ["RunOptions", "one_line_warning"]
 

@@ -86,7 +86,7 @@ def register(app: typer.Typer) -> None:
             parse_slurm_args,
             parse_slurm_time,
         )
-        from worldtree.errors import UserError
+        from worldtree.infra.errors import UserError
 
         if status is not None:
             show_status(status)
@@ -126,7 +126,7 @@ def list_grids() -> None:
 def show_status(runs_dir: Path) -> None:
     """Print one line per run folder under ``runs_dir`` (state, run, job id, detail) and the counts."""
     from benchmarks.runner.sweep_executors import run_states
-    from worldtree.errors import UserError
+    from worldtree.infra.errors import UserError
 
     states = run_states(runs_dir)
     if not states:
@@ -155,9 +155,9 @@ def sweep(scenes, grid: str, run: RunOptions, dry_run: bool = False, executor=No
     from benchmarks.runner.sweep_executors import JOBS_DIR, Task, resolve_kind, run_tasks
     from methods.config_overrides import split_assignment
     from methods.registry import get_method
-    from worldtree.errors import UserError
-    from worldtree.folder_lock import FolderLock
-    from worldtree.output_paths import check_output_folder
+    from worldtree.infra.errors import UserError
+    from worldtree.infra.folder_lock import FolderLock
+    from worldtree.infra.output_paths import check_output_folder
 
     method, runs_dir, device = run.method, run.runs_dir, run.device
     sets, priors, overrides = run.sets, run.priors, run.overrides

@@ -56,8 +56,8 @@ def export_tables(
 
     from benchmarks.reporting.results import GROUP_KEYS, METRICS, collect_runs, select
     from benchmarks.reporting.tables import build_wide, format_for, parse_list, render
-    from worldtree.atomic import atomic_write_text
-    from worldtree.output_paths import check_output_file
+    from worldtree.infra.atomic import atomic_write_text
+    from worldtree.infra.output_paths import check_output_file
 
     keys = parse_list(group_by, "--group-by", GROUP_KEYS)
     chosen = parse_list(metrics, "--metrics", METRICS)

@@ -17,7 +17,7 @@ def register(app: typer.Typer) -> None:
         fps: float = typer.Option(10.0, "--fps", help="Frames per second."),
     ) -> None:
         from benchmarks.reporting.video import compose_frames, write_video
-        from worldtree.output_paths import check_output_file
+        from worldtree.infra.output_paths import check_output_file
 
         check_output_file(out or run_dir / "test_view.mp4", "-o")
         frames, _ = compose_frames(run_dir)

@@ -20,7 +20,7 @@ def register(app: typer.Typer) -> None:
         ),
     ) -> None:
         from benchmarks.evaluation import lpips_weights as lw
-        from worldtree.errors import UserError
+        from worldtree.infra.errors import UserError
 
         print("LPIPS weights are looked for in this order; eval uses the first folder listed:")
         for k, folder in enumerate(lw.search_folders(lpips_weights), 1):

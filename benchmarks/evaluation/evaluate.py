@@ -27,8 +27,8 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from worldtree.cores import available_cores
-from worldtree.errors import UserError
+from worldtree.infra.cores import available_cores
+from worldtree.infra.errors import UserError
 
 #: CSV columns, in order.
 COLUMNS = ("frame", "psnr", "ssim", "lpips", "avge", "mpsnr", "mssim", "mlpips", "mavge")
@@ -375,7 +375,7 @@ def _evaluate(
     import worldtree
     from benchmarks.evaluation.metrics import get_protocol
     from benchmarks.evaluation.metrics.protocols import LPIPS_MIN_SIDE
-    from worldtree.device import pick_device
+    from worldtree.infra.device import pick_device
 
     proto = get_protocol(protocol)
     dev = pick_device(device if not isinstance(device, torch.device) else str(device))
@@ -457,7 +457,7 @@ def evaluate_folder(
     ``progress``: called with the number of frames finished after each batch.
     Bad inputs raise :class:`UserError` naming the files.
     """
-    from worldtree.hashing import sha256_files
+    from worldtree.infra.hashing import sha256_files
 
     frames = pair_files(pred_dir, gt_dir, mask_dir)
     inputs = {
@@ -543,7 +543,7 @@ def evaluate_arrays(
 def write_result(res: EvalResult, out_csv: str | Path) -> tuple[Path, Path]:
     """Write the table to ``out_csv`` (NaN as an empty cell, +inf as ``inf``) and the record beside it as
     ``<stem>.json``, each atomically. Returns both paths."""
-    from worldtree.atomic import atomic_write_json, atomic_write_text
+    from worldtree.infra.atomic import atomic_write_json, atomic_write_text
 
     out_csv = Path(out_csv)
     if out_csv.suffix.lower() != ".csv":

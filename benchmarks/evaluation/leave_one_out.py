@@ -53,10 +53,10 @@ import torch
 
 import worldtree
 from methods.registry import list_methods, node_at, render_between, render_training_frame
-from worldtree.atomic import atomic_write_json
-from worldtree.device import pick_device
-from worldtree.errors import UserError
 from worldtree.imageio import read_mask, write_image
+from worldtree.infra.atomic import atomic_write_json
+from worldtree.infra.device import pick_device
+from worldtree.infra.errors import UserError
 from worldtree.scene import Scene, load_scene
 
 
@@ -221,8 +221,8 @@ def main(argv: list[str] | None = None) -> None:
     args = ap.parse_args(argv)
     args.method_steps = {spec.name: getattr(args, f"steps_of:{spec.name}") for spec in list_methods()}
 
-    from worldtree.folder_lock import FolderLock
-    from worldtree.output_paths import check_output_folder
+    from worldtree.infra.folder_lock import FolderLock
+    from worldtree.infra.output_paths import check_output_folder
 
     try:
         frames = [int(v) for v in args.frames.split(",") if v.strip()]
@@ -286,10 +286,10 @@ def resolve_configs(args) -> list[tuple]:
     NAME:KEY=VALUE`` (and ``--NAME-steps``; these may override the common options for that method), and the
     depth import options. Like ``wtbench run``: a ``--set`` key that no method has, a malformed or repeated
     one, one that has its own option, a value that does not parse or a setting outside its range
-    (:mod:`worldtree.config_ranges`) is a one-line :class:`UserError`, before any work."""
+    (:mod:`worldtree.infra.config_ranges`) is a one-line :class:`UserError`, before any work."""
     from methods.config_overrides import apply_overrides, canonical_sets, split_assignment
     from methods.registry import get_method
-    from worldtree.config_ranges import check_config_ranges
+    from worldtree.infra.config_ranges import check_config_ranges
 
     names = [n.strip() for n in args.methods.split(",") if n.strip()]
     if not names:
@@ -365,7 +365,7 @@ def resolve_configs(args) -> list[tuple]:
 
 def _folder_fingerprint(folder: Path) -> dict:
     """A prior folder as the results key sees it: its absolute path and each file's name and sha256."""
-    from worldtree.hashing import sha256_file
+    from worldtree.infra.hashing import sha256_file
 
     files = sorted(p for p in folder.iterdir() if p.is_file()) if folder.is_dir() else []
     return {"path": str(folder.resolve()), "files": [(p.name, sha256_file(p)) for p in files]}

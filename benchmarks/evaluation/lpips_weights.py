@@ -11,7 +11,7 @@ LPIPS (AlexNet, v0.1) needs:
 A weights folder holds both files. Folders are searched in this order: the ``--lpips-weights DIR`` option,
 the ``WTBENCH_LPIPS_WEIGHTS`` environment variable, then the user cache folder
 (``$XDG_CACHE_HOME/worldtree-bench/lpips``, default ``~/.cache/worldtree-bench/lpips``). A folder named by
-the option or the variable must hold valid files (else :class:`~worldtree.errors.UserError`); only when
+the option or the variable must hold valid files (else :class:`~worldtree.infra.errors.UserError`); only when
 neither is given do missing weights mean "no LPIPS" (:class:`WeightsNotFound`).
 """
 
@@ -25,8 +25,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from worldtree.errors import UserError
-from worldtree.hashing import sha256_file
+from worldtree.infra.errors import UserError
+from worldtree.infra.hashing import sha256_file
 
 ALEXNET_FILE = "alexnet-owt-7be5be79.pth"
 #: First 8 hex digits of the sha256 of torchvision's AlexNet file (torchvision's naming convention).

@@ -21,8 +21,8 @@ import numpy as np
 import torch
 
 import worldtree
-from worldtree.errors import UserError
 from worldtree.gaussian_frame import GaussianFrame
+from worldtree.infra.errors import UserError
 
 FORMATS = ("ply", "npz")
 INDEX = "index.json"
@@ -88,7 +88,7 @@ def _flatten(prefix: str, obj: Any, out: dict[str, np.ndarray]) -> None:
 def raw_model_arrays(model_dir: Path) -> dict[str, np.ndarray]:
     """Every torch file of a run's ``model/`` folder (the method's own saved model: canonical Gaussians,
     scaffold, cameras, tree nodes) flattened to ``model/<file>/<key>/...`` arrays, and ``model/model.json``."""
-    from worldtree.torchfile import load_torch
+    from worldtree.infra.torchfile import load_torch
 
     out: dict[str, np.ndarray] = {"model/model.json": np.asarray((model_dir / "model.json").read_text())}
     for path in sorted(model_dir.rglob("*.pt")):
@@ -103,7 +103,7 @@ def export_run(run, out: Path, fmt: str, times: list[int]) -> dict[str, Any]:
     ``fmt`` (``ply``: ``time_<t>.ply`` per time, a time drawing the same Gaussians as the time before sharing
     its file; ``npz``: ``model.npz`` with the raw model under ``model/...`` and each time's frame under
     ``frames/<t>/<field>``) and ``index.json``. Returns the index."""
-    from worldtree.atomic import atomic_write_bytes, atomic_write_json
+    from worldtree.infra.atomic import atomic_write_bytes, atomic_write_json
 
     if fmt not in FORMATS:
         raise UserError(f"--format {fmt}: choose ply or npz")
@@ -168,7 +168,7 @@ def export_folder(
     """``wtbench export``: load ``run_dir`` (:func:`benchmarks.api.load_run`), check ``--times`` and ``-o``
     before any work, export; a failed export removes the output folders it created."""
     from benchmarks.api import load_run
-    from worldtree.output_paths import check_output_folder, remove_new_folders_on_failure
+    from worldtree.infra.output_paths import check_output_folder, remove_new_folders_on_failure
 
     if fmt not in FORMATS:
         raise UserError(f"--format {fmt}: choose ply or npz")

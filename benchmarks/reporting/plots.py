@@ -20,7 +20,7 @@ import pandas as pd
 
 from benchmarks.reporting.results import METRICS, higher_is_better
 from benchmarks.reporting.tables import LABELS, build_wide
-from worldtree.errors import UserError
+from worldtree.infra.errors import UserError
 
 #: Metrics derived per run from PSNR: name -> source metric.
 DERIVED = {"mse": "psnr", "mmse": "mpsnr"}
@@ -150,7 +150,7 @@ def short_labels(labels: Sequence[str]) -> list[str]:
 
 def draw(panels: Sequence[Panel], path: str | Path, dpi: int = 150) -> None:
     """Draw ``panels`` side by side into ``path`` (.png, .pdf or .svg), atomically."""
-    from worldtree.atomic import atomic_write_bytes
+    from worldtree.infra.atomic import atomic_write_bytes
 
     path = Path(path)
     if path.suffix.lower() not in PLOT_SUFFIXES:

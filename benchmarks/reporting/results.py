@@ -25,7 +25,7 @@ import numpy as np
 import pandas as pd
 
 from benchmarks.runner.layout import find_run_folders
-from worldtree.errors import UserError
+from worldtree.infra.errors import UserError
 
 #: Columns of the evaluation harness (benchmarks.evaluation.evaluate.COLUMNS without ``frame``).
 HARNESS_METRICS = ("psnr", "ssim", "lpips", "avge", "mpsnr", "mssim", "mlpips", "mavge")

@@ -21,7 +21,7 @@ import numpy as np
 import pandas as pd
 
 from benchmarks.reporting.results import GROUP_KEYS, METRICS, higher_is_better
-from worldtree.errors import UserError
+from worldtree.infra.errors import UserError
 
 FORMATS = ("csv", "markdown", "latex")
 #: Decimals shown in markdown/LaTeX (and used to decide ties when ranking).

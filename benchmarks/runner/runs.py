@@ -37,13 +37,13 @@ import torch
 
 import worldtree
 from methods.config_overrides import apply_overrides, sets_digest, split_assignment
-from worldtree.atomic import atomic_write_json, atomic_write_text
-from worldtree.config_ranges import check_config_ranges
-from worldtree.errors import UserError
 from worldtree.imageio import write_image
+from worldtree.infra.atomic import atomic_write_json, atomic_write_text
+from worldtree.infra.config_ranges import check_config_ranges
+from worldtree.infra.errors import UserError
+from worldtree.infra.output_paths import check_name, check_output_folder, check_replaceable, folder_name_of
+from worldtree.infra.timing import StageClock
 from worldtree.losses import SSIM_WINDOW
-from worldtree.output_paths import check_name, check_output_folder, check_replaceable, folder_name_of
-from worldtree.timing import StageClock
 
 if TYPE_CHECKING:
     from methods.plugin import MethodOption
@@ -105,7 +105,7 @@ class RunFolder:
 
     @property
     def timing_ledger(self) -> Path:
-        """Stage and session times so far (:class:`worldtree.timing.StageClock`), kept across resumes."""
+        """Stage and session times so far (:class:`worldtree.infra.timing.StageClock`), kept across resumes."""
         return self.checkpoints / "timing_sessions.json"
 
     @property
@@ -272,14 +272,14 @@ def execute(req: RunRequest) -> RunResult:
 
     Everything that can be checked is checked before the run folder is touched (method, scene, config,
     device, the output folder's writability), so a rejected request leaves nothing behind. The run folder
-    is then locked (:class:`worldtree.folder_lock.FolderLock`, held until this function returns) before
+    is then locked (:class:`worldtree.infra.folder_lock.FolderLock`, held until this function returns) before
     anything is written or deleted in it: a second writer, ``--force`` included, fails at once naming the
     holder's PID and host.
     """
     from methods.registry import get_method
     from worldtree.checkpoint import seed_everything
-    from worldtree.device import pick_device
-    from worldtree.folder_lock import FolderLock
+    from worldtree.infra.device import pick_device
+    from worldtree.infra.folder_lock import FolderLock
     from worldtree.scene import load_scene
     from worldtree.trainer import check_tensorboard
 
@@ -495,7 +495,7 @@ def resolve_config(spec, req: RunRequest) -> tuple[Any, list[str]]:
         v = getattr(cfg, k)
         if v < 1:
             raise UserError(f"{f'--{k} {v}' if k in req.overrides else f'--set {k}={v}'}: must be at least 1")
-    # Every setting within its declared range (worldtree.config_ranges), named as it was given.
+    # Every setting within its declared range (worldtree.infra.config_ranges), named as it was given.
     given = {split_assignment(item)[0]: f"--set {item}" for item in req.sets}
     given |= {k: f"{option_flag(k)} {v}" for k, v in (*req.overrides.items(), *req.options.items())}
     check_config_ranges(cfg, given)

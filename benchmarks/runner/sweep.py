@@ -22,8 +22,8 @@ from typing import Any
 
 import worldtree
 from methods.plugin import Grid, GridPoint
-from worldtree.atomic import atomic_write_json
-from worldtree.errors import UserError
+from worldtree.infra.atomic import atomic_write_json
+from worldtree.infra.errors import UserError
 
 #: Grids of the harness, for every method (a method's own grid may not take these names).
 HARNESS_GRIDS: dict[str, Grid] = {

@@ -33,10 +33,10 @@ import submitit
 
 from benchmarks.runner.runs import RunFolder, RunRequest
 from benchmarks.runner.sweep import SweepOutcome, run_device
-from worldtree.atomic import atomic_write_json
-from worldtree.errors import UserError
-from worldtree.folder_lock import is_locked, read_holder
-from worldtree.output_paths import has_control_characters
+from worldtree.infra.atomic import atomic_write_json
+from worldtree.infra.errors import UserError
+from worldtree.infra.folder_lock import is_locked, read_holder
+from worldtree.infra.output_paths import has_control_characters
 
 EXECUTORS = ("local", "slurm", "auto")
 JOB_RECORD = "job.json"
@@ -268,7 +268,7 @@ def run_in_job(request: RunRequest, threads: int | None) -> dict[str, Any]:
     import torch
 
     from benchmarks.runner.runs import execute
-    from worldtree.cli_runner import one_line_warning
+    from worldtree.infra.cli_runner import one_line_warning
 
     started = time.time()
     if threads:
@@ -431,9 +431,10 @@ def live_job(job: dict[str, Any], slurm: dict[str, str] | None = None) -> str | 
 def _first_error_line(text: str) -> str:
     """The exception line of a traceback (submitit reports a job's failure as its whole traceback)."""
     lines = [ln.strip() for ln in str(text).splitlines() if ln.strip()]
+    user_error = f"{UserError.__module__}.{UserError.__qualname__}: "  # as a traceback names it
     for ln in reversed(lines):
-        if ln.startswith("worldtree.errors.UserError: "):
-            return ln.removeprefix("worldtree.errors.UserError: ")
+        if ln.startswith(user_error):
+            return ln.removeprefix(user_error)
         if ":" in ln and not ln.startswith(("File ", "raise ", "^")) and "Error" in ln.split(":")[0]:
             return ln
     return lines[-1] if lines else "failed"

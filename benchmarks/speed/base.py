@@ -55,7 +55,7 @@ def main(argv: list[str] | None = None) -> None:
     import torch
 
     from methods.registry import get_method
-    from worldtree.device import pick_device
+    from worldtree.infra.device import pick_device
     from worldtree.scene import load_scene
     from worldtree.trainer import TrainContext
 

@@ -234,7 +234,7 @@ def main(argv: list[str] | None = None) -> None:
 
 
 if __name__ == "__main__":
-    from worldtree.errors import UserError
+    from worldtree.infra.errors import UserError
 
     try:
         main()

@@ -18,7 +18,7 @@ For each scene it prints, against the exact masks and tracks of ``nvls gt-priors
 - **after (priors)**: the epipolar + depth-consistency cues fused, dynamic tracks chained through flow;
 - **after (Base)**: the masks refined with the static warm-up's residual inside the Base run (read from its
   ``checkpoints/motion.npz``), with migration, trajectory completion and trajectory depth on;
-- **fitted model**: the tracks read off the fitted Base model (:mod:`worldtree.motion.model_tracks`: each
+- **fitted model**: the tracks read off the fitted Base model (:mod:`worldtree.diagnostics.model_tracks`: each
   dynamic Gaussian carried by the scaffold and projected, where it is in view and not hidden), over every frame
   and only within 2 temporal standard deviations of its own frame (how far the model's motion is right);
 - with ``--methods base,worldtree``: the WorldTree method before and after as well (its root is the Base
@@ -234,14 +234,14 @@ def priors_rows(
 def model_rows(
     model_dir: Path, scene_dir: Path, downscale: int, exact, tol_px: float, max_tracks: int = 2000
 ):
-    """Track figures of the tracks read off a fitted Base model (:mod:`worldtree.motion.model_tracks`):
+    """Track figures of the tracks read off a fitted Base model (:mod:`worldtree.diagnostics.model_tracks`):
     every frame where a Gaussian is in view and unhidden, and only the frames within 2 temporal standard
     deviations of its own frame (where its temporal opacity still draws it)."""
     import torch
 
+    from worldtree.diagnostics.model_tracks import model_tracks, pick_gaussians
     from worldtree.dynamic import DynamicGaussians
     from worldtree.gaussians import GaussianSet
-    from worldtree.motion.model_tracks import model_tracks, pick_gaussians
     from worldtree.motion.scaffold import Scaffold
     from worldtree.scene import load_scene
 

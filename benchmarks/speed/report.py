@@ -26,8 +26,8 @@ import pandas as pd
 def make_sweep(root: Path, scenes: int, configs: int, frames: int, width: int, height: int) -> Path:
     """Scenes under ``root/scenes``, finished runs under ``root/runs`` (returned)."""
     from benchmarks.evaluation.evaluate import COLUMNS, EvalResult, write_result
-    from worldtree.atomic import atomic_write_json
     from worldtree.imageio import write_image
+    from worldtree.infra.atomic import atomic_write_json
 
     rng = np.random.default_rng(0)
     yy, xx = np.mgrid[0:height, 0:width]

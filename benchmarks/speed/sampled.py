@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from benchmarks.speed.e2e import KINDS
-from worldtree.errors import UserError
+from worldtree.infra.errors import UserError
 
 # Extra kinds a whole run has besides the training step's (checked after KINDS, innermost first as well).
 EXTRA_KINDS: list[tuple[str, str, tuple[str, ...] | None]] = [

@@ -40,7 +40,7 @@ def _base_state(run: Path, scene_dir: Path):
     """``(scene, state, prior depth [T, H, W])``: the Base state of ``run`` after its scaffold stage, rebuilt
     from a copy of its checkpoints, and the depth prior as it was before the scaffold stage."""
     from methods.base import BaseConfig, BaseMethod
-    from worldtree.config_json import from_dict
+    from worldtree.infra.config_json import from_dict
     from worldtree.scene import load_scene
     from worldtree.trainer import TrainContext
 

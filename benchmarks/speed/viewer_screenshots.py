@@ -27,7 +27,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from worldtree.errors import UserError
+from worldtree.infra.errors import UserError
 
 #: Seconds to wait for one full-size frame (a CPU render of a real clip's frame takes seconds).
 TIMEOUT = 180.0

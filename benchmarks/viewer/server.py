@@ -21,7 +21,7 @@ import numpy as np
 from benchmarks.viewer import camera as cam
 from benchmarks.viewer import frames
 from benchmarks.viewer.source import ViewCamera, ViewSource, find_test_camera
-from worldtree.errors import UserError
+from worldtree.infra.errors import UserError
 
 #: Seconds without a camera change after which the full-size image is rendered.
 STILL_S = 0.3

@@ -109,7 +109,7 @@ class RunSource:
 
 def open_run(run_dir: Path, device: str | None = None) -> RunSource:
     """Load the finished run in ``run_dir`` on ``device`` (None/"auto": CUDA when present, else the CPU) for the
-    viewer; problems are :class:`~worldtree.errors.UserError` lines from the loader."""
+    viewer; problems are :class:`~worldtree.infra.errors.UserError` lines from the loader."""
     from benchmarks.api import load_run
 
     return RunSource(load_run(run_dir, device=device))

@@ -7,7 +7,7 @@ import torch
 from methods.plugin import Grid, GridPoint, MethodOption
 from methods.registry import CommonConfig, MethodSpec, register_method
 from methods.stages import Stage, run_stages
-from worldtree.timing import StageClock
+from worldtree.infra.timing import StageClock
 
 
 @dataclass

@@ -15,7 +15,7 @@ import pandas as pd
 
 from benchmarks.evaluation.evaluate import COLUMNS, EvalResult, write_result
 from benchmarks.runner.runs import RunFolder
-from worldtree.atomic import atomic_write_json, atomic_write_text
+from worldtree.infra.atomic import atomic_write_json, atomic_write_text
 
 
 def write_run(

@@ -13,8 +13,8 @@ import pytest
 import torch
 
 from benchmarks.api import load_run
-from worldtree.errors import UserError
 from worldtree.gaussian_frame import render_frame
+from worldtree.infra.errors import UserError
 from worldtree.scene_schema import read_cameras
 
 METHODS = ("static", "base", "worldtree")

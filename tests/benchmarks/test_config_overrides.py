@@ -14,7 +14,7 @@ import pytest
 from benchmarks.runner.runs import run_tag
 from methods.config_overrides import apply_overrides, canonical_sets, sets_digest
 from methods.registry import get_method
-from worldtree.errors import UserError
+from worldtree.infra.errors import UserError
 
 
 @dataclass(frozen=True)

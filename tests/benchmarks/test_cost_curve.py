@@ -19,7 +19,7 @@ import torch
 
 from benchmarks.evaluation.evaluate import COLUMNS, EvalResult, write_result
 from benchmarks.speed import cost_curve as cc
-from worldtree.atomic import atomic_write_json
+from worldtree.infra.atomic import atomic_write_json
 
 
 def fake_run(

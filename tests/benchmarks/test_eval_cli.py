@@ -15,10 +15,11 @@ from skimage.metrics import structural_similarity as sk_ssim
 
 import worldtree
 from benchmarks import cli
+from benchmarks.commands import method_options
 from benchmarks.evaluation.evaluate import evaluate_folder, pair_files
-from worldtree.errors import UserError
-from worldtree.hashing import sha256_files
 from worldtree.imageio import write_image
+from worldtree.infra.errors import UserError
+from worldtree.infra.hashing import sha256_files
 
 H, W = 30, 40
 
@@ -49,6 +50,10 @@ def make_dirs(root, n=3, seed=0):
 def wtbench(args, monkeypatch, capsys):
     """Run the console entry point in-process; returns (exit code, stdout, stderr)."""
     monkeypatch.setattr(sys, "argv", ["wtbench", *map(str, args)])
+    # For a command other than run, main() turns `wtbench run`'s method options off for the rest of the process
+    # (the app's run command then caches its signature without them): kept on, so that a later test in this
+    # worker that runs `wtbench run` in-process still has --ablate, --depth...
+    monkeypatch.setattr(method_options, "skip_generation", lambda: None)
     code = 0
     try:
         cli.main()

@@ -16,7 +16,7 @@ from benchmarks.evaluation.evaluate import COLUMNS, EvalWarning, evaluate_arrays
 from benchmarks.evaluation.lpips import LPIPS, random_state_dicts
 from benchmarks.evaluation.metrics import avge
 from benchmarks.evaluation.metrics.protocol_dycheck import masked_map_mean
-from worldtree.errors import UserError
+from worldtree.infra.errors import UserError
 
 
 @pytest.fixture(scope="module")

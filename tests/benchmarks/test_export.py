@@ -15,8 +15,8 @@ from typer.testing import CliRunner
 
 from benchmarks.api import load_run
 from benchmarks.cli import app
-from worldtree.errors import UserError
 from worldtree.gaussians import GaussianSet
+from worldtree.infra.errors import UserError
 from worldtree.render import rasterize
 from worldtree.stages.cameras import centres
 

@@ -191,7 +191,7 @@ def test_set_keys_and_ranges_are_checked_before_any_work(tmp_path):
     import pytest
 
     from benchmarks.evaluation import leave_one_out as loo
-    from worldtree.errors import UserError
+    from worldtree.infra.errors import UserError
 
     scene = _tiny_scene(tmp_path / "scene")
     out = tmp_path / "out"

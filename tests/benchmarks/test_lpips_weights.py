@@ -13,7 +13,7 @@ from typer.testing import CliRunner
 from benchmarks.cli import app
 from benchmarks.evaluation import lpips_weights as lw
 from benchmarks.evaluation.lpips import LPIPS, random_state_dicts
-from worldtree.errors import UserError
+from worldtree.infra.errors import UserError
 
 
 @pytest.fixture

@@ -17,8 +17,8 @@ from benchmarks.runner.runs import RunRequest, execute
 from nvidia_ls.build import BuildConfig
 from nvidia_ls.importer import ImportConfig, import_scene
 from nvidia_ls.synth import SynthConfig, write_raw_scene
-from worldtree.errors import UserError
-from worldtree.output_paths import check_name, check_replaceable
+from worldtree.infra.errors import UserError
+from worldtree.infra.output_paths import check_name, check_replaceable
 
 HOSTILE = [
     "",

@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 
 from benchmarks.reporting.results import collect_runs
-from worldtree.errors import UserError
 from worldtree.imageio import write_image
+from worldtree.infra.errors import UserError
 
 _spec = importlib.util.spec_from_file_location(
     "wt_tests_runs_fixture_faults", Path(__file__).with_name("runs_fixture.py")

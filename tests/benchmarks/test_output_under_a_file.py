@@ -9,7 +9,7 @@ from typer.testing import CliRunner
 
 from benchmarks.cli import app as wtbench
 from nvidia_ls.cli import app as nvls
-from worldtree.errors import UserError
+from worldtree.infra.errors import UserError
 
 
 @pytest.fixture
@@ -43,7 +43,7 @@ def test_output_under_a_file_is_one_line(tmp_path, afile):
 
 
 def test_cli_runner_turns_not_a_directory_into_one_line(tmp_path, afile, capsys):
-    from worldtree.cli_runner import run_cli
+    from worldtree.infra.cli_runner import run_cli
 
     def app(standalone_mode=False):
         (afile / "sub").mkdir(parents=True)

@@ -24,7 +24,7 @@ from benchmarks.reporting.plots import (
     with_derived,
 )
 from benchmarks.reporting.results import collect_runs
-from worldtree.errors import UserError
+from worldtree.infra.errors import UserError
 
 
 def _fixture():

@@ -16,7 +16,7 @@ from typer.testing import CliRunner
 from benchmarks.cli import app
 from benchmarks.reporting.webreport import site
 from benchmarks.reporting.webreport.images import ERROR_VMAX, error_map, fit_width, mask_view
-from worldtree.folder_lock import FolderLock
+from worldtree.infra.folder_lock import FolderLock
 
 
 def _fixture():

@@ -15,7 +15,7 @@ from typer.testing import CliRunner
 from benchmarks.cli import app
 from benchmarks.runner.runs import RunRequest, execute, run_tag
 from methods.static3dgs import StaticGaussians
-from worldtree.errors import UserError
+from worldtree.infra.errors import UserError
 
 
 def test_run_twice_skips_and_layout(scene, tmp_path, small_quick):

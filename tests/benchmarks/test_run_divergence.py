@@ -14,7 +14,7 @@ import torch
 from torch import nn
 
 from worldtree.checkpoint import list_checkpoints
-from worldtree.errors import UserError
+from worldtree.infra.errors import UserError
 from worldtree.optim import ConstantLR, GroupedAdam
 from worldtree.trainer import NonFiniteLossError, StepOutput, Trainer, TrainerConfig, TrainingDivergedError
 

@@ -15,8 +15,8 @@ from pathlib import Path
 
 import torch
 
-from worldtree.cli_runner import INTERRUPTED
-from worldtree.folder_lock import lock_paths
+from worldtree.infra.cli_runner import INTERRUPTED
+from worldtree.infra.folder_lock import lock_paths
 
 # Tiny static run: 12 steps, a checkpoint every 4 (so kills land before, between and after checkpoints).
 SETS = ["--set", "init_num_points=200", "--set", "checkpoint_every=4"]

@@ -14,12 +14,12 @@ import pytest
 import torch
 
 from benchmarks.runner.runs import RunRequest, execute, run_tag
-from worldtree.errors import UserError
-from worldtree.folder_lock import is_locked
+from worldtree.infra.errors import UserError
+from worldtree.infra.folder_lock import is_locked
 
 HOLD = """
 import sys, time
-from worldtree.folder_lock import FolderLock
+from worldtree.infra.folder_lock import FolderLock
 lock = FolderLock(sys.argv[1], "run folder").acquire()
 print("held", flush=True)
 time.sleep(120)

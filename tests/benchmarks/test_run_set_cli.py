@@ -20,7 +20,7 @@ from benchmarks.commands.run_options import RunOptions
 from benchmarks.commands.sweep import sweep
 from benchmarks.runner.runs import RunRequest, resolve_config, run_tag
 from methods.registry import get_method
-from worldtree.errors import UserError
+from worldtree.infra.errors import UserError
 
 
 def test_set_reaches_config_names_folder_and_repeats(scene, tmp_path, small_quick):
@@ -32,7 +32,7 @@ def test_set_reaches_config_names_folder_and_repeats(scene, tmp_path, small_quic
         args += ["--set", s]
     first = runner.invoke(app, args, catch_exceptions=False)
     assert first.exit_code == 0, first.output
-    # Hidden names are the run folder's lock file beside it (worldtree.folder_lock).
+    # Hidden names are the run folder's lock file beside it (worldtree.infra.folder_lock).
     folders = [p for p in (tmp_path / "tiny" / "static").iterdir() if not p.name.startswith(".")]
     assert [f.name for f in folders] == [run_tag("quick", {"steps": 2}, None, sets)]
     assert len(folders[0].name) == len("quick-steps2-set") + 8

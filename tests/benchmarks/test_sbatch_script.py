@@ -19,7 +19,7 @@ from benchmarks.runner.sweep_executors import (
     slurm_job_name,
     slurm_parameters,
 )
-from worldtree.errors import UserError
+from worldtree.infra.errors import UserError
 
 COMMAND = "/usr/bin/python3 -u -m submitit.core._submit /runs/.sweep-jobs/%j"
 

@@ -1,4 +1,4 @@
-"""Every numeric setting has one declared range (worldtree.config_ranges), checked on the resolved config
+"""Every numeric setting has one declared range (worldtree.infra.config_ranges), checked on the resolved config
 before any work (issue #30: `lambda_depth=-1` silently meant off, `ba.steps=-10`, `checkpoint_every=0`,
 `log_every=-1` were accepted; `downscale=1000`, `priors.flow.offsets=`, a 20-digit --seed failed late)."""
 
@@ -14,8 +14,8 @@ from hypothesis import strategies as st
 from benchmarks.runner.runs import RunRequest, execute, resolve_config
 from methods.config_overrides import field_types
 from methods.registry import get_method, list_methods
-from worldtree.config_ranges import Range, config_problems, range_of
-from worldtree.errors import UserError
+from worldtree.infra.config_ranges import Range, config_problems, range_of
+from worldtree.infra.errors import UserError
 
 
 def _numeric_keys(cfg, prefix=""):

@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 
 from benchmarks.speed.sampled import main, report, summarise
-from worldtree.errors import UserError
+from worldtree.infra.errors import UserError
 
 MAIN = 'process 11:"python -m benchmarks.cli run --method worldtree"'
 WORKER = 'process 12:"python -B -c from multiprocessing.spawn import spawn_main; spawn_main(tracker_fd=9)"'

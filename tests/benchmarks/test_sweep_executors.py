@@ -14,8 +14,8 @@ import pytest
 
 from benchmarks.runner import sweep_executors as se
 from benchmarks.runner.runs import RunFolder
-from worldtree.errors import UserError
-from worldtree.folder_lock import FolderLock
+from worldtree.infra.errors import UserError
+from worldtree.infra.folder_lock import FolderLock
 
 
 @pytest.mark.parametrize(
@@ -134,7 +134,7 @@ def test_first_error_line_of_a_job_traceback():
     tb = (
         "Job (task=0) failed during processing with trace:\n----------------------\n"
         'Traceback (most recent call last):\n  File "x.py", line 3, in f\n    raise UserError("bad")\n'
-        "worldtree.errors.UserError: runs/x/config.json: damaged; re-run with --force\n"
+        "worldtree.infra.errors.UserError: runs/x/config.json: damaged; re-run with --force\n"
     )
     assert se._first_error_line(tb) == "runs/x/config.json: damaged; re-run with --force"
     assert se._first_error_line("Traceback:\n  File 'a'\nValueError: nope\n") == "ValueError: nope"

@@ -15,7 +15,7 @@ from typer.testing import CliRunner
 
 from benchmarks.cli import app
 from benchmarks.runner import sweep_executors as se
-from worldtree.errors import UserError
+from worldtree.infra.errors import UserError
 
 SBATCH = """#!/bin/sh
 if [ -e "$FAKE/refuse" ]; then

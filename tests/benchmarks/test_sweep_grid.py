@@ -12,7 +12,7 @@ import pytest
 
 from benchmarks.runner.sweep import GridPoint, find_scenes, grid_points, resolve_grid, run_sweep
 from methods.registry import get_method
-from worldtree.errors import UserError
+from worldtree.infra.errors import UserError
 
 WORLDTREE = get_method("worldtree")
 

@@ -18,7 +18,7 @@ from benchmarks.reporting.results import (
     describe_configuration,
     select,
 )
-from worldtree.errors import UserError
+from worldtree.infra.errors import UserError
 
 
 def _fixture():

@@ -12,7 +12,7 @@ import pytest
 
 from benchmarks.reporting.results import collect_runs
 from benchmarks.reporting.tables import build_wide
-from worldtree.errors import UserError
+from worldtree.infra.errors import UserError
 
 
 def _fixture():

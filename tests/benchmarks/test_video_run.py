@@ -12,8 +12,8 @@ from typer.testing import CliRunner
 
 from benchmarks.cli import app
 from benchmarks.reporting.video import compose_frames
-from worldtree.errors import UserError
 from worldtree.imageio import read_image
+from worldtree.infra.errors import UserError
 
 
 @pytest.fixture

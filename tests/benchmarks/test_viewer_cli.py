@@ -21,7 +21,7 @@ from typer.testing import CliRunner
 from benchmarks.cli import app
 from benchmarks.runner.runs import RunRequest, execute
 from methods.registry import get_method
-from worldtree.errors import UserError
+from worldtree.infra.errors import UserError
 
 
 def _view(*args: str, **kw) -> subprocess.CompletedProcess:

@@ -10,7 +10,7 @@ from benchmarks.runner.runs import method_option_fields, run_tag
 from methods.base import BaseConfig
 from methods.registry import get_method
 from methods.worldtree import WorldTreeConfig
-from worldtree.errors import UserError
+from worldtree.infra.errors import UserError
 
 
 def _apply(cfg, method, options):

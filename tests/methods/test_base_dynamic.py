@@ -13,8 +13,8 @@ import torch
 from methods.base import BaseMethod, refill_imported, smoke_config
 from nvidia_ls.build import BuildConfig, build_scene
 from nvidia_ls.synth import SynthConfig, write_raw_scene
-from worldtree.device import pick_device
 from worldtree.imageio import read_mask, write_image
+from worldtree.infra.device import pick_device
 from worldtree.priors import PriorsConfig
 from worldtree.scene import load_scene
 from worldtree.trainer import TrainContext

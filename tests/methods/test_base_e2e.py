@@ -106,7 +106,7 @@ def test_presets_and_config_fields():
 def test_second_fit_resumes_from_the_checkpoints(tiny_scene, tmp_path):
     from methods.base import BaseMethod, smoke_config
     from worldtree.checkpoint import seed_everything
-    from worldtree.device import pick_device
+    from worldtree.infra.device import pick_device
     from worldtree.scene import load_scene
     from worldtree.trainer import TrainContext
 

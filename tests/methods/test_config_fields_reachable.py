@@ -20,7 +20,7 @@ import pytest
 
 from methods.config_overrides import apply_overrides, field_types
 from methods.registry import list_methods
-from worldtree.errors import UserError
+from worldtree.infra.errors import UserError
 
 #: Switches that open the settings a default run does not read (a field listed in ``ignored_settings()``).
 GATES = {

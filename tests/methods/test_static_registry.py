@@ -8,7 +8,7 @@ import pytest
 
 from methods.registry import CommonConfig, MethodSpec, get_method, list_methods, register_method
 from methods.static3dgs import StaticConfig
-from worldtree.errors import UserError
+from worldtree.infra.errors import UserError
 
 
 def test_static_is_registered_with_presets():

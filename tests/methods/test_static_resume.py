@@ -11,7 +11,7 @@ import torch
 
 from methods.static3dgs import StaticConfig, StaticGaussians, load_points
 from worldtree.checkpoint import list_checkpoints, seed_everything
-from worldtree.errors import UserError
+from worldtree.infra.errors import UserError
 from worldtree.scene import load_scene
 from worldtree.strategy import DensifyStrategy
 from worldtree.trainer import TrainContext

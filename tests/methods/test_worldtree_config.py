@@ -14,7 +14,7 @@ from benchmarks.cli import app
 from benchmarks.runner.runs import run_tag
 from methods.registry import get_method
 from methods.worldtree import WorldTreeConfig
-from worldtree.errors import UserError
+from worldtree.infra.errors import UserError
 
 
 def test_ablations_are_normalised_and_have_one_spelling():

@@ -15,8 +15,8 @@ from typer.testing import CliRunner
 
 from benchmarks.cli import app
 from methods.worldtree import NodeTrainConfig
-from worldtree.config_json import read_config, write_config
 from worldtree.imageio import read_image
+from worldtree.infra.config_json import read_config, write_config
 from worldtree.render import rasterize
 from worldtree.tree.node import NodeState, load_payload
 from worldtree.tree.parallel import NodeContext

@@ -16,8 +16,8 @@ from nvidia_ls.cli import app
 from nvidia_ls.gt_priors import GtPriorsConfig, PixelMap, write_gt_priors
 from nvidia_ls.manifest import verify_scene
 from nvidia_ls.synth import SynthConfig, gt_flow, make_scene, read_gt_cameras, write_raw_scene
-from worldtree.errors import UserError
 from worldtree.imageio import read_mask
+from worldtree.infra.errors import UserError
 from worldtree.priors import PriorsConfig, compute_priors
 from worldtree.scene import load_scene
 

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from nvidia_ls.build import BuildConfig, build_scene
-from worldtree.errors import UserError
+from worldtree.infra.errors import UserError
 
 
 @pytest.fixture

@@ -11,8 +11,8 @@ import pytest
 from nvidia_ls.build import BuildConfig, build_scene
 from nvidia_ls.manifest import verify_scene
 from nvidia_ls.synth import read_gt_cameras
-from worldtree.hashing import sha256_file
 from worldtree.imageio import read_image
+from worldtree.infra.hashing import sha256_file
 from worldtree.scene import load_scene
 
 
@@ -114,7 +114,7 @@ def test_verify_reports_count_mismatch(built_gt, tmp_path):
 
 def test_existing_output_needs_force(built_gt, synth_raw):
     cfg = BuildConfig(poses=synth_raw / "gt" / "poses_bounds.npy", frames=20)
-    from worldtree.errors import UserError
+    from worldtree.infra.errors import UserError
 
     with pytest.raises(UserError, match="--force"):
         build_scene(synth_raw, built_gt.parent, cfg)

@@ -15,7 +15,7 @@ from benchmarks.fixtures.planar_scene import PlanarScene, PlanarSceneConfig
 from nvidia_ls.importer import ImportConfig, import_scene, run_args
 from nvidia_ls.manifest import verify_scene
 from tests.nvidia_ls.dynamicnerf_export import export_dynamicnerf
-from worldtree.errors import UserError
+from worldtree.infra.errors import UserError
 from worldtree.priors import PriorsConfig, compute_priors
 from worldtree.priors.config import DepthImportConfig
 from worldtree.priors.imported import read_depth, read_flows, read_masks, resize_flow

@@ -56,7 +56,7 @@ def test_other_layouts_build_the_same_scene(layout, tiny_raw, tmp_path):
 
 
 def test_no_layout_is_a_clear_error(tmp_path):
-    from worldtree.errors import UserError
+    from worldtree.infra.errors import UserError
 
     (tmp_path / "stuff").mkdir()
     with pytest.raises(UserError, match="no raw layout found"):

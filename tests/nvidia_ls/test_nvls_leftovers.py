@@ -17,7 +17,7 @@ import pytest
 
 from nvidia_ls.build import MIN_SIZE, BuildConfig, build_scene
 from nvidia_ls.masks import MaskConfig
-from worldtree.errors import UserError
+from worldtree.infra.errors import UserError
 
 
 @pytest.fixture
@@ -131,7 +131,7 @@ def test_new_folders_and_files_get_the_usual_permissions(raw, tmp_path):
 
 HOLD = """
 import sys, time
-from worldtree.folder_lock import FolderLock
+from worldtree.infra.folder_lock import FolderLock
 lock = FolderLock(sys.argv[1], "scene").acquire()
 print("held", flush=True)
 time.sleep(120)

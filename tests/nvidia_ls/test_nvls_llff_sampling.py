@@ -10,7 +10,7 @@ from hypothesis import strategies as st
 
 from nvidia_ls.llff import llff_to_opencv, opencv_to_llff
 from nvidia_ls.sampling import pingpong, sample_times, training_cameras
-from worldtree.errors import UserError
+from worldtree.infra.errors import UserError
 
 
 def test_llff_columns_by_hand():

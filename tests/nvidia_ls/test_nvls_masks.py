@@ -11,8 +11,8 @@ import pytest
 
 from nvidia_ls.build import BuildConfig, build_scene
 from nvidia_ls.masks import background_masks, import_masks
-from worldtree.errors import UserError
 from worldtree.imageio import read_mask
+from worldtree.infra.errors import UserError
 
 
 def _iou(a: np.ndarray, b: np.ndarray) -> float:

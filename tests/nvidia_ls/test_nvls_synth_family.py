@@ -34,8 +34,8 @@ from nvidia_ls.synth import (
     render_view,
     write_raw_scene,
 )
-from worldtree.errors import UserError
 from worldtree.imageio import read_mask
+from worldtree.infra.errors import UserError
 
 W, H = 48, 32
 TINY = {"width": W, "height": H, "supersample": 1}

@@ -24,8 +24,8 @@ from nvidia_ls.synth import (
     render_view,
     write_raw_scene,
 )
-from worldtree.errors import UserError
 from worldtree.imageio import read_mask
+from worldtree.infra.errors import UserError
 
 W, H = 48, 27  # the 16:9 of the 960x540 capture
 REAL = Path(__file__).resolve().parents[3] / "shared" / "real_nvidia" / "Balloon1" / "poses_bounds.npy"

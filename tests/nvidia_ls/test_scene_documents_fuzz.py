@@ -16,7 +16,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from nvidia_ls.manifest import verify_scene
-from worldtree.errors import UserError
+from worldtree.infra.errors import UserError
 from worldtree.scene import load_scene
 
 FUZZ = settings(

@@ -18,7 +18,7 @@ from nvidia_ls.gt_priors import camera_centres, umeyama
 from nvidia_ls.importer import ImportConfig, import_scene
 from nvidia_ls.manifest import verify_scene
 from nvidia_ls.video_frames import VideoConfig, read_clip
-from worldtree.errors import UserError
+from worldtree.infra.errors import UserError
 from worldtree.scene import load_scene
 
 

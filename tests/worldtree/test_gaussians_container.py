@@ -9,8 +9,8 @@ import pytest
 import torch
 from scipy.spatial.transform import Rotation
 
-from worldtree.errors import UserError
 from worldtree.gaussians import SH_C0, GaussianSet, knn_rms_distance, quat_to_rotmat, read_ply_vertices
+from worldtree.infra.errors import UserError
 
 
 def _random_set(n: int = 50, seed: int = 0) -> GaussianSet:

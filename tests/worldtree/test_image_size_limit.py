@@ -17,8 +17,8 @@ import pytest
 
 from nvidia_ls.build import parse_size
 from worldtree import imageio
-from worldtree.errors import UserError
 from worldtree.imageio import image_size, read_image, write_image
+from worldtree.infra.errors import UserError
 
 
 def _png_header(path: Path, width: int, height: int) -> Path:

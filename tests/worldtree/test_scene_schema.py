@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from nvidia_ls.writer import cameras_document
-from worldtree.errors import UserError
+from worldtree.infra.errors import UserError
 from worldtree.scene import load_scene
 from worldtree.scene_schema import CamerasDoc, read_cameras, resolve_inside
 

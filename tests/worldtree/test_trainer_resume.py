@@ -8,7 +8,7 @@ import torch
 from torch import nn
 
 from worldtree.checkpoint import list_checkpoints, load_checkpoint, save_checkpoint, seed_everything
-from worldtree.errors import UserError
+from worldtree.infra.errors import UserError
 from worldtree.optim import ExponentialLR, GroupedAdam
 from worldtree.trainer import NonFiniteLossError, StepOutput, Trainer, TrainerConfig
 

@@ -11,9 +11,9 @@ import numpy as np
 import torch
 
 import worldtree
-from worldtree.atomic import atomic_write_json
-from worldtree.errors import UserError
-from worldtree.hashing import sha256_file
+from worldtree.infra.atomic import atomic_write_json
+from worldtree.infra.errors import UserError
+from worldtree.infra.hashing import sha256_file
 from worldtree.priors import depth as depth_mod
 from worldtree.priors import (
     depth_scale,

@@ -24,7 +24,7 @@ from typing import Any
 import numpy as np
 
 import worldtree
-from worldtree.atomic import atomic_write_bytes, atomic_write_json, atomic_write_text
+from worldtree.infra.atomic import atomic_write_bytes, atomic_write_json, atomic_write_text
 
 
 def _canonical(obj: Any) -> Any:

@@ -14,7 +14,7 @@
   resized and their vectors scaled by the size ratio.
 - Masks: a folder of one mask image per frame (sorted by name), white = dynamic.
 
-Every problem raises :class:`worldtree.errors.UserError` naming the file and the fix.
+Every problem raises :class:`worldtree.infra.errors.UserError` naming the file and the fix.
 """
 
 from __future__ import annotations
@@ -25,8 +25,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from worldtree.errors import UserError
 from worldtree.imageio import read_mask
+from worldtree.infra.errors import UserError
 from worldtree.priors.config import DepthImportConfig
 
 DEPTH_SUFFIXES = (".npy", ".npz", ".png")
@@ -421,7 +421,7 @@ def read_flo(path: str | Path) -> np.ndarray:
 
 def write_flo(path: str | Path, flow: np.ndarray) -> None:
     """Write ``[H, W, 2]`` flow as Middlebury ``.flo`` (used by tests and exports)."""
-    from worldtree.atomic import atomic_write_bytes
+    from worldtree.infra.atomic import atomic_write_bytes
 
     h, w = flow.shape[:2]
     head = np.array([FLO_MAGIC], "<f4").tobytes() + np.array([w, h], "<i4").tobytes()

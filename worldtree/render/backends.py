@@ -6,7 +6,7 @@ import logging
 
 import torch
 
-from worldtree.errors import UserError
+from worldtree.infra.errors import UserError
 
 log = logging.getLogger("worldtree.render")
 

@@ -240,7 +240,7 @@ def requested_target() -> str:
     """The target asked for by ``WORLDTREE_RASTER_TARGET``: ``auto`` (default) or one of :data:`TARGETS`."""
     value = os.environ.get(ENV_TARGET, "auto").strip().lower() or "auto"
     if value not in ("auto", *TARGETS):
-        from worldtree.errors import UserError
+        from worldtree.infra.errors import UserError
 
         raise UserError(f"{ENV_TARGET}={value!r} is unknown; use auto, {', '.join(TARGETS)}")
     return value

@@ -22,8 +22,8 @@ from dataclasses import dataclass, field
 import torch
 import torch.nn.functional as F
 
-from worldtree.errors import UserError
 from worldtree.gaussians import GaussianSet
+from worldtree.infra.errors import UserError
 from worldtree.losses import SsimTargets, ssim_map
 from worldtree.optim import GroupedAdam, gaussian_schedules
 from worldtree.render import rasterize

@@ -25,7 +25,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from worldtree.atomic import atomic_write_json
+from worldtree.infra.atomic import atomic_write_json
 from worldtree.tree.adaptive import AutoSplitConfig, decide_child
 from worldtree.tree.inherit import InheritConfig, child_state, split_state
 from worldtree.tree.node import NodeState

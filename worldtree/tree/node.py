@@ -17,8 +17,8 @@ import torch
 import worldtree
 from worldtree.dynamic import DynamicGaussians, gaussians_at
 from worldtree.gaussians import GaussianSet
+from worldtree.infra.torchfile import load_torch, save_torch
 from worldtree.motion.scaffold import Scaffold, SkinCache
-from worldtree.torchfile import load_torch, save_torch
 from worldtree.tree.sac import AncestorCopy, _cpu, chain_gaussians_at
 from worldtree.tree.tpt import Interval, depth_of
 

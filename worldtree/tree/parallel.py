@@ -42,9 +42,9 @@ from typing import Any
 import numpy as np
 import torch
 
-from worldtree.atomic import atomic_write_json
-from worldtree.cores import available_cores
-from worldtree.hashing import sha256_file
+from worldtree.infra.atomic import atomic_write_json
+from worldtree.infra.cores import available_cores
+from worldtree.infra.hashing import sha256_file
 from worldtree.tree.node import load_payload, save_payload
 
 __all__ = [

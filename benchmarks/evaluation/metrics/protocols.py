@@ -13,7 +13,7 @@ from typing import Any, ClassVar
 
 import torch
 
-from worldtree.errors import UserError
+from worldtree.infra.errors import UserError
 
 #: Per-frame metric names every protocol returns, in CSV column order (AVGE columns are added by the caller).
 METRICS = ("psnr", "ssim", "lpips", "mpsnr", "mssim", "mlpips")

@@ -7,7 +7,7 @@ Every run folder is listed, finished or not, with the state the sweep's bookkeep
 
 - ``done``: ``DONE`` present and read into the tables;
 - ``damaged``: ``DONE`` present but the tables could not read it (the collection's note says why);
-- ``running``: a live process holds the run folder's lock (:mod:`worldtree.folder_lock`), or its job runs;
+- ``running``: a live process holds the run folder's lock (:mod:`worldtree.infra.folder_lock`), or its job runs;
 - ``queued``: its sweep job waits (Slurm);
 - ``failed``: its last sweep job failed or vanished (the error and the job's log are named);
 - ``unfinished``: stopped outside a job: interrupted, failed under `wtbench run`, or not started yet.

@@ -7,7 +7,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from worldtree.errors import UserError
+from worldtree.infra.errors import UserError
 
 #: The heat map's colour scale: mean absolute RGB error on [0, 1] values; at or above this it saturates.
 ERROR_VMAX = 0.25

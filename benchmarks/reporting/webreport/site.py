@@ -2,7 +2,7 @@
 per scene (its table, per-frame curves, the frame viewer). Layout and rules: docs/report.md.
 
 The site is written into a temporary sibling folder and renamed over ``out`` when complete
-(:func:`worldtree.atomic.atomic_dir`); ``out`` may only be replaced when it is an earlier report (it holds
+(:func:`worldtree.infra.atomic.atomic_dir`); ``out`` may only be replaced when it is an earlier report (it holds
 :data:`MARKER`).
 """
 
@@ -33,7 +33,7 @@ from benchmarks.reporting.webreport.gather import (
     sweep_failures,
     test_frame_files,
 )
-from worldtree.errors import UserError
+from worldtree.infra.errors import UserError
 
 #: A file every report holds; an existing ``-o`` folder without it is never replaced.
 MARKER = ".wtbench-report"
@@ -391,7 +391,7 @@ def _environment():
 
 
 def _check_out(out: Path) -> None:
-    from worldtree.output_paths import check_output_folder
+    from worldtree.infra.output_paths import check_output_folder
 
     if out.exists() and not out.is_dir():
         raise UserError(f"-o {out}: is a file; give a folder for the report")
@@ -437,7 +437,7 @@ def build_report(
     Raises :class:`UserError` for a missing RUNS_DIR, a folder without any run, or an ``out`` that is not an
     earlier report.
     """
-    from worldtree.atomic import atomic_dir, atomic_write_text
+    from worldtree.infra.atomic import atomic_dir, atomic_write_text
 
     opts = opts or ReportOptions()
     if not opts.group_by or any(g not in GROUP_KEYS for g in opts.group_by):
@@ -626,7 +626,7 @@ def _writer_gone(folder: Path, now: float) -> bool:
 
 def remove_stale_report_partials(out: Path) -> list[Path]:
     """Remove the temporary folders ``.OUT.XXXXXXXX.partial`` beside ``out`` (the name
-    :func:`worldtree.atomic.atomic_dir` gives them) whose writer is gone (:func:`_writer_gone`): a report
+    :func:`worldtree.infra.atomic.atomic_dir` gives them) whose writer is gone (:func:`_writer_gone`): a report
     killed while being written (SIGKILL, a lost node) leaves one. A folder of a live writer, or one not
     named like ours, is kept. Returns the folders removed."""
     out = Path(out)

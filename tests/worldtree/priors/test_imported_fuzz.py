@@ -16,8 +16,8 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
-from worldtree.errors import UserError
 from worldtree.imageio import read_image, read_mask
+from worldtree.infra.errors import UserError
 from worldtree.priors.config import DepthImportConfig
 from worldtree.priors.imported import read_depth, read_flo, read_masks, read_tracks
 

@@ -8,7 +8,7 @@ import json
 import numpy as np
 import pytest
 
-from worldtree.errors import UserError
+from worldtree.infra.errors import UserError
 from worldtree.priors import DepthConfig, EpiConfig, PriorsConfig, compute_priors
 from worldtree.priors import api as api_mod
 from worldtree.priors.imported import write_flo

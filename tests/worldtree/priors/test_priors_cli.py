@@ -11,7 +11,7 @@ from typer.testing import CliRunner
 
 from benchmarks.cli import app
 from benchmarks.fixtures.planar_scene import PlanarScene, PlanarSceneConfig, write_scene_folder
-from worldtree.errors import UserError
+from worldtree.infra.errors import UserError
 
 
 def _prep(*args: str) -> subprocess.CompletedProcess:

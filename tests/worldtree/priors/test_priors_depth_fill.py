@@ -7,8 +7,8 @@ import dataclasses
 import numpy as np
 import pytest
 
-from worldtree.errors import UserError
 from worldtree.imageio import write_image
+from worldtree.infra.errors import UserError
 from worldtree.priors import DepthConfig, PriorsConfig, compute_priors
 from worldtree.priors.config import DepthImportConfig
 from worldtree.priors.imported import (

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import torch
 
-from worldtree.errors import UserError
+from worldtree.infra.errors import UserError
 from worldtree.priors.config import DepthImportConfig
 from worldtree.priors.imported import (
     fit_scale_shift,

@@ -7,7 +7,7 @@ import math
 import pytest
 import torch
 
-from worldtree.errors import UserError
+from worldtree.infra.errors import UserError
 from worldtree.render import cpu_kernel, rasterize
 
 BACKENDS = [

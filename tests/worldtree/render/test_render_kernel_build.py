@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from worldtree.errors import UserError
+from worldtree.infra.errors import UserError
 from worldtree.render import kernel_build
 
 REPO = Path(__file__).resolve().parents[3]

@@ -17,7 +17,7 @@ import re
 from dataclasses import dataclass
 from typing import Any
 
-from worldtree.errors import UserError
+from worldtree.infra.errors import UserError
 
 RANGE_KEY = "range"
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import torch
 
-from worldtree.errors import UserError
+from worldtree.infra.errors import UserError
 
 
 def pick_device(requested: str | None = None) -> torch.device:

@@ -7,7 +7,7 @@ import os
 import subprocess
 import sys
 
-from worldtree.openmp_policy import choose, configure
+from worldtree.infra.openmp_policy import choose, configure
 
 
 def test_choose_passive_only_when_oversubscribed_and_unset():
@@ -28,7 +28,7 @@ def test_configure_leaves_the_process_alone_once_torch_is_imported():
 def test_configure_sets_the_variable_before_torch_in_a_fresh_process():
     code = (
         "import os, sys\n"
-        "from worldtree import openmp_policy\n"
+        "from worldtree.infra import openmp_policy\n"
         "os.getloadavg = lambda: (99.0, 0.0, 0.0)\n"
         "env = {}\n"
         "print(openmp_policy.configure(env), env.get('OMP_WAIT_POLICY'), 'torch' in sys.modules)\n"

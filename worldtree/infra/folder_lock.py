@@ -18,8 +18,8 @@ from pathlib import Path
 
 import filelock
 
-from worldtree.atomic import atomic_write_json
-from worldtree.errors import UserError
+from worldtree.infra.atomic import atomic_write_json
+from worldtree.infra.errors import UserError
 
 
 @dataclass(frozen=True)

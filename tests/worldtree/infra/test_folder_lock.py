@@ -10,12 +10,12 @@ import time
 
 import pytest
 
-from worldtree.errors import UserError
-from worldtree.folder_lock import FolderLock, is_locked, lock_paths, read_holder
+from worldtree.infra.errors import UserError
+from worldtree.infra.folder_lock import FolderLock, is_locked, lock_paths, read_holder
 
 HOLD = """
 import sys, time
-from worldtree.folder_lock import FolderLock
+from worldtree.infra.folder_lock import FolderLock
 lock = FolderLock(sys.argv[1], "run folder").acquire()
 print("held", flush=True)
 time.sleep(60)

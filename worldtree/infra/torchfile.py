@@ -12,8 +12,8 @@ from typing import Any
 
 import torch
 
-from worldtree.atomic import atomic_write_bytes
-from worldtree.errors import UserError
+from worldtree.infra.atomic import atomic_write_bytes
+from worldtree.infra.errors import UserError
 
 
 def save_torch(path: str | Path, obj: Any) -> None:

@@ -1,4 +1,4 @@
-"""The run's clock (worldtree.timing.StageClock) with a fake clock: stages, parts, sessions across an
+"""The run's clock (worldtree.infra.timing.StageClock) with a fake clock: stages, parts, sessions across an
 interruption, and the wall time `wtbench table` reports from the resulting timing.json."""
 
 from __future__ import annotations
@@ -8,7 +8,7 @@ import json
 import pytest
 
 from benchmarks.reporting.results import cost_metrics, stage_times
-from worldtree.timing import StageClock
+from worldtree.infra.timing import StageClock
 
 
 class FakeClock:

@@ -1,4 +1,4 @@
-"""worldtree.config_json: typed settings written as JSON come back equal, with their types (tuples, nested and
+"""worldtree.infra.config_json: typed settings written as JSON come back equal, with their types (tuples, nested and
 optional dataclasses); unknown keys are refused."""
 
 from __future__ import annotations
@@ -9,7 +9,7 @@ import json
 import pytest
 
 from worldtree.budget import BudgetConfig
-from worldtree.config_json import from_dict, read_config, write_config
+from worldtree.infra.config_json import from_dict, read_config, write_config
 from worldtree.plateau import PlateauRule
 from worldtree.tree.adaptive import AutoSplitConfig
 from worldtree.tree.sac import AncestorPolicy

@@ -105,7 +105,7 @@ def remove_stale_partials(final: str | Path) -> list[Path]:
     """Remove what killed :func:`atomic_dir` calls for ``final`` left beside it: temporary
     ``.NAME.XXXXXXXX.partial`` folders and a ``.NAME.old``. Returns the paths removed.
 
-    Only safe while the caller holds ``final``'s :class:`worldtree.folder_lock.FolderLock`: then no live
+    Only safe while the caller holds ``final``'s :class:`worldtree.infra.folder_lock.FolderLock`: then no live
     writer of ``final`` owns any of them.
     """
     final = Path(final)

@@ -6,9 +6,9 @@ import math
 
 import torch
 
+from worldtree.diagnostics.model_tracks import model_tracks, pick_gaussians
 from worldtree.dynamic import DynamicGaussians
 from worldtree.gaussians import GaussianSet
-from worldtree.motion.model_tracks import model_tracks, pick_gaussians
 from worldtree.motion.scaffold import ScaffoldConfig, build_scaffold
 
 T, W, H, F = 4, 64, 64, 100.0

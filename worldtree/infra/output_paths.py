@@ -9,7 +9,7 @@ import unicodedata
 from collections.abc import Iterator
 from pathlib import Path
 
-from worldtree.errors import UserError
+from worldtree.infra.errors import UserError
 
 
 def _nearest_existing(path: Path, option: str, shown: Path) -> Path:
@@ -63,7 +63,7 @@ def _check_parent(path: Path, option: str) -> None:
 def remove_new_folders_on_failure(folder: str | Path, leftovers: tuple[str, ...] = ()) -> Iterator[None]:
     """On an exception, remove the folders on the way to ``folder`` that did not exist on entry, when they
     hold nothing but the names in ``leftovers`` (e.g. the lock files of a released
-    :class:`worldtree.folder_lock.FolderLock`), so that a failed command leaves no empty output folder.
+    :class:`worldtree.infra.folder_lock.FolderLock`), so that a failed command leaves no empty output folder.
     Folders that existed before, or that hold anything else, are kept."""
     folder = Path(folder).absolute()
     new: list[Path] = []

@@ -17,7 +17,7 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
-from worldtree.atomic import atomic_write_json
+from worldtree.infra.atomic import atomic_write_json
 
 Clock = Callable[[], float]
 

@@ -15,7 +15,7 @@ import typing
 from pathlib import Path
 from typing import Any
 
-from worldtree.atomic import atomic_write_json
+from worldtree.infra.atomic import atomic_write_json
 
 
 def write_config(path: str | Path, obj: Any) -> None:

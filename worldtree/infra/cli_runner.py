@@ -1,10 +1,10 @@
-"""Running a command-line app: a :class:`~worldtree.errors.UserError` becomes one ``error:`` line (exit 2),
+"""Running a command-line app: a :class:`~worldtree.infra.errors.UserError` becomes one ``error:`` line (exit 2),
 Ctrl-C the documented interrupted line (exit 130). Shared by the ``wtbench`` and ``nvls`` entry points; the
 library itself never runs an app."""
 
 from __future__ import annotations
 
-from worldtree.errors import UserError
+from worldtree.infra.errors import UserError
 
 INTERRUPTED = "interrupted: re-run the same command to resume from the last checkpoint"
 #: Ctrl-C of a command that keeps no checkpoint (nvls): its output appears whole or not at all.

@@ -5,8 +5,8 @@ from __future__ import annotations
 import pytest
 import torch
 
-from worldtree.errors import UserError
-from worldtree.torchfile import load_torch, save_torch
+from worldtree.infra.errors import UserError
+from worldtree.infra.torchfile import load_torch, save_torch
 
 MSG = {"missing": "no such thing; make it", "unreadable": "damaged thing ({error}); delete it"}
 
