@@ -3,7 +3,7 @@
 PyTorch's CPU operators and the C++ rasterizer run their parallel loops on OpenMP threads. Between two loops
 GNU OpenMP's threads spin (busy-wait) for a while by default, which costs nothing on an idle machine but, when
 more runnable processes than cores compete, burns the time slices the working threads need (measurements:
-docs/running.md, "Timing and memory").
+docs/running.md, "Limits").
 
 The policy is read once, when the OpenMP runtime starts (the first ``import torch``), so the command-line entry
 points call :func:`configure` before importing torch. A policy the user set is never changed.
