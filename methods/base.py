@@ -293,7 +293,51 @@ def stage_priors(s: BaseState) -> None:
     cache = s.scene.root / "priors" / f"x{c.downscale}" if c.priors_cache else None
     s.priors = compute_priors(s.scene, c.priors, cache)
     s.info["priors"] = dict(s.priors.sources)
+    s.info["prior_use"] = prior_use(c, s.priors.sources)
     s.P = s.priors.torch(s.device)
+
+
+def prior_use(c: BaseConfig, sources: dict[str, str]) -> dict[str, dict[str, Any]]:
+    """Where each 2D prior enters the Base stages and with which weight, as this config runs them (recorded
+    in ``timing.json`` as ``method_stats.prior_use``): ``{prior: {"source": ..., "used_in": {stage: what}}}``.
+
+    ``what`` names the use and its weight (the config field and its value); a stage switched off by an
+    ablation or a zero weight is left out. ``flow`` enters only through the masks and tracks it is chained
+    into (stage ``priors``, and ``motion`` when the masks are refined)."""
+    ba = c.ba.enabled and "ba" not in c.ablate
+    sw = c.sw.enabled and "sw" not in c.ablate
+    ph = c.photometric
+    refine = c.refine_masks and c.priors.motion.enabled and c.priors.masks_source is None
+    classical_depth = sources.get("depth") == "classical"
+    depth: dict[str, str] = {}
+    if ba:
+        depth["ba"] = f"per-frame depth scales of the static tracks, ba.lambda_depth {c.ba.lambda_depth}"
+    if sw:
+        depth["sw"] = "static Gaussians lifted from it"
+        if c.sw.lambda_depth > 0:
+            depth["sw"] += f"; relative depth loss, sw.lambda_depth {c.sw.lambda_depth}"
+    depth["scaffold"] = (
+        "dynamic tracks and Gaussians lifted from it"
+        + ("; on moving pixels replaced by the tracks' trajectory depth" if classical_depth
+           and c.scaffold.trajectory_depth else "")
+    )  # fmt: skip
+    if ph.lambda_depth > 0:
+        depth["photometric"] = f"scale-and-shift-invariant depth L1, photometric.lambda_depth {ph.lambda_depth}"
+    masks = {"sw": f"moving pixels (dilated {c.sw.dilate_px} px) left out of the static warm-up"} if sw else {}
+    masks["scaffold"] = "pixels the dynamic Gaussians are lifted from"
+    if refine:
+        masks["motion"] = "refined with the warm-up model's residual"
+    tracks = {"ba": f"static tracks, ba.lambda_reproj {c.ba.lambda_reproj}"} if ba else {}
+    tracks["scaffold"] = f"dynamic tracks: scaffold nodes and paths, scaffold_fit.lambda_data {c.scaffold_fit.lambda_data}"
+    if ph.lambda_track > 0 and ph.track_every > 0:
+        tracks["photometric"] = (
+            f"rendered correspondence loss every {ph.track_every} steps, photometric.lambda_track {ph.lambda_track}"
+        )
+    flow = {"priors": "chained into the tracks; epipolar and flow cues of the motion masks"}
+    if refine:
+        flow["motion"] = "tracks re-chained inside the refined masks"
+    out = {"depth": depth, "masks": masks, "tracks": tracks, "flow": flow}
+    return {k: {"source": sources.get(k, "classical"), "used_in": v} for k, v in out.items()}
 
 
 def _adjust(s: BaseState, enabled: bool) -> None:

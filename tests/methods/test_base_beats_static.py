@@ -46,5 +46,13 @@ def test_base_model_has_a_scaffold_and_records_its_priors(proof_runs):
     assert stats["scaffold_nodes_final"] >= stats["scaffold_nodes"]
     assert all(v.startswith("imported:") for k, v in stats["priors"].items() if k != "flow")
     assert "trajectory_depth" not in stats  # imported depth measures the moving objects: kept as it is
+    # Where each prior went, with the weights this run used (from its own recorded config).
+    cfg = json.loads(base.folder.config_json.read_text())["config"]
+    use = stats["prior_use"]
+    assert use["depth"]["source"] == stats["priors"]["depth"]
+    assert f"photometric.lambda_depth {cfg['photometric']['lambda_depth']}" in use["depth"]["used_in"]["photometric"]
+    assert f"photometric.lambda_track {cfg['photometric']['lambda_track']}" in use["tracks"]["used_in"]["photometric"]
+    assert "trajectory depth" not in use["depth"]["used_in"]["scaffold"]
+    assert "motion" not in use["masks"]["used_in"]  # imported masks are not refined
     record = json.loads(base.folder.config_json.read_text())
     assert set(record["imported_priors"]) == {"masks", "tracks", "depth_maps"}

@@ -124,3 +124,29 @@ def test_second_fit_resumes_from_the_checkpoints(tiny_scene, tmp_path):
     torch.testing.assert_close(second.state.fit.cameras(), first.state.fit.cameras())
     img2 = second.render(scene.test_K, scene.test_w2c, scene.width, scene.height, 2, test_view=True)
     torch.testing.assert_close(img2, img1)
+
+
+def test_prior_use_follows_ablations_and_weights():
+    """``method_stats.prior_use``: a stage an ablation or a zero weight switches off is not listed; the weights
+    are the config's."""
+    import dataclasses as dc
+
+    from methods.base import BaseConfig, prior_use
+
+    classical = {"depth": "classical", "flow": "classical", "masks": "classical", "tracks": "classical"}
+    cfg = BaseConfig()
+    use = prior_use(cfg, classical)
+    assert set(use) == {"depth", "masks", "tracks", "flow"}
+    assert set(use["depth"]["used_in"]) == {"ba", "sw", "scaffold", "photometric"}
+    assert str(cfg.ba.lambda_depth) in use["depth"]["used_in"]["ba"]
+    assert "trajectory depth" in use["depth"]["used_in"]["scaffold"]  # classical depth on moving pixels
+    assert "motion" in use["masks"]["used_in"]
+    off = prior_use(
+        dc.replace(cfg, ablate=("ba", "sw"), photometric=dc.replace(cfg.photometric, lambda_track=0.0)), classical
+    )
+    assert "ba" not in off["depth"]["used_in"] and "ba" not in off["tracks"]["used_in"]
+    assert "sw" not in off["depth"]["used_in"] and "sw" not in off["masks"]["used_in"]
+    assert "photometric" not in off["tracks"]["used_in"]
+    imported = prior_use(cfg, {**classical, "depth": "imported:/x (disparity)"})
+    assert imported["depth"]["source"] == "imported:/x (disparity)"
+    assert "trajectory depth" not in imported["depth"]["used_in"]["scaffold"]
