@@ -59,8 +59,6 @@ LONG_COLUMNS = (
 #: Columns of the long table that may group the rows of the wide table.
 GROUP_KEYS = ("method", "configuration", "preset", "tag", "seed")
 
-#: Ablation flags in the order the paper's ablation table lists them; others follow alphabetically.
-_ABLATION_ORDER = ("ba", "sw", "tpt", "sac")
 #: Keys naming the model-size counts, first match wins (method stats may use any of these spellings).
 _SIZE_KEYS = {
     "n_gaussians": ("num_gaussians", "n_gaussians"),
@@ -121,7 +119,24 @@ def _lookup(record: Mapping[str, Any], key: str) -> Any:
     return None
 
 
-def _ablations(value: Any) -> list[str]:
+def _labels(record: Mapping[str, Any]) -> tuple[list[tuple[str, str]], tuple[str, ...]] | None:
+    """``(options as (field, tag), ablation order)`` of the record's method: from the record itself
+    (``labels``, written by the runner from ``MethodSpec.options`` / ``MethodSpec.ablations``), else, for a
+    record older than that, from the method registered here under its name; None when neither is known."""
+    labels = record.get("labels")
+    if isinstance(labels, Mapping):
+        opts = [(str(f), str(t)) for f, t in labels.get("options") or []]
+        return opts, tuple(str(a) for a in labels.get("ablations") or ())
+    name = record.get("method")
+    if not isinstance(name, str):
+        return None
+    from methods.registry import list_methods
+
+    spec = next((s for s in list_methods() if s.name == name), None)
+    return None if spec is None else ([(o.field, o.tag) for o in spec.options], spec.ablations)
+
+
+def _ablations(value: Any, order: tuple[str, ...] = ()) -> list[str]:
     if isinstance(value, str):
         items = [s for s in value.replace(",", " ").split() if s]
     elif isinstance(value, Iterable):
@@ -129,8 +144,8 @@ def _ablations(value: Any) -> list[str]:
     else:
         return []
     items = sorted({s.strip().lstrip("-").lower() for s in items if s.strip()})
-    known = [a for a in _ABLATION_ORDER if a in items]
-    return known + [a for a in items if a not in _ABLATION_ORDER]
+    known = [a for a in order if a in items]
+    return known + [a for a in items if a not in order]
 
 
 def describe_configuration(record: Mapping[str, Any]) -> str:
@@ -138,10 +153,15 @@ def describe_configuration(record: Mapping[str, Any]) -> str:
 
     Reads, in this order: ``preset`` (e.g. ``quick``); ``overrides`` other than ``seed`` as ``key=value``
     sorted by key (runs differing only in their seed share a label, so that a table averages seeds); then
-    ``ablate`` (list or comma/space separated string) as ``-ba -sw -tpt -sac``; ``depth`` as ``depth=D``;
-    ``chain_length`` as ``chain=K``; ``split`` as ``split=S``. Each of the last four is looked up at the
-    record's top level, then in ``record["config"]``, then in ``record["config"]["tree"]``.
-    ``{"preset": "quick", "config": {"ablate": ["sw", "ba"], "depth": 3}}`` -> ``"quick -ba -sw depth=3"``.
+    ``ablate`` (list or comma/space separated string) as ``-ba -sw``, in the order of the method's
+    ``MethodSpec.ablations`` (others alphabetically); then each option the method declares
+    (``MethodSpec.options``, in its order) as ``<tag>=<value>`` (a ``bool`` option as ``<tag>`` when on), e.g.
+    WorldTree's ``depth=2 chain=3 split=binary``: read from the record's ``labels`` (the runner writes them), or
+    for an older record from the method registered under its name; a run of a method known neither way labels
+    the options it was given (``record["options"]``) as ``key=value``. Each value is looked up at the record's top level, then
+    in ``record["config"]``, then in ``record["config"]["tree"]``.
+    ``{"method": "worldtree", "preset": "quick", "config": {"ablate": ["sw", "ba"], "depth": 3}}`` ->
+    ``"quick -ba -sw depth=3"``.
     Then ``sets`` (``--set KEY=VALUE``, sorted) and ``imported_priors`` (``--masks`` etc.) as ``name=folder``
     (the path's last part), so runs that differ only there never share a row.
     A record with none of these keys gives ``"default"``.
@@ -153,11 +173,19 @@ def describe_configuration(record: Mapping[str, Any]) -> str:
     overrides = record.get("overrides")
     if isinstance(overrides, Mapping):
         parts += [f"{k}={overrides[k]}" for k in sorted(overrides) if k != "seed"]
-    parts += [f"-{a}" for a in _ablations(_lookup(record, "ablate"))]
-    for key, name in (("depth", "depth"), ("chain_length", "chain"), ("split", "split")):
+    labels = _labels(record)
+    parts += [f"-{a}" for a in _ablations(_lookup(record, "ablate"), labels[1] if labels else ())]
+    if labels is not None:
+        named = [(f, t) for f, t in labels[0] if f != "ablate"]
+    else:
+        given = record.get("options")
+        named = [(k, k) for k in sorted(given) if k != "ablate"] if isinstance(given, Mapping) else []
+    for key, tag in named:
         v = _lookup(record, key)
-        if v is not None and not isinstance(v, Mapping | list):
-            parts.append(f"{name}={v}")
+        if isinstance(v, bool):
+            parts += [tag] if v else []
+        elif v is not None and not isinstance(v, Mapping | list):
+            parts.append(f"{tag}={v}")
     sets = record.get("sets")
     if isinstance(sets, list):
         parts += sorted(str(x) for x in sets)

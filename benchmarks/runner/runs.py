@@ -242,6 +242,8 @@ def _config_record(spec, cfg, req: RunRequest) -> dict[str, Any]:
         "preset": req.preset,
         "overrides": dict(req.overrides),
         "options": dict(req.options),
+        # The method's own vocabulary for table labels (reporting reads it here and knows no method).
+        "labels": {"options": [[o.field, o.tag] for o in spec.options], "ablations": list(spec.ablations)},
         "sets": list(req.sets),
         "imported_priors": dict(req.priors),
         "config": dataclasses.asdict(cfg),

@@ -101,11 +101,21 @@ def test_configuration_label_rules():
     assert describe_configuration({"preset": "paper"}) == "paper"
     rec = {"preset": "quick", "overrides": {"steps": 200, "seed": 3, "downscale": 1}}
     assert describe_configuration(rec) == "quick downscale=1 steps=200"  # seed left out, keys sorted
-    rec = {"preset": "quick", "config": {"tree": {"depth": 4, "chain_length": 2, "split": "flow"}}}
-    assert describe_configuration(rec) == "quick depth=4 chain=2 split=flow"
-    rec = {"preset": "paper", "ablate": "sac,tpt", "config": {"ablate": ["ignored"]}}
-    assert describe_configuration(rec) == "paper -tpt -sac"  # top level first; paper order
-    assert describe_configuration({"config": {"ablate": ["zz", "-sw", "ba"], "depth": None}}) == "-ba -sw -zz"
+    # A registered method labels its own declared options with their tags, in its order.
+    rec = {"method": "worldtree", "preset": "quick",
+           "config": {"tree": {"depth": 4, "chain_length": 2, "split": "flow"}, "sequential": True}}  # fmt: skip
+    assert describe_configuration(rec) == "quick depth=4 chain=2 split=flow seq"
+    rec = {"method": "worldtree", "preset": "paper", "ablate": "sac,tpt", "config": {"ablate": ["ignored"]}}
+    assert describe_configuration(rec) == "paper -tpt -sac"  # top level first; the method's ablation order
+    rec = {"method": "worldtree", "config": {"ablate": ["zz", "-sw", "ba"], "depth": None}}
+    assert describe_configuration(rec) == "-ba -sw -zz"
+    # The record's own labels win (a run records its method's vocabulary; no registry needed to read it).
+    rec = {"method": "elsewhere", "labels": {"options": [["lag", "L"], ["fast", "f"]], "ablations": ["z", "a"]},
+           "config": {"ablate": ["a", "z"], "lag": 3, "fast": True}}  # fmt: skip
+    assert describe_configuration(rec) == "-z -a L=3 f"
+    # A method unknown here: its given options as key=value, ablations alphabetically.
+    rec = {"method": "elsewhere", "options": {"lag": 2, "ablate": ["b", "a"]}, "config": {"ablate": ["b", "a"], "lag": 2}}
+    assert describe_configuration(rec) == "-a -b lag=2"
     assert describe_configuration({"config": "not a dict", "overrides": None}) == "default"
     rec = {"preset": "quick", "sets": ["z.b=2", "a.c=1"], "imported_priors": {"masks": "/data/sam2/masks"}}
     assert describe_configuration(rec) == "quick a.c=1 z.b=2 masks=masks"  # sets sorted, then priors
