@@ -1,8 +1,8 @@
 """Flow inside the dynamic masks recomputed from each object's displacement (masked template matching).
 
 DIS refines flow coarse to fine with a small search, so it follows the rigid flow it starts from
-(:func:`worldtree.priors.flow.compute_flows`) but not an object moving 6-30 px per frame at 160x90: on the
-demo's fast half it lands within 1.5 px for 7% of the exact object points. The chained dynamic tracks
+(:func:`worldtree.priors.flow.compute_flows`) but not an object moving 6-30 px per frame at 160x90
+(measured in docs/priors.md, "Object-motion flow inside the masks"). The chained dynamic tracks
 (:mod:`worldtree.priors.dynamic_tracks`) then drift or stop after a few frames. For every flow pair (t, u) the
 chaining uses:
 
