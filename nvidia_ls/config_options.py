@@ -19,12 +19,14 @@ import dataclasses
 import functools
 import inspect
 import textwrap
-import types
 import typing
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
+
+from worldtree.infra.config_json import from_dict
+from worldtree.infra.typed_config import optional_of
 
 SIMPLE_TYPES = (int, float, str, bool, Path)
 
@@ -85,15 +87,6 @@ def field_docs(cls: type) -> dict[str, str]:
     return docs
 
 
-def _optional_of(tp: Any) -> tuple[Any, bool]:
-    """``X | None`` -> ``(X, True)``; ``X`` -> ``(X, False)``."""
-    if typing.get_origin(tp) in (typing.Union, types.UnionType):
-        args = [a for a in typing.get_args(tp) if a is not type(None)]
-        if len(args) == 1 and len(typing.get_args(tp)) == 2:
-            return args[0], True
-    return tp, False
-
-
 def config_options(
     cls: type,
     shown: Mapping[str, Shown] | None = None,
@@ -121,7 +114,7 @@ def config_options(
         how = shown.get(dotted, Shown())
         cli_type = how.type if how.type is not None else tp
         if how.type is None:
-            base, _ = _optional_of(tp)
+            base, _ = optional_of(tp)
             if base not in SIMPLE_TYPES:
                 raise TypeError(f"{cls.__name__}.{f.name}: type {tp} needs a Shown(type=..., parse=...)")
         if how.help is None and f.name not in docs:
@@ -161,17 +154,7 @@ def config_from(cls: type, options: Iterable[ConfigOption], values: Mapping[str,
         for name in o.path[:-1]:
             node = node.setdefault(name, {})
         node[o.path[-1]] = value
-    return _construct(cls, tree)
-
-
-def _construct(cls: type, tree: Mapping[str, Any]) -> Any:
-    hints = typing.get_type_hints(cls)
-    kwargs = {
-        name: _construct(hints[name], value) if isinstance(value, dict) and dataclasses.is_dataclass(hints[name])
-        else value
-        for name, value in tree.items()
-    }  # fmt: skip
-    return cls(**kwargs)
+    return from_dict(cls, tree)
 
 
 class GeneratedCommand:

@@ -11,6 +11,7 @@ modules only, never another part of ``worldtree`` (nor ``methods``, ``nvidia_ls`
 - :mod:`worldtree.infra.output_paths` -- an output path checked before long work.
 - :mod:`worldtree.infra.torchfile` -- torch files written atomically, read with ``weights_only=True``.
 - :mod:`worldtree.infra.hashing` -- content hashes of manifests and evaluation records.
+- :mod:`worldtree.infra.typed_config` -- the walk over a config dataclass's field types (JSON and ``--set``).
 - :mod:`worldtree.infra.config_json` -- typed dataclass settings as plain JSON.
 - :mod:`worldtree.infra.config_ranges` -- the declared range of every numeric config setting and its check.
 - :mod:`worldtree.infra.timing` -- the run's stage clock, kept across resumed sessions.
