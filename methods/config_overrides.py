@@ -35,8 +35,8 @@ from pathlib import Path
 from typing import Any
 
 from worldtree.infra import typed_config as tc
-from worldtree.infra.errors import UserError
-from worldtree.infra.typed_config import Mismatch, Surface, convert, field_types, shape_of
+from worldtree.infra.errors import SettingError, UserError
+from worldtree.infra.typed_config import Mismatch, Surface, convert, field_types, setting_paths, shape_of
 
 _BOOLS = {**dict.fromkeys(("true", "1", "yes", "on"), True), **dict.fromkeys(("false", "0", "no", "off"), False)}
 _NONE = ("none", "null")
@@ -87,6 +87,9 @@ def apply_overrides(cfg: Any, items: Sequence[str]) -> Any:
         key, raw = split_assignment(item)
         try:
             cfg = _replace_path(cfg, key.split("."), key, raw)
+        except SettingError as e:  # the key's own field is named by the key; another field by its name
+            own = setting_paths(type(cfg)).get(e.setting) == key
+            raise UserError(f"--set {key}={raw}: {e.why if own else e}") from e
         except UserError as e:
             if str(e).startswith("--set "):
                 raise

@@ -25,8 +25,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from worldtree.infra.cli_runner import options_named
 from worldtree.infra.config_json import from_dict
-from worldtree.infra.typed_config import optional_of
+from worldtree.infra.typed_config import optional_of, setting_paths
 
 SIMPLE_TYPES = (int, float, str, bool, Path)
 
@@ -157,6 +158,12 @@ def config_from(cls: type, options: Iterable[ConfigOption], values: Mapping[str,
     return from_dict(cls, tree)
 
 
+def setting_options(cls: type, options: Mapping[str, str]) -> dict[str, str]:
+    """``{"Class.field": option}`` (the names :class:`~worldtree.infra.errors.SettingError` gives) of the
+    settings of config ``cls`` that ``options`` (dotted path -> option) sets."""
+    return {setting: options[path] for setting, path in setting_paths(cls).items() if path in options}
+
+
 class GeneratedCommand:
     """A typer command function with generated options added to its own parameters.
 
@@ -177,6 +184,11 @@ class GeneratedCommand:
 
     def _collect(self, payload: Any, values: dict[str, Any]) -> Any:
         raise NotImplementedError
+
+    def _options(self, payload: Any) -> Mapping[str, str]:
+        """``{"Class.field": option}`` of the settings the generated options set (:func:`setting_options`):
+        a :class:`~worldtree.infra.errors.SettingError` about one of them names its option."""
+        return {}
 
     @functools.cached_property
     def _resolved(self) -> tuple[Any, list[inspect.Parameter], list[inspect.Parameter]]:
@@ -204,9 +216,10 @@ class GeneratedCommand:
 
     def __call__(self, **values: Any) -> Any:
         payload, _, own = self._resolved
-        return self.func(
-            **{p.name: values[p.name] for p in own}, **{self.param: self._collect(payload, values)}
-        )
+        with options_named(self._options(payload)):
+            return self.func(
+                **{p.name: values[p.name] for p in own}, **{self.param: self._collect(payload, values)}
+            )
 
 
 class ConfigCommand(GeneratedCommand):
@@ -242,3 +255,7 @@ class ConfigCommand(GeneratedCommand):
     def _collect(self, payload: Any, values: dict[str, Any]) -> Any:
         cls, options = payload
         return config_from(cls, options, values)
+
+    def _options(self, payload: Any) -> Mapping[str, str]:
+        cls, options = payload
+        return setting_options(cls, {o.dotted: o.decls[0].split("/")[0] for o in options})

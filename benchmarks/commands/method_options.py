@@ -16,7 +16,7 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Any
 
-from nvidia_ls.config_options import GeneratedCommand
+from nvidia_ls.config_options import GeneratedCommand, setting_options
 from worldtree.infra.typed_config import FIXED, VARIADIC, shape_of
 
 FLAG, LIST, VALUE = "flag", "list", "value"
@@ -139,3 +139,12 @@ class MethodOptionsCommand(GeneratedCommand):
 
     def _collect(self, payload: Any, values: dict[str, Any]) -> Any:
         return given_options(payload, values)
+
+    def _options(self, payload: Any) -> Mapping[str, str]:
+        from methods.registry import list_methods
+
+        by_key = {o.key: o.flag for o in payload}
+        out: dict[str, str] = {}
+        for spec in list_methods() if payload else ():  # no options generated: no method imported
+            out |= setting_options(spec.config_cls, by_key)
+        return out

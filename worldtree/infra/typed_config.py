@@ -82,3 +82,21 @@ def convert(tp: Any, value: Any, surface: Surface) -> Any:
             raise Mismatch(f"{len(item_types)} values expected, got {len(items)}")
         return tuple(convert(a, x, surface) for a, x in zip(item_types, items, strict=True))
     return surface.leaf(tp, value)
+
+
+def setting_paths(cls: type) -> dict[str, str]:
+    """``{"Class.field": "dotted.path"}`` of the fields of dataclass ``cls``, nested (and optional nested)
+    dataclasses' fields included: where the setting a :class:`~worldtree.infra.errors.SettingError` names
+    sits in ``cls``. A ``Class.field`` found at two paths is left out (it would be ambiguous)."""
+    found: dict[str, list[str]] = {}
+
+    def walk(c: type, prefix: str) -> None:
+        for name, tp in field_types(c).items():
+            inner, _ = optional_of(tp)
+            if dataclasses.is_dataclass(inner):
+                walk(inner, f"{prefix}{name}.")
+            else:
+                found.setdefault(f"{c.__name__}.{name}", []).append(prefix + name)
+
+    walk(cls, "")
+    return {setting: paths[0] for setting, paths in found.items() if len(paths) == 1}
