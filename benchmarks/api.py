@@ -19,10 +19,8 @@ method's internals.
 
 from __future__ import annotations
 
-import dataclasses
 import hashlib
 import json
-import typing
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -211,26 +209,11 @@ def _read_record(folder: Path) -> dict[str, Any]:
     return record
 
 
-def _settable(cls: Any, data: Any) -> Any:
-    """``data`` without the entries of ``cls``'s derived fields (``init=False``: recorded in ``config.json``
-    with the rest, but set by the config itself), nested dataclasses included; unknown keys are kept so that
-    the config's reader names them."""
-    if not (dataclasses.is_dataclass(cls) and isinstance(data, dict)):
-        return data
-    hints = typing.get_type_hints(cls)
-    known = {f.name: f for f in dataclasses.fields(cls)}
-    out = {k: v for k, v in data.items() if k not in known}
-    for name, f in known.items():
-        if f.init and name in data:
-            out[name] = _settable(hints[name], data[name])
-    return out
-
-
 def _rebuild_config(spec, record: dict[str, Any], path: Path) -> Any:
     from worldtree.infra.config_json import from_dict
 
     try:
-        return from_dict(spec.config_cls, _settable(spec.config_cls, record["config"]))
+        return from_dict(spec.config_cls, record["config"])
     except UserError as e:
         raise UserError(f"{path}: {e}") from e
     except (TypeError, ValueError, KeyError) as e:

@@ -46,7 +46,7 @@ from worldtree.dynamic import DynamicGaussians, between, gaussians_at
 from worldtree.gaussian_frame import GaussianFrame, RenderMode, render_frame
 from worldtree.gaussians import GaussianSet
 from worldtree.infra.atomic import atomic_write_bytes, atomic_write_json
-from worldtree.infra.errors import UserError
+from worldtree.infra.errors import SettingError, UserError
 from worldtree.infra.timing import StageClock
 from worldtree.infra.torchfile import load_torch, save_torch
 from worldtree.motion.lift import lift_tracks, sample_depth
@@ -168,7 +168,7 @@ class BaseConfig(CommonConfig):
         allowed = self.ablation_names()
         bad = [a for a in self.ablate if a not in allowed]
         if bad:
-            raise UserError(f"--ablate {bad[0]}: choose among {', '.join(allowed)}")
+            raise SettingError.of_field(self, "ablate", f"choose among {', '.join(allowed)}", shown=bad[0])
         names = set(self.ablate)
         # A stage switched off in its own settings is that stage's ablation: one spelling in the config.
         if not self.ba.enabled:

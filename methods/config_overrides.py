@@ -19,9 +19,9 @@ A nested dataclass is never replaced as a whole: name one of its fields. A setti
 reads is refused, so that a ``--set`` either changes the run or is an error: the config's
 ``ignored_settings()`` lists them for the final config (e.g. ``photometric.steps``, which the method fills in
 from ``steps``; ``budget.*`` while the budget is off; the tree's settings under ``--ablate tpt``). The config
-is rebuilt with
-:func:`dataclasses.replace` from the innermost dataclass outwards (frozen dataclasses are not mutated), so
-every ``__post_init__`` on the path validates the new values again.
+is rebuilt with :func:`dataclasses.replace` from the innermost dataclass outwards (frozen dataclasses are not
+mutated), so every ``__post_init__`` on the path validates the new values again. The walk over the types is
+:mod:`worldtree.infra.typed_config`'s; this module reads the text.
 """
 
 from __future__ import annotations
@@ -30,16 +30,15 @@ import dataclasses
 import difflib
 import hashlib
 import math
-import types
-import typing
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from worldtree.infra.errors import UserError
+from worldtree.infra import typed_config as tc
+from worldtree.infra.errors import SettingError, UserError
+from worldtree.infra.typed_config import Mismatch, Surface, convert, field_types, setting_paths, shape_of
 
-_TRUE = ("true", "1", "yes", "on")
-_FALSE = ("false", "0", "no", "off")
+_BOOLS = {**dict.fromkeys(("true", "1", "yes", "on"), True), **dict.fromkeys(("false", "0", "no", "off"), False)}
 _NONE = ("none", "null")
 
 
@@ -88,6 +87,9 @@ def apply_overrides(cfg: Any, items: Sequence[str]) -> Any:
         key, raw = split_assignment(item)
         try:
             cfg = _replace_path(cfg, key.split("."), key, raw)
+        except SettingError as e:  # the key's own field is named by the key; another field by its name
+            own = setting_paths(type(cfg)).get(e.setting) == key
+            raise UserError(f"--set {key}={raw}: {e.why if own else e}") from e
         except UserError as e:
             if str(e).startswith("--set "):
                 raise
@@ -100,15 +102,6 @@ def apply_overrides(cfg: Any, items: Sequence[str]) -> Any:
         if key in ignored:
             raise UserError(f"--set {key}={raw}: this run never reads {key} ({ignored[key]})")
     return cfg
-
-
-def field_types(cls: type) -> dict[str, Any]:
-    """Resolved annotations of the init fields of dataclass ``cls`` (string annotations included)."""
-    try:
-        hints = typing.get_type_hints(cls)
-    except Exception as e:  # an annotation naming something not importable at run time
-        raise UserError(f"{cls.__name__}: field types do not resolve ({e}); --set cannot change it") from e
-    return {f.name: hints[f.name] for f in dataclasses.fields(cls) if f.init}
 
 
 def _replace_path(obj: Any, path: list[str], key: str, raw: str, done: tuple[str, ...] = ()) -> Any:
@@ -127,7 +120,7 @@ def _replace_path(obj: Any, path: list[str], key: str, raw: str, done: tuple[str
     if len(path) > 1:
         if not dataclasses.is_dataclass(current):
             raise UserError(
-                f"--set {key}: {here} is a single value ({_describe(types_[name])}), not a group of settings"
+                f"--set {key}: {here} is a single value ({describe_type(types_[name])}), not a group of settings"
             )
         return dataclasses.replace(obj, **{name: _replace_path(current, path[1:], key, raw, (*done, name))})
     if dataclasses.is_dataclass(current):
@@ -149,103 +142,75 @@ def parse_value(tp: Any, raw: str, key: str = "value", flag: str | None = None) 
     """``raw`` parsed as annotation ``tp`` (see the module doc); a :class:`UserError` naming ``key`` (or the
     option ``flag`` it was given with), the expected type and ``raw`` when it does not parse."""
     try:
-        return _parse(tp, raw)
-    except _BadValue:
+        return convert(tp, raw, _TEXT)
+    except Mismatch:
         given = f"{flag} {raw}" if flag else f"--set {key}={raw}"
-        raise UserError(f"{given}: expected {_describe(tp)}, got {raw!r}") from None
+        raise UserError(f"{given}: expected {describe_type(tp)}, got {raw!r}") from None
+
+
+def _text_leaf(tp: Any, raw: str) -> Any:
+    kind, choices, _ = shape_of(tp)
+    if kind == tc.LITERAL:
+        for choice in choices:
+            if str(choice) == raw or (isinstance(choice, bool) and raw.lower() == str(choice).lower()):
+                return choice
+        raise Mismatch(raw)
+    if tp not in _SCALARS:
+        _text_record(tp, raw)
+    try:
+        return _SCALARS[tp](raw)
+    except (KeyError, ValueError):
+        raise Mismatch(raw) from None
+
+
+def _text_record(tp: Any, raw: str) -> Any:
+    raise UserError(f"fields of type {describe_type(tp)} cannot be set from the command line")
+
+
+def _float(raw: str) -> float:
+    out = float(raw)
+    if math.isnan(out):
+        raise ValueError("NaN")
+    return out
+
+
+def _path(raw: str) -> Path:
+    if not raw:
+        raise ValueError("empty path")
+    return Path(raw)
+
+
+#: How the text of a scalar annotation reads; a KeyError or ValueError where it does not.
+_SCALARS: dict[Any, Any] = {
+    bool: lambda raw: _BOOLS[raw.lower()],
+    type(None): lambda raw: dict.fromkeys(_NONE)[raw.lower()],
+    int: int,
+    float: _float,
+    str: str,
+    Any: str,
+    Path: _path,
+}
+#: The command line's side of the walk: text, a tuple's items comma-separated.
+_TEXT = Surface(
+    is_none=lambda raw: raw.lower() in _NONE,
+    items=lambda raw: [s.strip() for s in raw.split(",")] if raw.strip() else [],
+    leaf=_text_leaf,
+    record=_text_record,
+)
 
 
 def describe_type(tp: Any) -> str:
-    """The annotation ``tp`` as the user writes its values: ``float``, ``int or none``, ``int or one of auto``."""
-    return _describe(tp)
-
-
-class _BadValue(Exception):
-    pass
-
-
-def _is_union(tp: Any) -> bool:
-    return typing.get_origin(tp) in (typing.Union, types.UnionType)
-
-
-def _parse(tp: Any, raw: str) -> Any:
-    origin = typing.get_origin(tp)
-    if tp is type(None):
-        if raw.lower() in _NONE:
-            return None
-        raise _BadValue
-    if _is_union(tp):
-        args = typing.get_args(tp)
-        if type(None) in args and raw.lower() in _NONE:
-            return None
-        for arm in (a for a in args if a is not type(None)):
-            try:
-                return _parse(arm, raw)
-            except _BadValue:
-                continue
-        raise _BadValue
-    if origin is typing.Literal:
-        for choice in typing.get_args(tp):
-            if str(choice) == raw or (isinstance(choice, bool) and raw.lower() == str(choice).lower()):
-                return choice
-        raise _BadValue
-    if origin is tuple:
-        args = typing.get_args(tp)
-        items = [s.strip() for s in raw.split(",")] if raw.strip() else []
-        if len(args) == 2 and args[1] is Ellipsis:
-            return tuple(_parse(args[0], s) for s in items)
-        if not args or len(items) != len(args):
-            raise _BadValue
-        return tuple(_parse(a, s) for a, s in zip(args, items, strict=True))
-    if tp is bool:
-        low = raw.lower()
-        if low in _TRUE:
-            return True
-        if low in _FALSE:
-            return False
-        raise _BadValue
-    if tp is int:
-        try:
-            return int(raw)
-        except ValueError:
-            raise _BadValue from None
-    if tp is float:
-        try:
-            out = float(raw)
-        except ValueError:
-            raise _BadValue from None
-        if math.isnan(out):
-            raise _BadValue
-        return out
-    if tp is str:
-        return raw
-    if tp is Path:
-        if not raw:
-            raise _BadValue
-        return Path(raw)
-    if tp is Any:
-        return raw
-    raise UserError(f"fields of type {_describe(tp)} cannot be set from the command line")
-
-
-def _describe(tp: Any) -> str:
-    """The type as the user should write it: ``float``, ``int or none``, ``one of depth, disparity``..."""
-    origin = typing.get_origin(tp)
-    if _is_union(tp):
-        args = typing.get_args(tp)
-        arms = [_describe(a) for a in args if a is not type(None)]
-        if type(None) in args:
-            arms.append("none")
-        return " or ".join(arms)
-    if origin is typing.Literal:
-        return "one of " + ", ".join(str(c) for c in typing.get_args(tp))
-    if origin is tuple:
-        args = typing.get_args(tp)
-        if len(args) == 2 and args[1] is Ellipsis:
-            return f"comma-separated {_describe(args[0])} values"
-        return f"{len(args)} comma-separated values ({', '.join(_describe(a) for a in args)})"
+    """The annotation ``tp`` as the user writes its values: ``float``, ``int or none``, ``one of depth,
+    disparity``, ``int or one of auto``."""
+    kind, args, optional = shape_of(tp)
+    if kind == tc.UNION:
+        return " or ".join([*map(describe_type, args), *(["none"] if optional else [])])
+    if kind == tc.LITERAL:
+        return "one of " + ", ".join(str(c) for c in args)
+    if kind == tc.VARIADIC:
+        return f"comma-separated {describe_type(args[0])} values"
+    if kind == tc.FIXED:
+        return f"{len(args)} comma-separated values ({', '.join(map(describe_type, args))})"
     if tp is bool:
         return "true/false (also 1/0, yes/no)"
-    if tp is Path:
-        return "a path"
-    return getattr(tp, "__name__", str(tp))
+    return "a path" if tp is Path else getattr(tp, "__name__", str(tp))

@@ -59,7 +59,7 @@ from worldtree.dynamic import between, gaussians_at, halfway
 from worldtree.gaussians import GaussianSet, inverse_sigmoid
 from worldtree.infra.atomic import atomic_write_json
 from worldtree.infra.config_json import read_config, write_config
-from worldtree.infra.errors import UserError
+from worldtree.infra.errors import SettingError, UserError
 from worldtree.infra.torchfile import save_torch
 from worldtree.optim import GroupedAdam, ScaledLR
 from worldtree.plateau import PlateauRule
@@ -160,18 +160,16 @@ class WorldTreeConfig(BaseConfig):
             elif self.depth.strip().isdigit():
                 self.depth = int(self.depth)
             else:
-                raise UserError(f"--depth {self.depth}: give an integer >= 0 or 'auto'")
+                raise SettingError.of_field(self, "depth", "give an integer >= 0 or 'auto'")
         self.auto_depth = self.depth == "auto"
         if isinstance(self.depth, int) and self.depth < 0:
-            raise UserError(f"--depth {self.depth}: must be >= 0 (0 = the root only)")
+            raise SettingError.of_field(self, "depth", "must be >= 0 (0 = the root only)")
         if self.chain_length is not None and self.chain_length < 0:
-            raise UserError(
-                f"--chain-length {self.chain_length}: must be >= 0, or omitted for the whole chain"
-            )
+            raise SettingError.of_field(self, "chain_length", "must be >= 0, or None for the whole chain")
         if self.split not in SPLIT_STRATEGIES:
-            raise UserError(f"--split {self.split}: choose one of {', '.join(SPLIT_STRATEGIES)}")
+            raise SettingError.of_field(self, "split", f"choose one of {', '.join(SPLIT_STRATEGIES)}")
         if not self.layer_steps or min(self.layer_steps) < 1:
-            raise UserError(f"WorldTreeConfig.layer_steps {self.layer_steps}: need one or more values >= 1")
+            raise SettingError.of_field(self, "layer_steps", "need one or more values >= 1")
         self.layer_steps = tuple(int(s) for s in self.layer_steps)
         self.inherit_caps = tuple(int(c) for c in self.inherit_caps)
 

@@ -29,7 +29,7 @@ from nvidia_ls.writer import cameras_document, frame_file, mask_file, save_image
 from worldtree import __version__
 from worldtree.imageio import check_pixels
 from worldtree.infra.atomic import atomic_dir, atomic_write_bytes, atomic_write_json, remove_stale_partials
-from worldtree.infra.errors import UserError
+from worldtree.infra.errors import SettingError, UserError
 from worldtree.infra.folder_lock import FolderLock, lock_paths
 from worldtree.infra.output_paths import (
     check_name,
@@ -85,26 +85,21 @@ class BuildConfig:
         if self.name is not None:
             check_name(self.name, "--name")
         if self.frames < 1:
-            raise UserError(f"--frames {self.frames}: must be at least 1")
-        if self.camera_model not in CAMERA_MODELS:
-            raise UserError(f"--camera-model {self.camera_model!r}: choose one of {', '.join(CAMERA_MODELS)}")
-        if self.normalize not in NORMALIZE:
-            raise UserError(f"--normalize {self.normalize!r}: choose one of {', '.join(NORMALIZE)}")
+            raise SettingError.of_field(self, "frames", "must be at least 1")
+        for name, choices in (("camera_model", CAMERA_MODELS), ("normalize", NORMALIZE)):
+            if getattr(self, name) not in choices:
+                raise SettingError.of_field(
+                    self, name, f"choose one of {', '.join(choices)}", shown=repr(getattr(self, name))
+                )
         if self.size is not None and min(self.size) < MIN_SIZE:
-            raise UserError(
-                f"--size {self.size[0]}x{self.size[1]}: too small for the {MIN_SIZE}x{MIN_SIZE} SSIM window of "
-                f"training; give WxH of at least {MIN_SIZE}x{MIN_SIZE}"
-            )
-        for flag, value, least in (
-            ("--test-camera", self.test_camera, 1),
-            ("--sfm-tries", self.sfm_tries, 1),
-            ("--sfm-threads", self.sfm_threads, 1),
-            ("--num-cameras", self.num_cameras, 2),
-            ("--seed", self.seed, 0),
-            ("preview_frames", self.preview_frames, 1),
-        ):
-            if value is not None and value < least:
-                raise UserError(f"{flag} {value}: must be at least {least}")
+            raise SettingError.of_field(
+                self, "size", f"too small for the {MIN_SIZE}x{MIN_SIZE} SSIM window of training; give WxH of "
+                f"at least {MIN_SIZE}x{MIN_SIZE}", shown=f"{self.size[0]}x{self.size[1]}",
+            )  # fmt: skip
+        for name, least in (("test_camera", 1), ("sfm_tries", 1), ("sfm_threads", 1), ("num_cameras", 2),
+                            ("seed", 0), ("preview_frames", 1)):  # fmt: skip
+            if getattr(self, name) is not None and getattr(self, name) < least:
+                raise SettingError.of_field(self, name, f"must be at least {least}")
         self.mask.check()
 
 

@@ -19,12 +19,15 @@ import dataclasses
 import functools
 import inspect
 import textwrap
-import types
 import typing
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
+
+from worldtree.infra.cli_runner import options_named
+from worldtree.infra.config_json import from_dict
+from worldtree.infra.typed_config import optional_of, setting_paths
 
 SIMPLE_TYPES = (int, float, str, bool, Path)
 
@@ -85,15 +88,6 @@ def field_docs(cls: type) -> dict[str, str]:
     return docs
 
 
-def _optional_of(tp: Any) -> tuple[Any, bool]:
-    """``X | None`` -> ``(X, True)``; ``X`` -> ``(X, False)``."""
-    if typing.get_origin(tp) in (typing.Union, types.UnionType):
-        args = [a for a in typing.get_args(tp) if a is not type(None)]
-        if len(args) == 1 and len(typing.get_args(tp)) == 2:
-            return args[0], True
-    return tp, False
-
-
 def config_options(
     cls: type,
     shown: Mapping[str, Shown] | None = None,
@@ -121,7 +115,7 @@ def config_options(
         how = shown.get(dotted, Shown())
         cli_type = how.type if how.type is not None else tp
         if how.type is None:
-            base, _ = _optional_of(tp)
+            base, _ = optional_of(tp)
             if base not in SIMPLE_TYPES:
                 raise TypeError(f"{cls.__name__}.{f.name}: type {tp} needs a Shown(type=..., parse=...)")
         if how.help is None and f.name not in docs:
@@ -161,17 +155,13 @@ def config_from(cls: type, options: Iterable[ConfigOption], values: Mapping[str,
         for name in o.path[:-1]:
             node = node.setdefault(name, {})
         node[o.path[-1]] = value
-    return _construct(cls, tree)
+    return from_dict(cls, tree)
 
 
-def _construct(cls: type, tree: Mapping[str, Any]) -> Any:
-    hints = typing.get_type_hints(cls)
-    kwargs = {
-        name: _construct(hints[name], value) if isinstance(value, dict) and dataclasses.is_dataclass(hints[name])
-        else value
-        for name, value in tree.items()
-    }  # fmt: skip
-    return cls(**kwargs)
+def setting_options(cls: type, options: Mapping[str, str]) -> dict[str, str]:
+    """``{"Class.field": option}`` (the names :class:`~worldtree.infra.errors.SettingError` gives) of the
+    settings of config ``cls`` that ``options`` (dotted path -> option) sets."""
+    return {setting: options[path] for setting, path in setting_paths(cls).items() if path in options}
 
 
 class GeneratedCommand:
@@ -194,6 +184,11 @@ class GeneratedCommand:
 
     def _collect(self, payload: Any, values: dict[str, Any]) -> Any:
         raise NotImplementedError
+
+    def _options(self, payload: Any) -> Mapping[str, str]:
+        """``{"Class.field": option}`` of the settings the generated options set (:func:`setting_options`):
+        a :class:`~worldtree.infra.errors.SettingError` about one of them names its option."""
+        return {}
 
     @functools.cached_property
     def _resolved(self) -> tuple[Any, list[inspect.Parameter], list[inspect.Parameter]]:
@@ -221,9 +216,10 @@ class GeneratedCommand:
 
     def __call__(self, **values: Any) -> Any:
         payload, _, own = self._resolved
-        return self.func(
-            **{p.name: values[p.name] for p in own}, **{self.param: self._collect(payload, values)}
-        )
+        with options_named(self._options(payload)):
+            return self.func(
+                **{p.name: values[p.name] for p in own}, **{self.param: self._collect(payload, values)}
+            )
 
 
 class ConfigCommand(GeneratedCommand):
@@ -259,3 +255,7 @@ class ConfigCommand(GeneratedCommand):
     def _collect(self, payload: Any, values: dict[str, Any]) -> Any:
         cls, options = payload
         return config_from(cls, options, values)
+
+    def _options(self, payload: Any) -> Mapping[str, str]:
+        cls, options = payload
+        return setting_options(cls, {o.dotted: o.decls[0].split("/")[0] for o in options})

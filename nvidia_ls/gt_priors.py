@@ -35,7 +35,7 @@ from nvidia_ls.undistort import scale_intrinsics
 from nvidia_ls.writer import save_image
 from worldtree import __version__
 from worldtree.infra.atomic import atomic_dir, atomic_write_json
-from worldtree.infra.errors import UserError
+from worldtree.infra.errors import SettingError, UserError
 from worldtree.infra.output_paths import check_replaceable
 from worldtree.scene_schema import read_cameras
 
@@ -61,11 +61,11 @@ class GtPriorsConfig:
 
     def check(self) -> None:
         if self.track_stride < 1:
-            raise UserError(f"--track-stride {self.track_stride}: must be at least 1 pixel")
+            raise SettingError.of_field(self, "track_stride", "must be at least 1 pixel")
         if self.seed_every < 1:
-            raise UserError(f"--seed-every {self.seed_every}: must be at least 1 frame")
+            raise SettingError.of_field(self, "seed_every", "must be at least 1 frame")
         if not 0 < self.occlusion_tol < 1:
-            raise UserError(f"occlusion tolerance {self.occlusion_tol}: choose a fraction in (0, 1)")
+            raise SettingError.of_field(self, "occlusion_tol", "choose a fraction in (0, 1)")
 
 
 # ------------------------------------------------------------------------------------------------ geometry

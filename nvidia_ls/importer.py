@@ -51,7 +51,7 @@ from nvidia_ls.writer import cameras_document, frame_file, mask_file, save_image
 from worldtree import __version__
 from worldtree.imageio import read_image, read_mask
 from worldtree.infra.atomic import atomic_dir, atomic_write_bytes, atomic_write_json
-from worldtree.infra.errors import UserError
+from worldtree.infra.errors import SettingError, UserError
 from worldtree.infra.output_paths import check_name, check_output_folder, check_replaceable
 from worldtree.priors.imported import _load_array, read_flo, resize_flow
 
@@ -159,9 +159,13 @@ def scan_source(root: Path, cfg: ImportConfig) -> _Source:
     if not root.is_dir():
         raise UserError(f"{root}: no such folder; give a scene folder holding images/ and poses_bounds.npy")
     if cfg.layout not in LAYOUTS:
-        raise UserError(f"--layout {cfg.layout!r}: choose one of {', '.join(LAYOUTS)}")
+        raise SettingError.of_field(
+            cfg, "layout", f"choose one of {', '.join(LAYOUTS)}", shown=repr(cfg.layout)
+        )
     if cfg.normalize not in NORMALIZE:
-        raise UserError(f"--normalize {cfg.normalize!r}: choose one of {', '.join(NORMALIZE)}")
+        raise SettingError.of_field(
+            cfg, "normalize", f"choose one of {', '.join(NORMALIZE)}", shown=repr(cfg.normalize)
+        )
     layout = _detect_layout(root) if cfg.layout == "auto" else cfg.layout
     if not (root / "images").is_dir() or not _images(root / "images"):
         raise UserError(f"{root / 'images'}: missing or holds no .png/.jpg; the training frames go there")

@@ -20,7 +20,7 @@ import cv2
 import numpy as np
 
 from worldtree.imageio import IMAGE_SUFFIXES, read_mask
-from worldtree.infra.errors import UserError
+from worldtree.infra.errors import SettingError, UserError
 
 
 @dataclass
@@ -40,11 +40,11 @@ class MaskConfig:
     """Components smaller than this fraction of the image are dropped."""
 
     def check(self) -> None:
-        """Refuse values outside the documented ranges (one-line :class:`UserError` naming the option)."""
+        """Refuse values outside the documented ranges (one-line :class:`SettingError` naming the field)."""
         if not 0.0 <= self.threshold <= 255.0:  # also refuses NaN
-            raise UserError(f"--mask-threshold {self.threshold}: must be within 0..255 (colour difference)")
+            raise SettingError.of_field(self, "threshold", "must be within 0..255 (colour difference)")
         if self.blur < 0 or (self.blur > 0 and self.blur % 2 == 0):
-            raise UserError(f"mask blur {self.blur}: must be 0 (none) or an odd kernel size")
+            raise SettingError.of_field(self, "blur", "must be 0 (none) or an odd kernel size")
         for name in ("open_px", "close_px"):
             if getattr(self, name) < 0:
                 raise UserError(f"mask {name} {getattr(self, name)}: must be at least 0")

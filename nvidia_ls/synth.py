@@ -34,7 +34,7 @@ from worldtree import __version__
 from worldtree.imageio import check_pixels
 from worldtree.infra.atomic import atomic_dir, atomic_write_json
 from worldtree.infra.cores import available_cores
-from worldtree.infra.errors import UserError
+from worldtree.infra.errors import SettingError, UserError
 from worldtree.infra.output_paths import check_replaceable
 
 FLOOR_Y = 1.0
@@ -125,34 +125,25 @@ class SynthConfig:
     def check(self) -> None:
         """Raise :class:`UserError` for values the generator cannot honour."""
         if self.cameras < 2:
-            raise UserError(f"--cameras {self.cameras}: need at least 2 cameras")
+            raise SettingError.of_field(self, "cameras", "need at least 2 cameras")
         if self.steps < 1:
-            raise UserError(f"--steps {self.steps}: need at least 1 time step")
+            raise SettingError.of_field(self, "steps", "need at least 1 time step")
         if self.width < 16 or self.height < 16:
             raise UserError(f"--width/--height {self.width}x{self.height}: need at least 16x16 pixels")
         check_pixels(self.width, self.height, "--width/--height")
-        if self.motion not in MOTIONS:
-            raise UserError(f"--motion {self.motion!r}: choose one of {', '.join(MOTIONS)}")
         if self.objects not in (0, 1, 2):
-            raise UserError(f"--objects {self.objects}: choose 0, 1 or 2")
+            raise SettingError.of_field(self, "objects", "choose 0, 1 or 2")
         if self.supersample < 1:
-            raise UserError(f"--supersample {self.supersample}: must be >= 1")
-        if self.image_ext not in ("png", "jpg"):
-            raise UserError(f"--image-ext {self.image_ext!r}: choose png or jpg")
-        if self.layout not in LAYOUTS:
-            raise UserError(f"--layout {self.layout!r}: choose one of {', '.join(LAYOUTS)}")
+            raise SettingError.of_field(self, "supersample", "must be >= 1")
         if not 10.0 <= self.fov_deg <= 120.0:
-            raise UserError(f"--fov-deg {self.fov_deg}: choose a field of view between 10 and 120 degrees")
-        for flag, value, choices in (
-            ("--rig", self.rig, RIGS),
-            ("--path", self.path, PATHS),
-            ("--texture", self.texture, TEXTURES),
-            ("--camera-order", self.camera_order, CAMERA_ORDERS),
-        ):
+            raise SettingError.of_field(self, "fov_deg", "choose a field of view between 10 and 120 degrees")
+        for name, choices in (("motion", MOTIONS), ("image_ext", ("png", "jpg")), ("layout", LAYOUTS),
+                              ("rig", RIGS), ("path", PATHS), ("texture", TEXTURES),
+                              ("camera_order", CAMERA_ORDERS), ("kind", KINDS)):  # fmt: skip
+            value = getattr(self, name)
             if value not in choices:
-                raise UserError(f"{flag} {value!r}: choose one of {', '.join(choices)}")
-        if self.kind not in KINDS:
-            raise UserError(f"--kind {self.kind!r}: choose one of {', '.join(KINDS)}")
+                why = f"choose one of {', '.join(choices)}"
+                raise SettingError.of_field(self, name, why, shown=repr(value))
         if self.kind == "twin":
             if self.poses is None:
                 raise UserError("--kind twin: give the real rig with --poses PATH/poses_bounds.npy")

@@ -16,7 +16,7 @@ import cv2
 import numpy as np
 
 from worldtree.imageio import read_image
-from worldtree.infra.errors import UserError
+from worldtree.infra.errors import SettingError, UserError
 
 VIDEO_SUFFIXES = (".mp4", ".mov", ".avi", ".mkv", ".webm", ".m4v")
 FRAME_SUFFIXES = (".png", ".jpg", ".jpeg")
@@ -47,15 +47,17 @@ class VideoConfig:
     def check(self) -> None:
         """Raise :class:`UserError` for a value the import cannot honour."""
         if self.stride < 1:
-            raise UserError(f"--video-stride {self.stride}: must be at least 1")
+            raise SettingError.of_field(self, "stride", "must be at least 1")
         if self.max_frames is not None and self.max_frames < MIN_FRAMES:
-            raise UserError(f"--video-max-frames {self.max_frames}: keep at least {MIN_FRAMES} frames")
+            raise SettingError.of_field(self, "max_frames", f"keep at least {MIN_FRAMES} frames")
         if not 0.0 <= self.min_registered <= 1.0:
-            raise UserError(f"--video-min-registered {self.min_registered}: give a fraction in 0..1")
+            raise SettingError.of_field(self, "min_registered", "give a fraction in 0..1")
         if self.unregistered not in ("drop", "fail"):
-            raise UserError(f"--video-unregistered {self.unregistered!r}: choose drop or fail")
+            raise SettingError.of_field(
+                self, "unregistered", "choose drop or fail", shown=repr(self.unregistered)
+            )
         if self.sfm_threads < 1:
-            raise UserError(f"--video-sfm-threads {self.sfm_threads}: must be at least 1")
+            raise SettingError.of_field(self, "sfm_threads", "must be at least 1")
 
 
 @dataclass

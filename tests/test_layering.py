@@ -1,13 +1,14 @@
 """The import graph of the four packages, read from their source (every import statement, those inside
 functions included): no package imports one above it, no sub-package of ``benchmarks`` imports one above it,
 ``worldtree.infra`` imports nothing else of ``worldtree``, nothing else of ``worldtree`` imports
-``worldtree.diagnostics``, and no cycle among the sub-packages and top-level modules of any package.
+``worldtree.diagnostics``, nothing outside ``benchmarks.speed`` imports it, and no cycle among the
+sub-packages and top-level modules of any package.
 
 Package order: ``worldtree`` (the library) < ``methods`` and ``nvidia_ls`` (each on the library alone) <
 ``benchmarks`` (the harness, on all three). Inside ``benchmarks``: fixtures < evaluation < runner < api (a
-finished run loaded) < reporting < viewer < commands < speed < cli. Inside ``worldtree``: ``infra`` (errors,
-atomic files, locks, clocks: what the model uses) at the bottom, ``diagnostics`` (reads a fitted model) at the
-top. A known upward edge is listed in :data:`ALLOWED` with why it is there; an entry that no longer matches an
+finished run loaded) < reporting < viewer < commands < cli < speed, where ``speed`` (measurement scripts
+run from a clone, not installed) is a leaf. Inside ``worldtree``: ``infra`` (errors, atomic files, locks,
+clocks: what the model uses) at the bottom, ``diagnostics`` (reads a fitted model) at the top. A known upward edge is listed in :data:`ALLOWED` with why it is there; an entry that no longer matches an
 import fails, so the list only shrinks.
 """
 
@@ -33,9 +34,11 @@ BENCHMARKS_ORDER = (
     "reporting",
     "viewer",
     "commands",
-    "speed",
     "cli",
+    "speed",
 )
+#: Not part of the installed distribution (pyproject.toml excludes it), so nothing outside it may import it.
+LEAVES = ("benchmarks.speed",)
 #: Sub-packages of ``worldtree`` that import nothing else of ``worldtree`` (the bottom layer).
 WORLDTREE_BOTTOM = ("worldtree.infra",)
 #: Sub-packages of ``worldtree`` that nothing else of ``worldtree`` imports (the top layer).
@@ -114,6 +117,12 @@ def test_no_benchmarks_subpackage_imports_one_above_it():
     assert not bad, "\n".join(bad)
 
 
+def test_nothing_imports_a_leaf():
+    bad = [f"{w}: {a} imports {b}" for a, b, w in import_edges() for leaf in LEAVES
+           if (b == leaf or b.startswith(leaf + ".")) and not (a == leaf or a.startswith(leaf + "."))]  # fmt: skip
+    assert not bad, "\n".join(bad)
+
+
 def test_worldtree_layers_inside():
     bad = []
     for a, b, where in import_edges():
@@ -129,7 +138,7 @@ def test_worldtree_layers_inside():
 
 def test_worldtree_layers_exist():
     """The layers named above are sub-packages (a renamed one would make the check above vacuous)."""
-    layers = (*WORLDTREE_BOTTOM, *WORLDTREE_TOP)
+    layers = (*WORLDTREE_BOTTOM, *WORLDTREE_TOP, *LEAVES)
     missing = [n for n in layers if not (ROOT.joinpath(*n.split(".")) / "__init__.py").is_file()]
     assert not missing, f"not sub-packages: {missing}"
 

@@ -14,7 +14,7 @@ import numpy as np
 import torch
 
 from worldtree.imageio import read_image, read_mask
-from worldtree.infra.errors import UserError
+from worldtree.infra.errors import SettingError, UserError
 from worldtree.scene_schema import read_cameras, resolve_inside
 
 
@@ -102,7 +102,7 @@ def load_scene(root: str | Path, downscale: int = 1, load_masks: bool = True) ->
     """
     root = Path(root)
     if downscale < 1:
-        raise UserError(f"--downscale {downscale}: must be an integer >= 1")
+        raise SettingError("downscale", downscale, "must be an integer >= 1")
     doc = read_cameras(root)
     path = root / "cameras.json"
 

@@ -36,7 +36,7 @@ from worldtree.checkpoint import (
     restore_rng_state,
     save_checkpoint,
 )
-from worldtree.infra.errors import UserError
+from worldtree.infra.errors import SettingError, UserError
 from worldtree.plateau import PlateauDetector
 
 
@@ -286,7 +286,7 @@ class Trainer:
         stop: PlateauDetector | None = None,
     ):
         if cfg.steps < 0:
-            raise UserError(f"--steps {cfg.steps}: must be >= 0")
+            raise SettingError.of_field(cfg, "steps", "must be >= 0")
         self.cfg = cfg
         self.task = task
         self.checkpoint_dir = Path(checkpoint_dir) if checkpoint_dir is not None else None

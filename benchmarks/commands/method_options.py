@@ -12,12 +12,12 @@ from another package brings its options with it. The options are generated when 
 from __future__ import annotations
 
 import inspect
-import typing
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Any
 
-from nvidia_ls.config_options import GeneratedCommand
+from nvidia_ls.config_options import GeneratedCommand, setting_options
+from worldtree.infra.typed_config import FIXED, VARIADIC, shape_of
 
 FLAG, LIST, VALUE = "flag", "list", "value"
 
@@ -82,7 +82,7 @@ def declared_options() -> list[GeneratedOption]:
                 f"{methods[0].config_cls.__name__}.{key}: write its help as a string literal under it"
             )
         tp = types[methods[0].name]
-        kind = FLAG if tp is bool else LIST if typing.get_origin(tp) is tuple else VALUE
+        kind = FLAG if tp is bool else LIST if shape_of(tp).kind in (VARIADIC, FIXED) else VALUE
         out.append(GeneratedOption(key, tp, kind, f"{', '.join(s.name for s in methods)}: {doc}"))
     return out
 
@@ -102,7 +102,7 @@ def given_options(declared: list[GeneratedOption], values: Mapping[str, Any]) ->
                 out[o.key] = True
         elif o.kind == LIST:
             if raw:
-                item = typing.get_args(o.annotation)[0]
+                item = shape_of(o.annotation).args[0]
                 out[o.key] = sorted({parse_value(item, s.strip(), o.key, o.flag) for s in raw})
         elif raw is not None:
             out[o.key] = parse_value(o.annotation, raw.strip(), o.key, o.flag)
@@ -139,3 +139,12 @@ class MethodOptionsCommand(GeneratedCommand):
 
     def _collect(self, payload: Any, values: dict[str, Any]) -> Any:
         return given_options(payload, values)
+
+    def _options(self, payload: Any) -> Mapping[str, str]:
+        from methods.registry import list_methods
+
+        by_key = {o.key: o.flag for o in payload}
+        out: dict[str, str] = {}
+        for spec in list_methods() if payload else ():  # no options generated: no method imported
+            out |= setting_options(spec.config_cls, by_key)
+        return out

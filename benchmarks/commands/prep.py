@@ -6,12 +6,15 @@ from pathlib import Path
 
 import typer
 
+from nvidia_ls.config_options import setting_options
+from worldtree.infra.cli_runner import options_named
 from worldtree.infra.errors import UserError
 from worldtree.priors.config import (  # light: dataclasses only
     DepthConfig,
     DepthImportConfig,
     EpiConfig,
     MotionConfig,
+    PriorsConfig,
 )
 
 
@@ -66,8 +69,15 @@ def register(app: typer.Typer) -> None:
             "default: priors.motion.enabled's default.",
         ),
     ) -> None:
-        _run(scene, depth, depth_kind, depth_fit, depth_png_scale, tracks, flow, masks, cache, preview,
-             downscale, epi_threshold, planes, epi_from_flow, depth_merge, motion)  # fmt: skip
+        with options_named(setting_options(PriorsConfig, PRIOR_OPTIONS) | {"downscale": "--downscale"}):
+            _run(scene, depth, depth_kind, depth_fit, depth_png_scale, tracks, flow, masks, cache, preview,
+                 downscale, epi_threshold, planes, epi_from_flow, depth_merge, motion)  # fmt: skip
+
+
+#: The options of `wtbench prep` that set a field of PriorsConfig (by its path); library errors about these
+#: fields name them (worldtree.infra.cli_runner.options_named).
+PRIOR_OPTIONS = {"depth_source": "--depth", "tracks_source": "--tracks", "flow_source": "--flow",
+                 "masks_source": "--masks"}  # fmt: skip
 
 
 def _run(scene_dir, depth, depth_kind, depth_fit, depth_png_scale, tracks, flow, masks, cache, preview,
@@ -78,7 +88,7 @@ def _run(scene_dir, depth, depth_kind, depth_fit, depth_png_scale, tracks, flow,
     from rich.console import Console
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
-    from worldtree.priors import PriorsConfig, compute_priors
+    from worldtree.priors import compute_priors
     from worldtree.priors.preview import write_previews
     from worldtree.scene import load_scene
 

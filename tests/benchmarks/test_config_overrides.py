@@ -201,7 +201,7 @@ def test_real_method_configs():
         expect.pop(section), got.pop(section)
     expect.pop("layer_steps"), got.pop("layer_steps")
     assert got == expect
-    with pytest.raises(UserError, match=r"--depth -1"):
+    with pytest.raises(UserError, match=r"^--set depth=-1: must be >= 0 \(0 = the root only\)$"):
         apply_overrides(wt, ["depth=-1"])  # WorldTreeConfig.__post_init__
     static = get_method("static").config("quick")
     assert apply_overrides(static, ["background=1,1,1"]).background == (1.0, 1.0, 1.0)

@@ -221,7 +221,7 @@ def test_bad_input(gen, tmp_path):
     with pytest.raises(UserError, match="camera centres"):
         write_gt_priors(raw, moved, tmp_path / "o3")
     assert not (tmp_path / "o1").exists() and not (tmp_path / "o3").exists()
-    with pytest.raises(UserError, match="--track-stride 0"):
+    with pytest.raises(UserError, match="^GtPriorsConfig.track_stride 0: must be at least 1 pixel$"):
         write_gt_priors(raw, scene, tmp_path / "o4", GtPriorsConfig(track_stride=0))
 
 

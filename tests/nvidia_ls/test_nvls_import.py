@@ -213,7 +213,7 @@ def test_bad_sources_fail_with_one_line(exported, tmp_path):
     np.save(bad / "poses_bounds.npy", np.zeros((4, 17)))
     with pytest.raises(UserError, match="4 pose rows for 1 frames"):
         import_scene(bad, tmp_path / "o", ImportConfig())
-    with pytest.raises(UserError, match="--layout"):
+    with pytest.raises(UserError, match="^ImportConfig.layout 'llff': choose one of"):
         import_scene(root, tmp_path / "o", ImportConfig(layout="llff"))
     assert not (tmp_path / "o").exists() or not any((tmp_path / "o").iterdir())
 

@@ -148,7 +148,7 @@ def test_person_is_static_with_one_object(rig):
     ("kw", "flag"),
     [({"kind": "twin"}, "--kind twin"), ({"kind": "twin", "poses": "x.npy", "rig": "arc"}, "--rig arc"),
      ({"kind": "twin", "poses": "x.npy", "motion": "fast"}, "--motion fast"), ({"poses": "x.npy"}, "--poses"),
-     ({"kind": "tent"}, "--kind 'tent'")],
+     ({"kind": "tent"}, "SynthConfig.kind 'tent'")],
 )  # fmt: skip
 def test_bad_twin_options_are_one_line_errors(kw, flag):
     with pytest.raises(UserError) as e:

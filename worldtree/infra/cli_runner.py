@@ -4,7 +4,10 @@ library itself never runs an app."""
 
 from __future__ import annotations
 
-from worldtree.infra.errors import UserError
+import contextlib
+from collections.abc import Iterator, Mapping
+
+from worldtree.infra.errors import SettingError, UserError
 
 INTERRUPTED = "interrupted: re-run the same command to resume from the last checkpoint"
 #: Ctrl-C of a command that keeps no checkpoint (nvls): its output appears whole or not at all.
@@ -12,14 +15,29 @@ INTERRUPTED_NO_CHECKPOINT = "interrupted: nothing was written (the unfinished ou
 NOT_A_FOLDER = "a part of this path is a file, not a folder; choose another path"
 
 
-def run_cli(app, interrupted: str = INTERRUPTED) -> None:
+@contextlib.contextmanager
+def options_named(options: Mapping[str, str]) -> Iterator[None]:
+    """Inside: a :class:`SettingError` whose setting has an option in ``options`` (setting -> option, e.g.
+    ``{"WorldTreeConfig.depth": "--depth"}``) comes out naming that option, as the user gave it. The one place
+    where a command line's options replace the library's names of its settings."""
+    try:
+        yield
+    except SettingError as e:
+        if e.setting not in options:
+            raise
+        raise e.as_option(options[e.setting]) from e
+
+
+def run_cli(app, interrupted: str = INTERRUPTED, options: Mapping[str, str] | None = None) -> None:
     """Run a typer/click ``app``; print a :class:`UserError` as one line (exit 2) and Ctrl-C as exit 130 with
-    the line ``interrupted`` (what a re-run does: resume from a checkpoint, or start again)."""
+    the line ``interrupted`` (what a re-run does: resume from a checkpoint, or start again). ``options``: the
+    app's options of library settings that every command names alike (:func:`options_named`)."""
     import sys
 
     try:
         # With standalone_mode=False click returns a typer.Exit's code instead of exiting with it.
-        code = app(standalone_mode=False)
+        with options_named(options or {}):
+            code = app(standalone_mode=False)
     except UserError as e:
         print(f"error: {e}", file=sys.stderr)
         raise SystemExit(2) from None

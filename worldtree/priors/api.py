@@ -212,7 +212,7 @@ def _depth(imgs, Ks, w2cs, scene, cfg: PriorsConfig, cache, fp, progress, notes=
         raise UserError(f"priors.depth_import.merge={di.merge!r}: choose replace or fill")
     if di.merge == "fill" and not di.fit_scale_shift:
         raise UserError(
-            "priors.depth_import.merge=fill needs priors.depth_import.fit_scale_shift=true (--depth-fit): "
+            "priors.depth_import.merge=fill needs priors.depth_import.fit_scale_shift=true: "
             "the imported depth must be in the classical depth's scale to fill it"
         )
     raw = imported.read_depth(cfg.depth_source, T, H, W, di, notes=notes)

@@ -26,7 +26,7 @@ import cv2
 import numpy as np
 
 from worldtree.imageio import read_mask
-from worldtree.infra.errors import UserError
+from worldtree.infra.errors import SettingError, UserError
 from worldtree.priors.config import DepthImportConfig
 
 DEPTH_SUFFIXES = (".npy", ".npz", ".png")
@@ -146,7 +146,9 @@ def read_depth(
         raw_sizes = [a.shape for a in arr]
         arr = np.stack([_fit_size(a, height, width, src) for a in arr])
     else:
-        raise UserError(f"--depth {src}: no such file or folder; pass 'classical' or an existing path")
+        raise SettingError(
+            "PriorsConfig.depth_source", src, "no such file or folder; pass 'classical' or an existing path"
+        )
     other = sorted({(w, h) for h, w in raw_sizes if (h, w) != (height, width)})
     if notes is not None and other:
         notes.append(f"depth resized {', '.join(f'{w}x{h}' for w, h in other)} -> {width}x{height}")
@@ -293,7 +295,9 @@ def _load_tracks_obj(path: Path):
         return out if isinstance(obj, dict) else out[""]
     if suffix in (".npz", ".npy"):
         return load_numpy(path)
-    raise UserError(f"--tracks {path}: unsupported suffix {path.suffix!r}; use .npy, .npz or .pt")
+    raise SettingError(
+        "PriorsConfig.tracks_source", path, f"unsupported suffix {path.suffix!r}; use .npy, .npz or .pt"
+    )
 
 
 def _tracks_image_size(value, path: Path) -> tuple[int, int] | None:
@@ -324,7 +328,10 @@ def read_tracks(
     """
     path = Path(source)
     if not path.is_file():
-        raise UserError(f"--tracks {path}: no such file; pass 'classical' or an existing .npy/.npz/.pt file")
+        raise SettingError(
+            "PriorsConfig.tracks_source", path,
+            "no such file; pass 'classical' or an existing .npy/.npz/.pt file"
+        )
     obj = _load_tracks_obj(path)
     if isinstance(obj, dict):
         tk = next((k for k in ("tracks", "pred_tracks") if k in obj), None)
@@ -457,7 +464,10 @@ def read_flows(
     resize adds a line to ``notes`` (recorded in the priors' sources)."""
     src = Path(source)
     if not src.is_dir():
-        raise UserError(f"--flow {src}: not a folder; pass 'classical' or a folder of <i>_<j>.flo/.npy files")
+        raise SettingError(
+            "PriorsConfig.flow_source", src,
+            "not a folder; pass 'classical' or a folder of <i>_<j>.flo/.npy files"
+        )
     out: dict[tuple[int, int], np.ndarray] = {}
     for p in sorted(src.iterdir()):
         if p.suffix.lower() not in (".flo", ".npy"):
@@ -488,7 +498,7 @@ def read_flows(
                 notes.append(note)
         out[(i, j)] = f.astype(np.float32)
     if not out:
-        raise UserError(f"--flow {src}: no <i>_<j>.flo/.npy files found")
+        raise SettingError("PriorsConfig.flow_source", src, "no <i>_<j>.flo/.npy files found")
     return out
 
 
@@ -497,7 +507,10 @@ def read_masks(source: str | Path, num_frames: int, height: int, width: int) -> 
     """Dynamic masks ``[T, H, W]`` bool from a folder of one image per frame (sorted by name)."""
     src = Path(source)
     if not src.is_dir():
-        raise UserError(f"--masks {src}: not a folder; pass a folder with one mask image per training frame")
+        raise SettingError(
+            "PriorsConfig.masks_source", src,
+            "not a folder; pass a folder with one mask image per training frame"
+        )
     files = sorted(p for p in src.iterdir() if p.is_file() and p.suffix.lower() in (".png", ".jpg", ".jpeg"))
     if len(files) != num_frames:
         raise UserError(

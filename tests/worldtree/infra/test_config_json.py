@@ -42,3 +42,15 @@ def test_unknown_settings_and_int_for_float():
         from_dict(AncestorPolicy, {"nearest": 3})
     rule = from_dict(PlateauRule, {"rel_tol": 0, "patience": 3})  # JSON 0 for a float field
     assert rule == PlateauRule(rel_tol=0.0, patience=3) and isinstance(rule.rel_tol, float)
+
+
+def test_method_configs_round_trip_with_derived_fields(tmp_path):
+    """Every method's preset comes back equal; a derived field (``init=False``, e.g. WorldTreeConfig.auto_depth)
+    is written with the rest and skipped when read, the config setting it again."""
+    from methods.registry import list_methods
+
+    for spec in list_methods():
+        cfg = spec.config("quick")
+        write_config(tmp_path / f"{spec.name}.json", cfg)
+        assert read_config(tmp_path / f"{spec.name}.json", spec.config_cls) == cfg
+    assert "auto_depth" in json.loads((tmp_path / "worldtree.json").read_text())

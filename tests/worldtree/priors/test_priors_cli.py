@@ -51,11 +51,12 @@ def test_prep_writes_cache_and_previews_then_reuses(scene_dir):
 @pytest.mark.parametrize(
     ("args", "message"),
     [
-        (["--tracks", "{tmp}/missing.npz"], "--tracks"),
-        (["--masks", "{tmp}/nomasks"], "--masks"),
+        (["--tracks", "{tmp}/missing.npz"], "--tracks {tmp}/missing.npz: no such file"),
+        (["--masks", "{tmp}/nomasks"], "--masks {tmp}/nomasks: not a folder"),
+        (["--depth", "{tmp}/nodepth"], "--depth {tmp}/nodepth: no such file or folder"),
         (["--depth-fit"], "--depth-fit"),
         (["--depth-kind", "inverse"], "--depth-kind"),
-        (["--downscale", "0"], "--downscale"),
+        (["--downscale", "0"], "--downscale 0: must be an integer >= 1"),
     ],
 )
 def test_prep_bad_options_raise_user_errors(scene_dir, tmp_path, args, message):
@@ -63,7 +64,7 @@ def test_prep_bad_options_raise_user_errors(scene_dir, tmp_path, args, message):
     # foundation), as the subprocess check below confirms once.
     res = CliRunner().invoke(app, ["prep", str(scene_dir), *[a.format(tmp=tmp_path) for a in args]])
     assert isinstance(res.exception, UserError), res.output
-    assert message in str(res.exception)
+    assert message.format(tmp=tmp_path) in str(res.exception)
 
 
 def test_prep_error_exit_code(tmp_path):
