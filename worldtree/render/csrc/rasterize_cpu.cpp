@@ -28,6 +28,9 @@
 #ifdef _OPENMP
 #include <omp.h>
 #endif
+#if defined(__x86_64__) || defined(__i386__)
+#include <immintrin.h>
+#endif
 
 namespace {
 
@@ -42,16 +45,10 @@ struct Consts {
   static constexpr T t_min = T(1e-4);
 };
 
-struct Bins {
-  std::vector<int32_t> ids;      // [M] Gaussian index per (tile, Gaussian) pair, front to back within a tile
-  std::vector<int64_t> start;    // [n_tiles]
-  std::vector<int64_t> count;    // [n_tiles]
-};
-
 // The pixel box outside which a Gaussian's alpha is certainly < 1/255: the bounding box of the ellipse
 // d^T C d <= 2 ln(255 o), widened by a slack on the exponent (far above float rounding) and one pixel, so the
 // exact per-pixel tests decide every borderline case and skipping the rest changes no result. Computed once
-// per Gaussian (in double, unclamped) and intersected with each tile by reach_in_tile. [x0, x1) x [y0, y1);
+// per Gaussian (in double, unclamped) and intersected with the image and the tiles by span_of. [x0, x1) x [y0, y1);
 // an unusable conic reaches everywhere (-inf, inf); an opacity below 1/255 (or NaN) reaches nowhere.
 struct Reach {
   double x0, x1, y0, y1;
@@ -72,30 +69,6 @@ inline Reach reach_of(T mx, T my, T a, T b, T c, T o) {
   return {-inf, inf, -inf, inf};
 }
 
-// The pixels [x0, x1) x [y0, y1) of the tile [px0, px1) x [py0, py1) inside the reach box; false when none.
-inline bool reach_in_tile(const Reach& R, int px0, int px1, int py0, int py1, int& x0, int& x1, int& y0, int& y1) {
-  if (!(std::max<double>(px0, R.x0) < std::min<double>(px1, R.x1) &&
-        std::max<double>(py0, R.y0) < std::min<double>(py1, R.y1)))
-    return false;
-  x0 = static_cast<int>(std::max<double>(px0, R.x0));
-  x1 = static_cast<int>(std::min<double>(px1, R.x1));
-  y0 = static_cast<int>(std::max<double>(py0, R.y0));
-  y1 = static_cast<int>(std::min<double>(py1, R.y1));
-  return true;
-}
-
-static_assert(sizeof(Reach) == 4 * sizeof(double), "Reach is stored as 4 doubles per Gaussian");
-
-template <typename T>
-void reach_boxes(const T* means2d, const T* conics, const T* opac, const int32_t* radii, int64_t n, int threads,
-                 Reach* out) {
-#pragma omp parallel for schedule(static) num_threads(threads)
-  for (int64_t g = 0; g < n; ++g)
-    out[g] = radii[g] > 0 ? reach_of<T>(means2d[2 * g], means2d[2 * g + 1], conics[3 * g], conics[3 * g + 1],
-                                        conics[3 * g + 2], opac[g])
-                          : Reach{1.0, 0.0, 1.0, 0.0};
-}
-
 // Tiles touched by a Gaussian's bounding square, as in projection.tile_rect (same precision, same formula).
 template <typename T>
 inline void tile_rect(T u, T v, T r, int tw, int th, int& x0, int& x1, int& y0, int& y1) {
@@ -107,30 +80,124 @@ inline void tile_rect(T u, T v, T r, int tw, int th, int& x0, int& x1, int& y0, 
   y1 = clampi(std::ceil((v + h + r) / ts), th);
 }
 
+// One (tile, Gaussian) pair of a tile's list, packed for the compositing loops: everything the forward and the
+// backward read about the Gaussian in one record (one cache line in float), a tile's records front to back and
+// contiguous. The loops stream through them instead of gathering from six arrays by Gaussian index (the
+// Gaussians of a tile are scattered over the arrays: about one cache miss per array and pair).
 template <typename T>
-Bins bin_gaussians(const T* means2d, const T* depths, const int32_t* radii, const Reach* reach, int64_t n, int width,
-                   int height) {
-  const int tw = (width + TILE - 1) / TILE, th = (height + TILE - 1) / TILE;
-  std::vector<int32_t> order;
-  order.reserve(n);
-  for (int64_t i = 0; i < n; ++i)
-    if (radii[i] > 0) order.push_back(static_cast<int32_t>(i));
-  std::stable_sort(order.begin(), order.end(), [&](int32_t a, int32_t b) { return depths[a] < depths[b]; });
-  Bins bins;
-  bins.count.assign(static_cast<size_t>(tw) * th, 0);
-  // A (tile, Gaussian) pair is listed only when the reach box meets the tile (the test reach_in_tile makes).
-  auto reaches = [&](int32_t g, int tx, int ty) -> bool {
-    const int px0 = tx * TILE, py0 = ty * TILE, px1 = std::min(px0 + TILE, width), py1 = std::min(py0 + TILE, height);
-    int x0, x1, y0, y1;
-    return reach_in_tile(reach[g], px0, px1, py0, py1, x0, x1, y0, y1);
+struct alignas(sizeof(T) == 4 ? 64 : 32) Pair {
+  T mx, my, ca, cb, cc, o, cr, cg, cbl, z;
+  // Below this power, alpha < 1/255 for certain: ln(1 / (255 o)) less a margin (1e-3) far above the error of
+  // the exp and of the rounding. A vector of pixels that are all below it (or all finished) is skipped before
+  // its exp; the exact per-pixel tests decide the others, so skipping changes no result.
+  T thr;
+  int32_t g;               // Gaussian index
+  uint8_t x0, x1, y0, y1;  // the tile's pixels inside the reach box, relative to the tile: [x0, x1) x [y0, y1)
+};
+static_assert(sizeof(Pair<float>) == 64 && sizeof(Pair<double>) == 96, "pair record layout");
+
+template <typename T>
+struct Bins {
+  std::vector<int64_t> start;  // [n_tiles]
+  std::vector<int64_t> count;  // [n_tiles]
+  torch::Tensor ids;           // [M] int32 Gaussian index per (tile, Gaussian) pair, front to back within a tile
+  torch::Tensor pairs;         // [M * sizeof(Pair<T>)] uint8, the Pair records in the same order
+};
+
+// The Gaussians with radius > 0 front to back, ties by index (what a stable sort by depth gives). The key is the
+// depth's bit pattern mapped to an unsigned integer of the same order (a total order, NaN included), then the
+// index: one comparison of integers instead of a stable sort's merging of floats.
+template <typename T>
+std::vector<int32_t> depth_order(const T* depths, const int32_t* radii, int64_t n) {
+  using U = std::conditional_t<sizeof(T) == 4, uint32_t, uint64_t>;
+  constexpr U sign = U(1) << (8 * sizeof(U) - 1);
+  struct Key {
+    U d;
+    int32_t i;
   };
-  std::vector<int> rect(order.size() * 4);
-  for (size_t k = 0; k < order.size(); ++k) {
+  std::vector<Key> keys;
+  keys.reserve(n);
+  for (int64_t i = 0; i < n; ++i)
+    if (radii[i] > 0) {
+      const T d = depths[i] + T(0);  // -0 becomes +0, so equal depths stay ties
+      U u;
+      std::memcpy(&u, &d, sizeof u);
+      keys.push_back({(u & sign) ? U(~u) : U(u | sign), static_cast<int32_t>(i)});
+    }
+  std::sort(keys.begin(), keys.end(), [](const Key& a, const Key& b) { return a.d < b.d || (a.d == b.d && a.i < b.i); });
+  std::vector<int32_t> order(keys.size());
+  for (size_t k = 0; k < keys.size(); ++k) order[k] = keys[k].i;
+  return order;
+}
+
+// Per Gaussian, where it is listed: the tiles [tx0, tx1) x [ty0, ty1) that its bounding square touches
+// (tile_rect) and its reach box meets, and the reach box's pixels inside the image, [rx0, rx1) x [ry0, ry1).
+// The tiles a box meets form a rectangle, so this is the per-tile test max(px0, x0) < min(px1, x1) (rows
+// likewise) of the tile's pixels [px0, px1) and the box, done once per Gaussian.
+struct Span {
+  int32_t tx0, tx1, ty0, ty1, rx0, rx1, ry0, ry1;
+};
+
+template <typename T>
+Span span_of(const T* means2d, const T* conics, const T* opac, const int32_t* radii, int64_t g, int width,
+             int height) {
+  Span S{0, 0, 0, 0, 0, 0, 0, 0};
+  if (radii[g] <= 0) return S;
+  const Reach R = reach_of<T>(means2d[2 * g], means2d[2 * g + 1], conics[3 * g], conics[3 * g + 1],
+                              conics[3 * g + 2], opac[g]);
+  // Clamped to the image; a NaN bound (a NaN mean) does not limit, as the comparisons above would not.
+  auto lower = [](double v, int hi) { return !(v > 0) ? 0 : v < hi ? static_cast<int>(v) : hi; };
+  auto upper = [](double v, int hi) { return !(v < hi) ? hi : v > 0 ? static_cast<int>(v) : 0; };
+  S.rx0 = lower(R.x0, width), S.rx1 = upper(R.x1, width);
+  S.ry0 = lower(R.y0, height), S.ry1 = upper(R.y1, height);
+  if (!(S.rx0 < S.rx1 && S.ry0 < S.ry1)) return S;
+  const int tw = (width + TILE - 1) / TILE, th = (height + TILE - 1) / TILE;
+  int x0, x1, y0, y1;
+  tile_rect<T>(means2d[2 * g], means2d[2 * g + 1], static_cast<T>(radii[g]), tw, th, x0, x1, y0, y1);
+  S.tx0 = std::max(x0, S.rx0 / TILE), S.tx1 = std::min(x1, (S.rx1 + TILE - 1) / TILE);
+  S.ty0 = std::max(y0, S.ry0 / TILE), S.ty1 = std::min(y1, (S.ry1 + TILE - 1) / TILE);
+  if (!(S.tx0 < S.tx1 && S.ty0 < S.ty1)) S.tx1 = S.tx0, S.ty1 = S.ty0;
+  return S;
+}
+
+// Tile lists and pair records. Per Gaussian (parallel): its span; the visible ones sorted front to back; their
+// records and spans gathered in that order (parallel); then per row of tiles (parallel, each row its own tiles):
+// counting, and after the prefix sum filling, both in depth order, so each tile's list is front to back.
+template <typename T>
+Bins<T> bin_gaussians(const T* means2d, const T* conics, const T* opac, const T* colors, const T* depths,
+                      const int32_t* radii, int64_t n, int width, int height, int threads) {
+  const int tw = (width + TILE - 1) / TILE, th = (height + TILE - 1) / TILE;
+  std::vector<Span> span(n);
+#pragma omp parallel for schedule(static) num_threads(threads)
+  for (int64_t g = 0; g < n; ++g) span[g] = span_of<T>(means2d, conics, opac, radii, g, width, height);
+  const std::vector<int32_t> order = depth_order<T>(depths, radii, n);
+  const int64_t nv = static_cast<int64_t>(order.size());
+  std::vector<Span> sspan(nv);
+  std::vector<Pair<T>> srec(nv);
+#pragma omp parallel for schedule(static) num_threads(threads)
+  for (int64_t k = 0; k < nv; ++k) {
     const int32_t g = order[k];
-    int* r = &rect[4 * k];
-    tile_rect<T>(means2d[2 * g], means2d[2 * g + 1], static_cast<T>(radii[g]), tw, th, r[0], r[1], r[2], r[3]);
-    for (int ty = r[2]; ty < r[3]; ++ty)
-      for (int tx = r[0]; tx < r[1]; ++tx) bins.count[static_cast<size_t>(ty) * tw + tx] += reaches(g, tx, ty);
+    sspan[k] = span[g];
+    Pair<T>& rec = srec[k];
+    rec.mx = means2d[2 * g], rec.my = means2d[2 * g + 1];
+    rec.ca = conics[3 * g], rec.cb = conics[3 * g + 1], rec.cc = conics[3 * g + 2];
+    rec.o = opac[g];
+    rec.cr = colors[3 * g], rec.cg = colors[3 * g + 1], rec.cbl = colors[3 * g + 2];
+    rec.z = depths[g];
+    rec.thr = T(-std::log(255.0 * double(opac[g])) - 1e-3);
+    rec.g = g;
+    rec.x0 = rec.x1 = rec.y0 = rec.y1 = 0;
+  }
+  Bins<T> bins;
+  bins.count.assign(static_cast<size_t>(tw) * th, 0);
+#pragma omp parallel for schedule(dynamic, 1) num_threads(threads)
+  for (int ty = 0; ty < th; ++ty) {
+    int64_t* cnt = bins.count.data() + static_cast<size_t>(ty) * tw;
+    for (int64_t k = 0; k < nv; ++k) {
+      const Span& S = sspan[k];
+      if (ty < S.ty0 || ty >= S.ty1) continue;
+      for (int tx = S.tx0; tx < S.tx1; ++tx) ++cnt[tx];
+    }
   }
   bins.start.assign(bins.count.size(), 0);
   int64_t total = 0;
@@ -138,13 +205,31 @@ Bins bin_gaussians(const T* means2d, const T* depths, const int32_t* radii, cons
     bins.start[t] = total;
     total += bins.count[t];
   }
-  bins.ids.resize(total);
-  std::vector<int64_t> fill(bins.start);
-  for (size_t k = 0; k < order.size(); ++k) {
-    const int* r = &rect[4 * k];
-    for (int ty = r[2]; ty < r[3]; ++ty)
-      for (int tx = r[0]; tx < r[1]; ++tx)
-        if (reaches(order[k], tx, ty)) bins.ids[fill[static_cast<size_t>(ty) * tw + tx]++] = order[k];
+  torch::Tensor ids_t = torch::empty({total}, torch::dtype(torch::kInt32));
+  torch::Tensor pairs_t = torch::empty({total * int64_t(sizeof(Pair<T>))}, torch::dtype(torch::kUInt8));
+  bins.ids = ids_t, bins.pairs = pairs_t;
+  int32_t* ids = ids_t.data_ptr<int32_t>();
+  Pair<T>* pairs = reinterpret_cast<Pair<T>*>(pairs_t.data_ptr<uint8_t>());
+#pragma omp parallel for schedule(dynamic, 1) num_threads(threads)
+  for (int ty = 0; ty < th; ++ty) {
+    std::vector<int64_t> fill(bins.start.begin() + static_cast<size_t>(ty) * tw,
+                              bins.start.begin() + static_cast<size_t>(ty + 1) * tw);
+    const int py0 = ty * TILE, py1 = std::min(py0 + TILE, height);
+    for (int64_t k = 0; k < nv; ++k) {
+      const Span& S = sspan[k];
+      if (ty < S.ty0 || ty >= S.ty1) continue;
+      Pair<T> rec = srec[k];
+      rec.y0 = static_cast<uint8_t>(std::max(py0, S.ry0) - py0);
+      rec.y1 = static_cast<uint8_t>(std::min(py1, S.ry1) - py0);
+      for (int tx = S.tx0; tx < S.tx1; ++tx) {
+        const int px0 = tx * TILE, px1 = std::min(px0 + TILE, width);
+        rec.x0 = static_cast<uint8_t>(std::max(px0, S.rx0) - px0);
+        rec.x1 = static_cast<uint8_t>(std::min(px1, S.rx1) - px0);
+        const int64_t slot = fill[tx]++;
+        ids[slot] = rec.g;
+        pairs[slot] = rec;
+      }
+    }
   }
   return bins;
 }
@@ -182,270 +267,323 @@ inline auto hsum(const V& v) {
   return s;
 }
 
-// exp on K vectors at once. float: Cody-Waite reduction and a degree-7 polynomial (about 2 ulp), branch-free
-// SIMD; double (used by the tests): std::exp per lane. The K evaluations are written step by step side by
-// side: one Horner chain is a long series of dependent multiplies and adds (no FMA contraction), and a tile
-// row's compositing step waits on it; K independent chains in one stretch of code let the CPU overlap them.
-// Each vector gets exactly the arithmetic of a single evaluation.
+// Whether any lane of a comparison result (lanes 0 or -1) is set: one test instruction on x86.
+template <typename M>
+inline bool any_lane(const M& m) {
+#if defined(__AVX512F__)
+  if constexpr (sizeof(M) == 64) {
+    if constexpr (sizeof(m[0]) == 4) return _mm512_test_epi32_mask((__m512i)m, (__m512i)m) != 0;
+    else return _mm512_test_epi64_mask((__m512i)m, (__m512i)m) != 0;
+  }
+#endif
+#if defined(__AVX__)
+  if constexpr (sizeof(M) == 32) return !_mm256_testz_si256((__m256i)m, (__m256i)m);
+#endif
+#if defined(__SSE2__)
+  if constexpr (sizeof(M) == 16) return _mm_movemask_epi8((__m128i)m) != 0;
+#endif
+  auto acc = m[0];
+  for (int i = 1; i < int(sizeof(M) / sizeof(acc)); ++i) acc |= m[i];
+  return acc != 0;
+}
+
+// a * b + c for float vectors, fused where the target has FMA (used only inside the exp below, whose result is
+// an approximation either way; the compositing itself is never fused, see kernel_build.COMMON_CFLAGS).
+template <typename V>
+inline V fmadd(const V& a, const V& b, const V& c) {
+#if defined(__AVX512F__)
+  if constexpr (sizeof(V) == 64) return (V)_mm512_fmadd_ps((__m512)a, (__m512)b, (__m512)c);
+#endif
+#if defined(__FMA__)
+  if constexpr (sizeof(V) == 32) return (V)_mm256_fmadd_ps((__m256)a, (__m256)b, (__m256)c);
+  if constexpr (sizeof(V) == 16) return (V)_mm_fmadd_ps((__m128)a, (__m128)b, (__m128)c);
+#endif
+  return a * b + c;
+}
+
+// exp on K vectors at once, of arguments clamped to [-87, 0] (the kernel uses exp only of powers <= 0; a lane
+// with power > 0 is skipped, and the clamp keeps it finite; below -87 alpha is far under 1/255 anyway).
+// float: x = k ln2 + r (Cody-Waite, |r| <= ln2 / 2), exp(r) by a degree-6 polynomial fitted for relative error
+// (below 2^-28 on the interval; about 1 ulp in float with FMA, 1.5 without), times 2^k built in the exponent
+// bits; 15 vector operations, branch-free. double (used by the tests): std::exp per lane. The K evaluations are
+// written step by step side by side so that the CPU overlaps their dependency chains.
 template <int K>
 inline void vexp_n(const Simd<float>::V* x, Simd<float>::V* out) {
   using V = Simd<float>::V;
   using M = Simd<float>::M;
-  const V lo = splat<V>(-87.0f);  // below this exp underflows; such alphas are far under 1/255 anyway
-  V xc[K], kf[K], r[K], p[K];
-  for (int j = 0; j < K; ++j) xc[j] = x[j] < lo ? lo : x[j];
-  for (int j = 0; j < K; ++j) kf[j] = (xc[j] * 1.44269504088896341f + 12582912.0f) - 12582912.0f;  // round(x/ln2)
-  for (int j = 0; j < K; ++j) r[j] = (xc[j] - kf[j] * 0.693145751953125f) - kf[j] * 1.428606765330187e-06f;
-  for (int j = 0; j < K; ++j) p[j] = splat<V>(1.0f / 5040.0f);
-  for (int j = 0; j < K; ++j) p[j] = p[j] * r[j] + 1.0f / 720.0f;
-  for (int j = 0; j < K; ++j) p[j] = p[j] * r[j] + 1.0f / 120.0f;
-  for (int j = 0; j < K; ++j) p[j] = p[j] * r[j] + 1.0f / 24.0f;
-  for (int j = 0; j < K; ++j) p[j] = p[j] * r[j] + 1.0f / 6.0f;
-  for (int j = 0; j < K; ++j) p[j] = p[j] * r[j] + 0.5f;
-  for (int j = 0; j < K; ++j) p[j] = p[j] * r[j] + 1.0f;
-  for (int j = 0; j < K; ++j) p[j] = p[j] * r[j] + 1.0f;
+  const V lo = splat<V>(-87.0f), zero = splat<V>(0.0f);
+  const V magic = splat<V>(12582912.0f);  // 1.5 * 2^23: t = x / ln2 + magic holds round(x / ln2) in its low bits
+  const V nl2hi = splat<V>(-0.693145751953125f), nl2lo = splat<V>(-1.42860682030941723212e-6f);
+  const V c6 = splat<V>(1.3843545610572375e-3f), c5 = splat<V>(8.374122275665495e-3f);
+  const V c4 = splat<V>(4.166800189547691e-2f), c3 = splat<V>(1.6666431656098027e-1f);
+  const V c2 = splat<V>(4.9999994217791327e-1f), one = splat<V>(1.0f);
+  V xc[K], t[K], r[K], p[K];
   for (int j = 0; j < K; ++j) {
-    const M bits = (__builtin_convertvector(kf[j], M) + 127) << 23;
+    xc[j] = x[j] < lo ? lo : x[j];
+    xc[j] = xc[j] > zero ? zero : xc[j];
+  }
+  for (int j = 0; j < K; ++j) t[j] = xc[j] * 1.44269504088896341f + magic;
+  for (int j = 0; j < K; ++j) r[j] = fmadd(t[j] - magic, nl2hi, xc[j]);  // exact: k ln2hi has few bits
+  for (int j = 0; j < K; ++j) r[j] = fmadd(t[j] - magic, nl2lo, r[j]);
+  for (int j = 0; j < K; ++j) p[j] = fmadd(c6, r[j], c5);
+  for (int j = 0; j < K; ++j) p[j] = fmadd(p[j], r[j], c4);
+  for (int j = 0; j < K; ++j) p[j] = fmadd(p[j], r[j], c3);
+  for (int j = 0; j < K; ++j) p[j] = fmadd(p[j], r[j], c2);
+  for (int j = 0; j < K; ++j) p[j] = fmadd(p[j], r[j], one);
+  for (int j = 0; j < K; ++j) p[j] = fmadd(p[j], r[j], one);
+  for (int j = 0; j < K; ++j) {
+    const M bits = (reinterpret_cast<const M&>(t[j]) + (127 - 0x4B400000)) << 23;  // 2^k, k in [-126, 0]
     out[j] = p[j] * reinterpret_cast<const V&>(bits);
   }
 }
 template <int K>
 inline void vexp_n(const Simd<double>::V* x, Simd<double>::V* out) {
   for (int j = 0; j < K; ++j)
-    for (int i = 0; i < Simd<double>::W; ++i) out[j][i] = std::exp(x[j][i]);
+    for (int i = 0; i < Simd<double>::W; ++i) out[j][i] = std::exp(x[j][i] > 0.0 ? 0.0 : x[j][i]);
 }
 
-// The vectors [c0, c1) of a tile row that hold pixels x0..x1-1 (tile starting at px0).
+// exp of n vectors, four (then two, one) side by side.
+template <typename V>
+inline void vexp_all(const V* x, V* out, int n) {
+  int j = 0;
+  for (; j + 3 < n; j += 4) vexp_n<4>(x + j, out + j);
+  if (j + 1 < n) vexp_n<2>(x + j, out + j), j += 2;
+  if (j < n) vexp_n<1>(x + j, out + j);
+}
+
+// The vectors [c0, c1) of a tile row that hold the tile's pixel columns x0..x1-1.
 template <int W>
-inline void lane_span(int x0, int x1, int px0, int& c0, int& c1) {
-  c0 = (x0 - px0) / W;
-  c1 = (x1 - px0 + W - 1) / W;
+inline void lane_span(int x0, int x1, int& c0, int& c1) {
+  c0 = x0 / W;
+  c1 = (x1 + W - 1) / W;
+}
+
+// A tile's pixels as vectors: v = row * N + vector within the row, W lanes each.
+// For one pair, the powers of the vectors in its reach box, and the list of those to evaluate: the vectors with
+// some lane above the pair's skip threshold (and not finished: keep(v) true for some lane). Returns their number;
+// pw[j] and idx[j] for j below it.
+template <typename T, typename Keep>
+inline int candidates(const Pair<T>& P, const typename Simd<T>::V* xs, int py0, Keep keep, typename Simd<T>::V* pw,
+                      int16_t* idx, typename Simd<T>::V* dx) {
+  using V = typename Simd<T>::V;
+  constexpr int W = Simd<T>::W, N = Simd<T>::N;
+  int c0, c1;
+  lane_span<W>(P.x0, P.x1, c0, c1);
+  V cdx[N], bdx[N];
+  for (int c = 0; c < N; ++c) dx[c] = xs[c] - P.mx;
+  for (int c = c0; c < c1; ++c) {
+    cdx[c] = P.ca * dx[c] * dx[c];
+    bdx[c] = P.cb * dx[c];
+  }
+  int nv = 0;
+  for (int r = P.y0; r < P.y1; ++r) {
+    const T dy = T(py0 + r) - P.my;
+    const T cdy = P.cc * dy * dy;
+    for (int c = c0; c < c1; ++c) {
+      // The reference's rounding: -0.5 (a dx dx + c dy dy) - b dx dy, products left to right.
+      const V p = T(-0.5) * (cdx[c] + cdy) - bdx[c] * dy;
+      const int v = r * N + c;
+      pw[nv] = p;
+      idx[nv] = static_cast<int16_t>(v);
+      nv += any_lane((p >= P.thr) & keep(v));
+    }
+  }
+  return nv;
 }
 
 template <typename T>
-void forward_impl(const T* means2d, const T* conics, const T* opac, const T* colors, const T* depths, const T* bg,
-                  const Reach* reach, const Bins& bins, int width, int height, int threads, T* out_rgb, T* out_alpha,
-                  T* out_depth, T* out_T, int32_t* out_last) {
+void forward_impl(const Pair<T>* pairs, const int64_t* tstart, const int64_t* tcount, const T* bg, int width,
+                  int height, int threads, T* out_rgb, T* out_alpha, T* out_depth, T* out_T, int32_t* out_last) {
   using V = typename Simd<T>::V;
   using M = typename Simd<T>::M;
-  constexpr int W = Simd<T>::W, N = Simd<T>::N;
+  constexpr int W = Simd<T>::W, N = Simd<T>::N, NV = TILE * N;
   const int tw = (width + TILE - 1) / TILE, th = (height + TILE - 1) / TILE;
   const int n_tiles = tw * th;
-  const V amax = splat<V>(Consts<T>::alpha_max), zero = splat<V>(0), one = splat<V>(1);
+  const V amax = splat<V>(Consts<T>::alpha_max), zero = splat<V>(0);
   const T amin = Consts<T>::alpha_min, tmin = Consts<T>::t_min;
 #pragma omp parallel for schedule(dynamic, 1) num_threads(threads)
   for (int t = 0; t < n_tiles; ++t) {
     const int px0 = (t % tw) * TILE, py0 = (t / tw) * TILE;
     const int px1 = std::min(px0 + TILE, width), py1 = std::min(py0 + TILE, height);
     const int n_pix = (px1 - px0) * (py1 - py0);
-    // Per pixel: transmittance, accumulated r, g, b, depth, index+1 of the last composited Gaussian (as T:
-    // exact below 2^24 per tile, checked by the caller), and a finished flag; [row][vector] with W lanes.
-    V Tr[TILE][N], ar[TILE][N], ag[TILE][N], ab[TILE][N], az[TILE][N], last[TILE][N], done[TILE][N];
+    // Per pixel: transmittance (negated once the pixel has finished: a later Gaussian would take it below 1e-4;
+    // pixels of a partial tile outside the image are born finished, at -1), accumulated r, g, b, depth, and
+    // index+1 of the last composited Gaussian (as T: exact below 2^24 per tile, checked by the caller).
+    V Tr[NV], ar[NV], ag[NV], ab[NV], az[NV], last[NV];
     V xs[N];
     for (int c = 0; c < N; ++c)
       for (int i = 0; i < W; ++i) xs[c][i] = T(px0 + c * W + i);
     for (int r = 0; r < TILE; ++r)
       for (int c = 0; c < N; ++c) {
-        Tr[r][c] = one;
-        ar[r][c] = ag[r][c] = ab[r][c] = az[r][c] = last[r][c] = zero;
-        // Pixels of a partial tile that lie outside the image are born finished.
-        for (int i = 0; i < W; ++i) done[r][c][i] = (px0 + c * W + i < px1 && py0 + r < py1) ? T(0) : T(1);
+        const int v = r * N + c;
+        ar[v] = ag[v] = ab[v] = az[v] = last[v] = zero;
+        for (int i = 0; i < W; ++i) Tr[v][i] = (px0 + c * W + i < px1 && py0 + r < py1) ? T(1) : T(-1);
       }
     M stopped = splat<M>(0);  // lanes hold -(number of pixels of that lane that finished)
-    const int64_t s = bins.start[t], cnt = bins.count[t];
+    V pw[NV], ex[NV], dx[N];
+    int16_t idx[NV];
+    const int64_t s = tstart[t], cnt = tcount[t];
     for (int64_t k = 0; k < cnt; ++k) {
-      const int32_t g = bins.ids[s + k];
-      const T mx = means2d[2 * g], my = means2d[2 * g + 1];
-      const T ca = conics[3 * g], cb = conics[3 * g + 1], cc = conics[3 * g + 2];
-      const T o = opac[g];
-      int x0, x1, y0, y1, c0, c1;
-      if (!reach_in_tile(reach[g], px0, px1, py0, py1, x0, x1, y0, y1)) continue;
-      lane_span<W>(x0, x1, px0, c0, c1);
-      const T cr = colors[3 * g], cg = colors[3 * g + 1], cbl = colors[3 * g + 2], z = depths[g];
+      const Pair<T>& P = pairs[s + k];
+      const int nv = candidates<T>(P, xs, py0, [&](int v) { return Tr[v] > T(0); }, pw, idx, dx);
+      if (nv == 0) continue;
+      vexp_all(pw, ex, nv);
+      const T o = P.o, cr = P.cr, cg = P.cg, cbl = P.cbl, z = P.z;
       const V kk = splat<V>(k + 1);
-      V dx[N], cdx[N];
-      for (int c = c0; c < c1; ++c) {
-        dx[c] = xs[c] - mx;
-        cdx[c] = ca * dx[c] * dx[c];
+      for (int j = 0; j < nv; ++j) {
+        const int v = idx[j];
+        V alpha = o * ex[j];
+        alpha = alpha < amax ? alpha : amax;
+        const V tr = Tr[v];
+        const M ok = (tr > T(0)) & (pw[j] <= T(0)) & (alpha >= amin);
+        const V next = tr * (T(1) - alpha);
+        const M stop = ok & (next < tmin);
+        const M use = ok & ~stop;
+        const V w = use ? alpha * tr : zero;
+        ar[v] += w * cr;
+        ag[v] += w * cg;
+        ab[v] += w * cbl;
+        az[v] += w * z;
+        Tr[v] = use ? next : (stop ? -tr : tr);
+        last[v] = use ? kk : last[v];
+        stopped += stop;
       }
-      // Rows y .. y+K-1 (K = 4 while four rows are left, then 2, then 1): first the exps of all their row
-      // vectors, K rows side by side (vexp_n), then the compositing row by row, vector by vector as one row at
-      // a time would: every pixel gets the same arithmetic in the same order. (One row at a time waited on
-      // each row's exp chain: about 90 cycles per 16-pixel row vector on Zen 4; four side by side cut the
-      // kernel's CPU time by about a fifth, bit-identical results.)
-      auto rows = [&](auto k_rows, int y) {
-        constexpr int K = decltype(k_rows)::value;
-        V power[K][N], e[K][N];
-        for (int c = c0; c < c1; ++c) {
-          V pw[K], ex[K];
-          for (int j = 0; j < K; ++j) {
-            const T dy = T(y + j) - my;
-            const T cdy = cc * dy * dy;
-            pw[j] = T(-0.5) * (cdx[c] + cdy) - cb * dx[c] * dy;
-          }
-          vexp_n<K>(pw, ex);
-          for (int j = 0; j < K; ++j) power[j][c] = pw[j], e[j][c] = ex[j];
-        }
-        for (int j = 0; j < K; ++j) {
-          const int r = y + j - py0;
-          for (int c = c0; c < c1; ++c) {
-            V alpha = o * e[j][c];
-            alpha = alpha < amax ? alpha : amax;
-            V& tr = Tr[r][c];
-            const M ok = (done[r][c] == T(0)) & (power[j][c] <= T(0)) & (alpha >= amin);
-            const V next = tr * (T(1) - alpha);
-            const M stop = ok & (next < tmin);
-            const M use = ok & ~stop;
-            const V w = use ? alpha * tr : zero;
-            ar[r][c] += w * cr;
-            ag[r][c] += w * cg;
-            ab[r][c] += w * cbl;
-            az[r][c] += w * z;
-            tr = use ? next : tr;
-            last[r][c] = use ? kk : last[r][c];
-            done[r][c] = stop ? one : done[r][c];
-            stopped += stop;
-          }
-        }
-      };
-      int y = y0;
-      for (; y + 3 < y1; y += 4) rows(std::integral_constant<int, 4>(), y);
-      if (y + 1 < y1) rows(std::integral_constant<int, 2>(), y), y += 2;
-      if (y < y1) rows(std::integral_constant<int, 1>(), y);
       if (-hsum(stopped) >= n_pix) break;
     }
     for (int y = py0; y < py1; ++y)
       for (int x = px0; x < px1; ++x) {
-        const int r = y - py0, c = (x - px0) / W, i = (x - px0) % W;
+        const int v = (y - py0) * N + (x - px0) / W, i = (x - px0) % W;
         const int64_t q = static_cast<int64_t>(y) * width + x;
-        const T tr = Tr[r][c][i];
-        out_rgb[3 * q] = ar[r][c][i] + tr * bg[0];
-        out_rgb[3 * q + 1] = ag[r][c][i] + tr * bg[1];
-        out_rgb[3 * q + 2] = ab[r][c][i] + tr * bg[2];
+        const T tr = std::abs(Tr[v][i]);
+        out_rgb[3 * q] = ar[v][i] + tr * bg[0];
+        out_rgb[3 * q + 1] = ag[v][i] + tr * bg[1];
+        out_rgb[3 * q + 2] = ab[v][i] + tr * bg[2];
         out_alpha[q] = T(1) - tr;
-        out_depth[q] = az[r][c][i];
+        out_depth[q] = az[v][i];
         out_T[q] = tr;
-        out_last[q] = static_cast<int32_t>(last[r][c][i]);
+        out_last[q] = static_cast<int32_t>(last[v][i]);
       }
   }
 }
 
+// Backward: per pixel, walk the composited Gaussians back to front, recovering T before each one by division
+// (1 - alpha >= 0.01). With B the normalised colour behind a Gaussian (r, g, b over the background, depth over
+// 0, the alpha channel as colour 1 over 0), d out / d alpha_k = T_k (c_k - B_k) per channel; only its sum
+// weighted by dL/d(out) is needed, so the pixel keeps the one number D = sum_ch G_ch B_ch, which follows B's
+// update D <- D + alpha (Gc - D) with Gc = sum_ch G_ch c_ch. The conic and mean gradients are sums over the
+// pixels of (polynomials in dx, dy) x d power: with dx fixed per lane and dy per row they are kept as per-lane
+// sums of d power and dy d power and dy^2 d power, combined with dx once per pair.
 template <typename T>
-void backward_impl(const T* means2d, const T* conics, const T* opac, const T* colors, const T* depths, const T* bg,
-                   const Reach* reach, const int32_t* ids, const int64_t* tstart, const int64_t* tcount, const T* final_T,
+void backward_impl(const Pair<T>* pairs, const int64_t* tstart, const int64_t* tcount, const T* bg, const T* final_T,
                    const int32_t* last_in, const T* g_rgb, const T* g_alpha, const T* g_depth, int width, int height,
                    int threads, T* pair_grad) {
   using V = typename Simd<T>::V;
   using M = typename Simd<T>::M;
-  constexpr int W = Simd<T>::W, N = Simd<T>::N;
+  constexpr int W = Simd<T>::W, N = Simd<T>::N, NV = TILE * N;
   const int tw = (width + TILE - 1) / TILE, th = (height + TILE - 1) / TILE;
   const int n_tiles = tw * th;
   const V amax = splat<V>(Consts<T>::alpha_max), zero = splat<V>(0);
   const T amin = Consts<T>::alpha_min;
 #pragma omp parallel for schedule(dynamic, 1) num_threads(threads)
   for (int t = 0; t < n_tiles; ++t) {
-    const int64_t s = tstart[t];
-    if (tcount[t] == 0) continue;
+    const int64_t s = tstart[t], cnt = tcount[t];
+    if (cnt == 0) continue;
     const int px0 = (t % tw) * TILE, py0 = (t / tw) * TILE;
     const int px1 = std::min(px0 + TILE, width), py1 = std::min(py0 + TILE, height);
-    // Per pixel ([row][vector], W lanes): Tr = transmittance behind the Gaussians still to visit; B* = normalised
-    // colour behind them (r, g, b, depth, alpha channel); G* = dL/d(output); last = composited count (0 outside).
-    V Tr[TILE][N], Br[TILE][N], Bg[TILE][N], Bb[TILE][N], Bz[TILE][N], Ba[TILE][N];
-    V Gr[TILE][N], Gg[TILE][N], Gb[TILE][N], Gz[TILE][N], Ga[TILE][N], last[TILE][N];
+    // Per pixel: Tr = transmittance behind the Gaussians still to visit, D (above), G* = dL/d(output), last =
+    // composited count (0 outside the image).
+    V Tr[NV], D[NV], Gr[NV], Gg[NV], Gb[NV], Gz[NV], Ga[NV], last[NV];
     V xs[N];
     for (int c = 0; c < N; ++c)
       for (int i = 0; i < W; ++i) xs[c][i] = T(px0 + c * W + i);
-    for (int r = 0; r < TILE; ++r)
-      for (int c = 0; c < N; ++c) {
-        Tr[r][c] = splat<V>(1);
-        Br[r][c] = splat<V>(bg[0]), Bg[r][c] = splat<V>(bg[1]), Bb[r][c] = splat<V>(bg[2]);
-        Bz[r][c] = Ba[r][c] = Gr[r][c] = Gg[r][c] = Gb[r][c] = Gz[r][c] = Ga[r][c] = last[r][c] = zero;
-      }
+    for (int v = 0; v < NV; ++v) {
+      Tr[v] = splat<V>(1);
+      D[v] = Gr[v] = Gg[v] = Gb[v] = Gz[v] = Ga[v] = last[v] = zero;
+    }
     int32_t max_last = 0;
     for (int y = py0; y < py1; ++y)
       for (int x = px0; x < px1; ++x) {
-        const int r = y - py0, c = (x - px0) / W, i = (x - px0) % W;
+        const int v = (y - py0) * N + (x - px0) / W, i = (x - px0) % W;
         const int64_t q = static_cast<int64_t>(y) * width + x;
-        Tr[r][c][i] = final_T[q];
-        last[r][c][i] = T(last_in[q]);
+        Tr[v][i] = final_T[q];
+        last[v][i] = T(last_in[q]);
         max_last = std::max(max_last, last_in[q]);
-        Gr[r][c][i] = g_rgb[3 * q], Gg[r][c][i] = g_rgb[3 * q + 1], Gb[r][c][i] = g_rgb[3 * q + 2];
-        Gz[r][c][i] = g_depth[q], Ga[r][c][i] = g_alpha[q];
+        Gr[v][i] = g_rgb[3 * q], Gg[v][i] = g_rgb[3 * q + 1], Gb[v][i] = g_rgb[3 * q + 2];
+        Gz[v][i] = g_depth[q], Ga[v][i] = g_alpha[q];
+        D[v][i] = g_rgb[3 * q] * bg[0] + g_rgb[3 * q + 1] * bg[1] + g_rgb[3 * q + 2] * bg[2];
       }
+    for (int64_t k = max_last; k < cnt; ++k)  // behind every pixel's last Gaussian: no gradient
+      for (int c = 0; c < NGRAD; ++c) pair_grad[(s + k) * NGRAD + c] = T(0);
+    V pw[NV], ex[NV], dx[N];
+    int16_t idx[NV];
     for (int64_t k = max_last - 1; k >= 0; --k) {
-      const int32_t g = ids[s + k];
-      const T mx = means2d[2 * g], my = means2d[2 * g + 1];
-      const T ca = conics[3 * g], cb = conics[3 * g + 1], cc = conics[3 * g + 2];
-      const T o = opac[g];
-      int x0, x1, y0, y1, c0, c1;
-      if (!reach_in_tile(reach[g], px0, px1, py0, py1, x0, x1, y0, y1)) continue;
-      lane_span<W>(x0, x1, px0, c0, c1);
-      const T cr = colors[3 * g], cg = colors[3 * g + 1], cbl = colors[3 * g + 2], z = depths[g];
-      const V kk = splat<V>(k);
-      V dx[N], cdx[N];
-      for (int c = c0; c < c1; ++c) {
-        dx[c] = xs[c] - mx;
-        cdx[c] = ca * dx[c] * dx[c];
-      }
-      V d_mx = zero, d_my = zero, d_a = zero, d_b = zero, d_c = zero, d_o = zero;
-      V d_r = zero, d_g = zero, d_bl = zero, d_z = zero;
-      // As in the forward: the exps of rows y .. y+K-1 side by side, then the rest row by row, vector by vector
-      // in the order of one row at a time (the gradient sums add their terms in the same order).
-      auto rows = [&](auto k_rows, int y) {
-        constexpr int K = decltype(k_rows)::value;
-        V power[K][N], ga[K][N];
-        for (int c = c0; c < c1; ++c) {
-          V pw[K], ex[K];
-          for (int j = 0; j < K; ++j) {
-            const T dy = T(y + j) - my;
-            const T cdy = cc * dy * dy;
-            pw[j] = T(-0.5) * (cdx[c] + cdy) - cb * dx[c] * dy;
-          }
-          vexp_n<K>(pw, ex);
-          for (int j = 0; j < K; ++j) power[j][c] = pw[j], ga[j][c] = ex[j];
-        }
-        for (int j = 0; j < K; ++j) {
-          const int r = y + j - py0;
-          const T dy = T(y + j) - my;
-          for (int c = c0; c < c1; ++c) {
-            const V gauss = ga[j][c];
-            const V raw = o * gauss;
-            const V alpha = raw < amax ? raw : amax;
-            const M active = (kk < last[r][c]) & (power[j][c] <= T(0)) & (alpha >= amin);
-            V& tr = Tr[r][c];
-            const V t_k = tr / (T(1) - alpha);  // transmittance in front of this Gaussian
-            const V w = active ? alpha * t_k : zero;
-            d_r += w * Gr[r][c];
-            d_g += w * Gg[r][c];
-            d_bl += w * Gb[r][c];
-            d_z += w * Gz[r][c];
-            V d_alpha = Gr[r][c] * (cr - Br[r][c]) + Gg[r][c] * (cg - Bg[r][c]) + Gb[r][c] * (cbl - Bb[r][c]) +
-                        Gz[r][c] * (z - Bz[r][c]) + Ga[r][c] * (T(1) - Ba[r][c]);
-            d_alpha = (active & (raw <= amax)) ? d_alpha * t_k : zero;  // clamped alpha: no gradient
-            const V keep = T(1) - alpha;
-            Br[r][c] = active ? alpha * cr + keep * Br[r][c] : Br[r][c];
-            Bg[r][c] = active ? alpha * cg + keep * Bg[r][c] : Bg[r][c];
-            Bb[r][c] = active ? alpha * cbl + keep * Bb[r][c] : Bb[r][c];
-            Bz[r][c] = active ? alpha * z + keep * Bz[r][c] : Bz[r][c];
-            Ba[r][c] = active ? alpha + keep * Ba[r][c] : Ba[r][c];
-            tr = active ? t_k : tr;
-            d_o += gauss * d_alpha;
-            const V d_pow = raw * d_alpha;
-            d_a += T(-0.5) * dx[c] * dx[c] * d_pow;
-            d_c += T(-0.5) * dy * dy * d_pow;
-            d_b += -dx[c] * dy * d_pow;
-            d_mx += (ca * dx[c] + cb * dy) * d_pow;
-            d_my += (cb * dx[c] + cc * dy) * d_pow;
-          }
-        }
-      };
-      int y = y0;
-      for (; y + 3 < y1; y += 4) rows(std::integral_constant<int, 4>(), y);
-      if (y + 1 < y1) rows(std::integral_constant<int, 2>(), y), y += 2;
-      if (y < y1) rows(std::integral_constant<int, 1>(), y);
+      const Pair<T>& P = pairs[s + k];
       T* slot = pair_grad + (s + k) * NGRAD;
-      slot[0] = hsum(d_mx), slot[1] = hsum(d_my), slot[2] = hsum(d_a), slot[3] = hsum(d_b), slot[4] = hsum(d_c);
+      const V kk = splat<V>(k);
+      const int nv = candidates<T>(P, xs, py0, [&](int v) { return kk < last[v]; }, pw, idx, dx);
+      if (nv == 0) {
+        for (int c = 0; c < NGRAD; ++c) slot[c] = T(0);
+        continue;
+      }
+      vexp_all(pw, ex, nv);
+      const T o = P.o, cr = P.cr, cg = P.cg, cbl = P.cbl, z = P.z;
+      V d_o = zero, d_r = zero, d_g = zero, d_bl = zero, d_z = zero, s_yy = zero;
+      V s_p[N], s_yp[N];  // per lane: sum of d power, of dy d power
+      for (int c = 0; c < N; ++c) s_p[c] = s_yp[c] = zero;
+      for (int j = 0; j < nv; ++j) {
+        const int v = idx[j], c = v % N;
+        const T dy = T(py0 + v / N) - P.my;
+        const V raw = o * ex[j];
+        const V alpha = raw < amax ? raw : amax;
+        const M active = (kk < last[v]) & (pw[j] <= T(0)) & (alpha >= amin);
+        const V t_k = Tr[v] / (T(1) - alpha);  // transmittance in front of this Gaussian
+        const V w = active ? alpha * t_k : zero;
+        d_r += w * Gr[v];
+        d_g += w * Gg[v];
+        d_bl += w * Gb[v];
+        d_z += w * Gz[v];
+        const V diff = Gr[v] * cr + Gg[v] * cg + Gb[v] * cbl + Gz[v] * z + Ga[v] - D[v];
+        const V d_alpha = (active & (raw <= amax)) ? diff * t_k : zero;  // clamped alpha: no gradient
+        D[v] = active ? D[v] + alpha * diff : D[v];
+        Tr[v] = active ? t_k : Tr[v];
+        d_o += ex[j] * d_alpha;
+        const V d_pow = raw * d_alpha;
+        s_p[c] += d_pow;
+        s_yp[c] += dy * d_pow;
+        s_yy += (dy * dy) * d_pow;
+      }
+      // d power / d(mx, my, a, b, c) = (a dx + b dy, b dx + c dy, -dx^2 / 2, -dx dy, -dy^2 / 2).
+      V sx = zero, sxx = zero, sy = zero, sxy = zero;
+      for (int c = 0; c < N; ++c) {
+        sx += dx[c] * s_p[c];
+        sxx += dx[c] * dx[c] * s_p[c];
+        sy += s_yp[c];
+        sxy += dx[c] * s_yp[c];
+      }
+      const T Sx = hsum(sx), Sy = hsum(sy);
+      slot[0] = P.ca * Sx + P.cb * Sy, slot[1] = P.cb * Sx + P.cc * Sy;
+      slot[2] = T(-0.5) * hsum(sxx), slot[3] = -hsum(sxy), slot[4] = T(-0.5) * hsum(s_yy);
       slot[5] = hsum(d_o), slot[6] = hsum(d_r), slot[7] = hsum(d_g), slot[8] = hsum(d_bl), slot[9] = hsum(d_z);
+    }
+  }
+}
+
+// Sum the per-(tile, Gaussian) slots into per-Gaussian gradients, in pair order (deterministic): each thread owns
+// a range of Gaussians and adds the slots of its own, so the order does not depend on the thread count.
+template <typename T>
+void sum_pairs(const T* pair_grad, const int32_t* ids, int64_t m, int64_t n, int threads, T* grad) {
+#pragma omp parallel num_threads(std::max(1, threads))
+  {
+#ifdef _OPENMP
+    const int64_t me = omp_get_thread_num(), all = omp_get_num_threads();
+#else
+    const int64_t me = 0, all = 1;
+#endif
+    const int64_t lo = n * me / all, hi = n * (me + 1) / all;
+    for (int64_t j = 0; j < m; ++j) {
+      const int64_t g = ids[j];
+      if (g < lo || g >= hi) continue;
+      for (int c = 0; c < NGRAD; ++c) grad[g * NGRAD + c] += pair_grad[j * NGRAD + c];
     }
   }
 }
@@ -697,7 +835,8 @@ void check(const torch::Tensor& t, const char* name, int64_t n, int64_t cols) {
 }  // namespace
 
 // Returns rgb [H,W,3], alpha [H,W], depth [H,W], final_T [H,W], last [H,W] int32, ids [M] int32,
-// tile_start [n_tiles] int64, tile_count [n_tiles] int64, reach [N,4] double (each Gaussian's reach box).
+// tile_start [n_tiles] int64, tile_count [n_tiles] int64, pairs [M * record size] uint8 (the packed
+// (tile, Gaussian) records the backward reads).
 std::vector<torch::Tensor> rasterize_forward(torch::Tensor means2d, torch::Tensor conics, torch::Tensor opac,
                                              torch::Tensor colors, torch::Tensor depths, torch::Tensor radii,
                                              torch::Tensor bg, int64_t width, int64_t height, int64_t threads) {
@@ -709,68 +848,79 @@ std::vector<torch::Tensor> rasterize_forward(torch::Tensor means2d, torch::Tenso
   check(depths, "depths", n, 0);
   check(radii, "radii", n, 0);
   TORCH_CHECK(radii.scalar_type() == torch::kInt32, "radii must be int32");
+  TORCH_CHECK(bg.is_contiguous() && bg.numel() == 3, "background must be 3 contiguous values");
   auto opts = means2d.options();
   auto rgb = torch::empty({height, width, 3}, opts);
   auto alpha = torch::empty({height, width}, opts);
   auto depth = torch::empty({height, width}, opts);
   auto final_T = torch::empty({height, width}, opts);
   auto last = torch::empty({height, width}, opts.dtype(torch::kInt32));
-  auto reach = torch::empty({n, 4}, opts.dtype(torch::kDouble));
-  Reach* boxes = reinterpret_cast<Reach*>(reach.data_ptr<double>());
-  torch::Tensor ids, tstart, tcount;
+  torch::Tensor ids, tstart, tcount, pairs;
   AT_DISPATCH_FLOATING_TYPES(means2d.scalar_type(), "rasterize_forward", [&] {
-    reach_boxes<scalar_t>(means2d.data_ptr<scalar_t>(), conics.data_ptr<scalar_t>(), opac.data_ptr<scalar_t>(),
-                          radii.data_ptr<int32_t>(), n, int(threads), boxes);
-    Bins bins = bin_gaussians<scalar_t>(means2d.data_ptr<scalar_t>(), depths.data_ptr<scalar_t>(),
-                                        radii.data_ptr<int32_t>(), boxes, n, int(width), int(height));
+    Bins<scalar_t> bins = bin_gaussians<scalar_t>(
+        means2d.data_ptr<scalar_t>(), conics.data_ptr<scalar_t>(), opac.data_ptr<scalar_t>(),
+        colors.data_ptr<scalar_t>(), depths.data_ptr<scalar_t>(), radii.data_ptr<int32_t>(), n, int(width),
+        int(height), int(threads));
     for (int64_t c : bins.count)
       TORCH_CHECK(c < (int64_t(1) << 24), "more than 2^24 Gaussians in one tile; use the reference backend");
-    forward_impl<scalar_t>(means2d.data_ptr<scalar_t>(), conics.data_ptr<scalar_t>(), opac.data_ptr<scalar_t>(),
-                           colors.data_ptr<scalar_t>(), depths.data_ptr<scalar_t>(), bg.data_ptr<scalar_t>(), boxes, bins,
+    const int64_t nt = static_cast<int64_t>(bins.start.size());
+    tstart = torch::empty({nt}, opts.dtype(torch::kInt64));
+    tcount = torch::empty({nt}, opts.dtype(torch::kInt64));
+    std::copy(bins.start.begin(), bins.start.end(), tstart.data_ptr<int64_t>());
+    std::copy(bins.count.begin(), bins.count.end(), tcount.data_ptr<int64_t>());
+    ids = bins.ids, pairs = bins.pairs;
+    forward_impl<scalar_t>(reinterpret_cast<const Pair<scalar_t>*>(pairs.data_ptr<uint8_t>()),
+                           tstart.data_ptr<int64_t>(), tcount.data_ptr<int64_t>(), bg.data_ptr<scalar_t>(),
                            int(width), int(height), int(threads), rgb.data_ptr<scalar_t>(),
                            alpha.data_ptr<scalar_t>(), depth.data_ptr<scalar_t>(), final_T.data_ptr<scalar_t>(),
                            last.data_ptr<int32_t>());
-    const int64_t m = static_cast<int64_t>(bins.ids.size()), nt = static_cast<int64_t>(bins.start.size());
-    ids = torch::empty({m}, opts.dtype(torch::kInt32));
-    tstart = torch::empty({nt}, opts.dtype(torch::kInt64));
-    tcount = torch::empty({nt}, opts.dtype(torch::kInt64));
-    std::copy(bins.ids.begin(), bins.ids.end(), ids.data_ptr<int32_t>());
-    std::copy(bins.start.begin(), bins.start.end(), tstart.data_ptr<int64_t>());
-    std::copy(bins.count.begin(), bins.count.end(), tcount.data_ptr<int64_t>());
   });
-  return {rgb, alpha, depth, final_T, last, ids, tstart, tcount, reach};
+  return {rgb, alpha, depth, final_T, last, ids, tstart, tcount, pairs};
 }
 
-// Returns gradients: means2d [N,2], conics [N,3], opacities [N], colors [N,3], depths [N].
-std::vector<torch::Tensor> rasterize_backward(torch::Tensor means2d, torch::Tensor conics, torch::Tensor opac,
-                                              torch::Tensor colors, torch::Tensor depths, torch::Tensor bg,
-                                              torch::Tensor reach, torch::Tensor ids, torch::Tensor tstart, torch::Tensor tcount,
-                                              torch::Tensor final_T, torch::Tensor last, torch::Tensor g_rgb,
-                                              torch::Tensor g_alpha, torch::Tensor g_depth, int64_t width,
-                                              int64_t height, int64_t threads) {
-  const int64_t n = means2d.size(0), m = ids.size(0);
+// Returns gradients: means2d [N,2], conics [N,3], opacities [N], colors [N,3], depths [N]; n = N, and the other
+// tensors as the forward returned them (pairs, ids, tile_start, tile_count, final_T, last) or passed them (bg).
+std::vector<torch::Tensor> rasterize_backward(torch::Tensor pairs, torch::Tensor ids, torch::Tensor tstart,
+                                              torch::Tensor tcount,
+                                              torch::Tensor bg, torch::Tensor final_T, torch::Tensor last,
+                                              torch::Tensor g_rgb, torch::Tensor g_alpha, torch::Tensor g_depth,
+                                              int64_t n, int64_t width, int64_t height, int64_t threads) {
+  const int64_t tw = (width + TILE - 1) / TILE, th = (height + TILE - 1) / TILE, nt = tw * th;
   TORCH_CHECK(g_rgb.is_contiguous() && g_alpha.is_contiguous() && g_depth.is_contiguous(),
               "output gradients must be contiguous");
-  TORCH_CHECK(reach.scalar_type() == torch::kDouble && reach.is_contiguous() && reach.dim() == 2 &&
-                  reach.size(0) == n && reach.size(1) == 4,
-              "reach must be the [N, 4] double tensor the forward returned");
-  const Reach* boxes = reinterpret_cast<const Reach*>(reach.data_ptr<double>());
-  auto opts = means2d.options();
-  auto pair_grad = torch::zeros({m, NGRAD}, opts);
+  TORCH_CHECK(g_rgb.numel() == 3 * width * height && g_alpha.numel() == width * height &&
+                  g_depth.numel() == width * height,
+              "output gradients have the wrong size");
+  TORCH_CHECK(final_T.is_contiguous() && final_T.numel() == width * height, "final_T has the wrong size");
+  TORCH_CHECK(last.is_contiguous() && last.scalar_type() == torch::kInt32 && last.numel() == width * height,
+              "last must be the [H, W] int32 tensor the forward returned");
+  TORCH_CHECK(bg.is_contiguous() && bg.numel() == 3, "background must be 3 contiguous values");
+  TORCH_CHECK(tstart.is_contiguous() && tcount.is_contiguous() && tstart.scalar_type() == torch::kInt64 &&
+                  tcount.scalar_type() == torch::kInt64 && tstart.numel() == nt && tcount.numel() == nt,
+              "tile_start / tile_count must be the int64 tensors the forward returned");
+  TORCH_CHECK(pairs.is_contiguous() && pairs.scalar_type() == torch::kUInt8, "pairs must be the forward's uint8 tensor");
+  auto opts = final_T.options();
   auto grad = torch::zeros({n, NGRAD}, opts);
-  AT_DISPATCH_FLOATING_TYPES(means2d.scalar_type(), "rasterize_backward", [&] {
-    backward_impl<scalar_t>(means2d.data_ptr<scalar_t>(), conics.data_ptr<scalar_t>(), opac.data_ptr<scalar_t>(),
-                            colors.data_ptr<scalar_t>(), depths.data_ptr<scalar_t>(), bg.data_ptr<scalar_t>(), boxes,
-                            ids.data_ptr<int32_t>(), tstart.data_ptr<int64_t>(), tcount.data_ptr<int64_t>(),
-                            final_T.data_ptr<scalar_t>(), last.data_ptr<int32_t>(), g_rgb.data_ptr<scalar_t>(),
-                            g_alpha.data_ptr<scalar_t>(), g_depth.data_ptr<scalar_t>(), int(width), int(height),
-                            int(threads), pair_grad.data_ptr<scalar_t>());
-    // Sum the per-(tile, Gaussian) slots into per-Gaussian gradients, in tile order (deterministic).
-    const scalar_t* pg = pair_grad.data_ptr<scalar_t>();
-    scalar_t* gr = grad.data_ptr<scalar_t>();
+  AT_DISPATCH_FLOATING_TYPES(final_T.scalar_type(), "rasterize_backward", [&] {
+    using P = Pair<scalar_t>;
+    TORCH_CHECK(pairs.numel() % int64_t(sizeof(P)) == 0, "pairs does not hold whole records of this dtype");
+    const int64_t m = pairs.numel() / int64_t(sizeof(P));
+    const P* rec = reinterpret_cast<const P*>(pairs.data_ptr<uint8_t>());
+    const int64_t* st = tstart.data_ptr<int64_t>();
+    const int64_t* ct = tcount.data_ptr<int64_t>();
+    for (int64_t t = 0; t < nt; ++t)
+      TORCH_CHECK(st[t] >= 0 && ct[t] >= 0 && st[t] + ct[t] <= m, "tile lists outside the pair records");
+    TORCH_CHECK(ids.is_contiguous() && ids.scalar_type() == torch::kInt32 && ids.numel() == m,
+                "ids must be the forward's int32 tensor, one per pair record");
     const int32_t* id = ids.data_ptr<int32_t>();
-    for (int64_t j = 0; j < m; ++j)
-      for (int c = 0; c < NGRAD; ++c) gr[int64_t(id[j]) * NGRAD + c] += pg[j * NGRAD + c];
+    for (int64_t j = 0; j < m; ++j) TORCH_CHECK(id[j] >= 0 && id[j] < n, "pair ids outside the Gaussians");
+    // Every slot of a listed pair is written (zeros where no pixel composites it).
+    auto pair_grad = torch::empty({m, NGRAD}, opts);
+    scalar_t* pg = pair_grad.data_ptr<scalar_t>();
+    backward_impl<scalar_t>(rec, st, ct, bg.data_ptr<scalar_t>(), final_T.data_ptr<scalar_t>(),
+                            last.data_ptr<int32_t>(), g_rgb.data_ptr<scalar_t>(), g_alpha.data_ptr<scalar_t>(),
+                            g_depth.data_ptr<scalar_t>(), int(width), int(height), int(threads), pg);
+    sum_pairs<scalar_t>(pg, id, m, n, int(threads), grad.data_ptr<scalar_t>());
   });
   using torch::indexing::Slice;
   return {grad.index({Slice(), Slice(0, 2)}), grad.index({Slice(), Slice(2, 5)}), grad.index({Slice(), 5}),
