@@ -45,11 +45,17 @@ struct Consts {
   static constexpr T t_min = T(1e-4);
 };
 
-// The pixel box outside which a Gaussian's alpha is certainly < 1/255: the bounding box of the ellipse
-// d^T C d <= 2 ln(255 o), widened by a slack on the exponent (far above float rounding) and one pixel, so the
-// exact per-pixel tests decide every borderline case and skipping the rest changes no result. Computed once
-// per Gaussian (in double, unclamped) and intersected with the image and the tiles by span_of. [x0, x1) x [y0, y1);
-// an unusable conic reaches everywhere (-inf, inf); an opacity below 1/255 (or NaN) reaches nowhere.
+// The pixel box outside which a Gaussian's alpha is certainly < 1/255, [x0, x1) x [y0, y1), computed once per
+// Gaussian in double and intersected with the image and the tiles by span_of. Two steps:
+// - loose: the bounding box of the ellipse d^T C d <= L, L = 2 ln(255 o) + 1e-3 (a slack on the exponent far
+//   above float rounding), widened by one pixel, so the exact per-pixel tests decide every borderline case;
+// - tight, inside it: a pixel composites only if its power, as computed in T, is at least Pair::thr =
+//   -ln(255 o) - 1e-3 (see there). On the loose box that power is within E = 4 eps (|a| ex^2 + |c| ey^2 +
+//   2 |b| ex ey) of the exact one (eps = T's machine epsilon; a few roundings of terms at most that large), so
+//   compositing needs d^T C d <= L + 1e-3 + 2 E (+ the rounding of thr): the integer pixels of that ellipse's
+//   bounding box. This leaves out the rows and columns the loose box adds (about a third of them here) and the
+//   tiles met only by those.
+// An unusable conic reaches everywhere (-inf, inf); an opacity below 1/255 (or NaN) reaches nowhere.
 struct Reach {
   double x0, x1, y0, y1;
 };
@@ -62,9 +68,19 @@ inline Reach reach_of(T mx, T my, T a, T b, T c, T o) {
   const double L = 2.0 * std::log(255.0 * double(o)) + 1e-3;  // alpha >= 1/255 needs d^T C d <= L
   if (det > 0 && std::isfinite(det) && L >= 0) {
     const double ex = std::sqrt(L * double(c) / det) + 1.0, ey = std::sqrt(L * double(a) / det) + 1.0;
-    if (std::isfinite(ex) && std::isfinite(ey))
+    if (std::isfinite(ex) && std::isfinite(ey)) {
+      const double eps = std::numeric_limits<T>::epsilon();
+      const double E = 4.0 * eps * (std::abs(double(a)) * ex * ex + std::abs(double(c)) * ey * ey +
+                                    2.0 * std::abs(double(b)) * ex * ey);
+      const double Lt = (L + 1e-3 + 2.0 * E) * (1.0 + 4.0 * eps) + 1e-9;
+      const double hx = std::sqrt(Lt * double(c) / det) * (1.0 + 1e-12) + 1e-9;
+      const double hy = std::sqrt(Lt * double(a) / det) * (1.0 + 1e-12) + 1e-9;
+      if (hx <= ex && hy <= ey)
+        return {std::ceil(double(mx) - hx), std::floor(double(mx) + hx) + 1.0, std::ceil(double(my) - hy),
+                std::floor(double(my) + hy) + 1.0};
       return {std::floor(double(mx) - ex), std::ceil(double(mx) + ex) + 1.0, std::floor(double(my) - ey),
               std::ceil(double(my) + ey) + 1.0};
+    }
   }
   return {-inf, inf, -inf, inf};
 }
@@ -80,54 +96,75 @@ inline void tile_rect(T u, T v, T r, int tw, int th, int& x0, int& x1, int& y0, 
   y1 = clampi(std::ceil((v + h + r) / ts), th);
 }
 
-// One (tile, Gaussian) pair of a tile's list, packed for the compositing loops: everything the forward and the
-// backward read about the Gaussian in one record (one cache line in float), a tile's records front to back and
-// contiguous. The loops stream through them instead of gathering from six arrays by Gaussian index (the
-// Gaussians of a tile are scattered over the arrays: about one cache miss per array and pair).
+// A listed Gaussian as the compositing loops read it: everything the forward and the backward need of it in one
+// record (one cache line in float), the records in depth order. The loops read them through the tile lists
+// instead of gathering from six input arrays (about a cache miss per array and pair), and fetch a couple of
+// pairs ahead.
 template <typename T>
-struct alignas(sizeof(T) == 4 ? 64 : 32) Pair {
+struct alignas(sizeof(T) == 4 ? 64 : 32) Gauss {
   T mx, my, ca, cb, cc, o, cr, cg, cbl, z;
   // Below this power, alpha < 1/255 for certain: ln(1 / (255 o)) less a margin (1e-3) far above the error of
   // the exp and of the rounding. A vector of pixels that are all below it (or all finished) is skipped before
   // its exp; the exact per-pixel tests decide the others, so skipping changes no result.
   T thr;
-  int32_t g;               // Gaussian index
-  uint8_t x0, x1, y0, y1;  // the tile's pixels inside the reach box, relative to the tile: [x0, x1) x [y0, y1)
+  int32_t g;  // Gaussian index
 };
-static_assert(sizeof(Pair<float>) == 64 && sizeof(Pair<double>) == 96, "pair record layout");
+static_assert(sizeof(Gauss<float>) == 64 && sizeof(Gauss<double>) == 96, "record layout");
+
+// One (tile, Gaussian) pair of a tile's list: the Gaussian's record (its place in depth order) and the tile's
+// pixels inside its reach box, relative to the tile: [x0, x1) x [y0, y1).
+struct Ref {
+  int32_t k;
+  uint8_t x0, x1, y0, y1;
+};
+static_assert(sizeof(Ref) == 8, "pair layout");
 
 template <typename T>
 struct Bins {
   std::vector<int64_t> start;  // [n_tiles]
   std::vector<int64_t> count;  // [n_tiles]
   torch::Tensor ids;           // [M] int32 Gaussian index per (tile, Gaussian) pair, front to back within a tile
-  torch::Tensor pairs;         // [M * sizeof(Pair<T>)] uint8, the Pair records in the same order
+  torch::Tensor refs;          // [M] int64: the pairs (Ref) in the same order
+  torch::Tensor recs;          // [visible * sizeof(Gauss<T>)] uint8: the records, front to back
 };
 
-// The Gaussians with radius > 0 front to back, ties by index (what a stable sort by depth gives). The key is the
-// depth's bit pattern mapped to an unsigned integer of the same order (a total order, NaN included), then the
-// index: one comparison of integers instead of a stable sort's merging of floats.
+// The Gaussians with radius > 0 front to back, ties by index (what a stable sort by depth gives): an LSD radix
+// sort (8-bit digits, stable) of the depth's bit pattern mapped to an unsigned integer of the same order (a total
+// order, NaN included), the keys taken in index order.
 template <typename T>
 std::vector<int32_t> depth_order(const T* depths, const int32_t* radii, int64_t n) {
   using U = std::conditional_t<sizeof(T) == 4, uint32_t, uint64_t>;
   constexpr U sign = U(1) << (8 * sizeof(U) - 1);
-  struct Key {
-    U d;
-    int32_t i;
-  };
-  std::vector<Key> keys;
-  keys.reserve(n);
+  std::vector<U> key, key2;
+  std::vector<int32_t> idx, idx2;
+  key.reserve(n), idx.reserve(n);
   for (int64_t i = 0; i < n; ++i)
     if (radii[i] > 0) {
       const T d = depths[i] + T(0);  // -0 becomes +0, so equal depths stay ties
       U u;
       std::memcpy(&u, &d, sizeof u);
-      keys.push_back({(u & sign) ? U(~u) : U(u | sign), static_cast<int32_t>(i)});
+      key.push_back((u & sign) ? U(~u) : U(u | sign));
+      idx.push_back(static_cast<int32_t>(i));
     }
-  std::sort(keys.begin(), keys.end(), [](const Key& a, const Key& b) { return a.d < b.d || (a.d == b.d && a.i < b.i); });
-  std::vector<int32_t> order(keys.size());
-  for (size_t k = 0; k < keys.size(); ++k) order[k] = keys[k].i;
-  return order;
+  const size_t m = key.size();
+  key2.resize(m), idx2.resize(m);
+  for (int shift = 0; shift < int(8 * sizeof(U)) && m > 1; shift += 8) {
+    size_t pos[256] = {};
+    for (size_t k = 0; k < m; ++k) ++pos[(key[k] >> shift) & 255];
+    if (pos[(key[0] >> shift) & 255] == m) continue;  // one digit for all: the pass would change nothing
+    size_t acc = 0;
+    for (int d = 0; d < 256; ++d) {
+      const size_t c = pos[d];
+      pos[d] = acc;
+      acc += c;
+    }
+    for (size_t k = 0; k < m; ++k) {
+      const size_t p = pos[(key[k] >> shift) & 255]++;
+      key2[p] = key[k], idx2[p] = idx[k];
+    }
+    key.swap(key2), idx.swap(idx2);
+  }
+  return idx;
 }
 
 // Per Gaussian, where it is listed: the tiles [tx0, tx1) x [ty0, ty1) that its bounding square touches
@@ -160,74 +197,86 @@ Span span_of(const T* means2d, const T* conics, const T* opac, const int32_t* ra
   return S;
 }
 
-// Tile lists and pair records. Per Gaussian (parallel): its span; the visible ones sorted front to back; their
-// records and spans gathered in that order (parallel); then per row of tiles (parallel, each row its own tiles):
-// counting, and after the prefix sum filling, both in depth order, so each tile's list is front to back.
+// Tile lists and pair records: the visible Gaussians sorted front to back; in that order (parallel), each one's
+// record and span, reading its inputs once; the depth order cut into one chunk per thread, each chunk's pairs
+// counted per tile (parallel); each chunk's first slot in every tile from the counts (a prefix sum over tiles,
+// then chunks); each chunk's records written (parallel). Every tile's list comes out front to back whatever the
+// number of chunks.
 template <typename T>
 Bins<T> bin_gaussians(const T* means2d, const T* conics, const T* opac, const T* colors, const T* depths,
                       const int32_t* radii, int64_t n, int width, int height, int threads) {
   const int tw = (width + TILE - 1) / TILE, th = (height + TILE - 1) / TILE;
-  std::vector<Span> span(n);
-#pragma omp parallel for schedule(static) num_threads(threads)
-  for (int64_t g = 0; g < n; ++g) span[g] = span_of<T>(means2d, conics, opac, radii, g, width, height);
+  const int64_t nt = int64_t(tw) * th;
   const std::vector<int32_t> order = depth_order<T>(depths, radii, n);
   const int64_t nv = static_cast<int64_t>(order.size());
-  std::vector<Span> sspan(nv);
-  std::vector<Pair<T>> srec(nv);
+  Bins<T> bins;
+  bins.recs = torch::empty({nv * int64_t(sizeof(Gauss<T>))}, torch::dtype(torch::kUInt8));
+  Gauss<T>* rec = reinterpret_cast<Gauss<T>*>(bins.recs.template data_ptr<uint8_t>());
+  std::vector<Span> span(nv);
 #pragma omp parallel for schedule(static) num_threads(threads)
   for (int64_t k = 0; k < nv; ++k) {
+    if (k + 8 < nv) {  // the inputs are read in depth order, i.e. scattered: fetch a few Gaussians ahead
+      const int32_t h = order[k + 8];
+      __builtin_prefetch(means2d + 2 * h), __builtin_prefetch(conics + 3 * h), __builtin_prefetch(opac + h);
+      __builtin_prefetch(colors + 3 * h), __builtin_prefetch(depths + h), __builtin_prefetch(radii + h);
+    }
     const int32_t g = order[k];
-    sspan[k] = span[g];
-    Pair<T>& rec = srec[k];
-    rec.mx = means2d[2 * g], rec.my = means2d[2 * g + 1];
-    rec.ca = conics[3 * g], rec.cb = conics[3 * g + 1], rec.cc = conics[3 * g + 2];
-    rec.o = opac[g];
-    rec.cr = colors[3 * g], rec.cg = colors[3 * g + 1], rec.cbl = colors[3 * g + 2];
-    rec.z = depths[g];
-    rec.thr = T(-std::log(255.0 * double(opac[g])) - 1e-3);
-    rec.g = g;
-    rec.x0 = rec.x1 = rec.y0 = rec.y1 = 0;
+    span[k] = span_of<T>(means2d, conics, opac, radii, g, width, height);
+    Gauss<T>& R = rec[k];
+    R.mx = means2d[2 * g], R.my = means2d[2 * g + 1];
+    R.ca = conics[3 * g], R.cb = conics[3 * g + 1], R.cc = conics[3 * g + 2];
+    R.o = opac[g];
+    R.cr = colors[3 * g], R.cg = colors[3 * g + 1], R.cbl = colors[3 * g + 2];
+    R.z = depths[g];
+    R.thr = T(-std::log(255.0 * double(opac[g])) - 1e-3);
+    R.g = g;
   }
-  Bins<T> bins;
-  bins.count.assign(static_cast<size_t>(tw) * th, 0);
-#pragma omp parallel for schedule(dynamic, 1) num_threads(threads)
-  for (int ty = 0; ty < th; ++ty) {
-    int64_t* cnt = bins.count.data() + static_cast<size_t>(ty) * tw;
-    for (int64_t k = 0; k < nv; ++k) {
-      const Span& S = sspan[k];
-      if (ty < S.ty0 || ty >= S.ty1) continue;
-      for (int tx = S.tx0; tx < S.tx1; ++tx) ++cnt[tx];
+  const int nchunk = std::max(1, threads);
+  std::vector<int64_t> slot(nchunk * nt, 0);  // [chunk][tile]: pairs, then first slot
+#pragma omp parallel for schedule(static, 1) num_threads(threads)
+  for (int c = 0; c < nchunk; ++c) {
+    int64_t* cnt = slot.data() + c * nt;
+    for (int64_t k = nv * c / nchunk; k < nv * (c + 1) / nchunk; ++k) {
+      const Span& S = span[k];
+      for (int ty = S.ty0; ty < S.ty1; ++ty)
+        for (int tx = S.tx0; tx < S.tx1; ++tx) ++cnt[int64_t(ty) * tw + tx];
     }
   }
-  bins.start.assign(bins.count.size(), 0);
+  bins.count.assign(nt, 0);
+  bins.start.assign(nt, 0);
   int64_t total = 0;
-  for (size_t t = 0; t < bins.count.size(); ++t) {
+  for (int64_t t = 0; t < nt; ++t) {
     bins.start[t] = total;
-    total += bins.count[t];
+    for (int c = 0; c < nchunk; ++c) {
+      const int64_t k = slot[c * nt + t];
+      slot[c * nt + t] = total;
+      total += k;
+    }
+    bins.count[t] = total - bins.start[t];
   }
-  torch::Tensor ids_t = torch::empty({total}, torch::dtype(torch::kInt32));
-  torch::Tensor pairs_t = torch::empty({total * int64_t(sizeof(Pair<T>))}, torch::dtype(torch::kUInt8));
-  bins.ids = ids_t, bins.pairs = pairs_t;
-  int32_t* ids = ids_t.data_ptr<int32_t>();
-  Pair<T>* pairs = reinterpret_cast<Pair<T>*>(pairs_t.data_ptr<uint8_t>());
-#pragma omp parallel for schedule(dynamic, 1) num_threads(threads)
-  for (int ty = 0; ty < th; ++ty) {
-    std::vector<int64_t> fill(bins.start.begin() + static_cast<size_t>(ty) * tw,
-                              bins.start.begin() + static_cast<size_t>(ty + 1) * tw);
-    const int py0 = ty * TILE, py1 = std::min(py0 + TILE, height);
-    for (int64_t k = 0; k < nv; ++k) {
-      const Span& S = sspan[k];
-      if (ty < S.ty0 || ty >= S.ty1) continue;
-      Pair<T> rec = srec[k];
-      rec.y0 = static_cast<uint8_t>(std::max(py0, S.ry0) - py0);
-      rec.y1 = static_cast<uint8_t>(std::min(py1, S.ry1) - py0);
-      for (int tx = S.tx0; tx < S.tx1; ++tx) {
-        const int px0 = tx * TILE, px1 = std::min(px0 + TILE, width);
-        rec.x0 = static_cast<uint8_t>(std::max(px0, S.rx0) - px0);
-        rec.x1 = static_cast<uint8_t>(std::min(px1, S.rx1) - px0);
-        const int64_t slot = fill[tx]++;
-        ids[slot] = rec.g;
-        pairs[slot] = rec;
+  bins.ids = torch::empty({total}, torch::dtype(torch::kInt32));
+  bins.refs = torch::empty({total}, torch::dtype(torch::kInt64));
+  int32_t* ids = bins.ids.template data_ptr<int32_t>();
+  Ref* refs = reinterpret_cast<Ref*>(bins.refs.template data_ptr<int64_t>());
+#pragma omp parallel for schedule(static, 1) num_threads(threads)
+  for (int c = 0; c < nchunk; ++c) {
+    int64_t* fill = slot.data() + c * nt;
+    for (int64_t k = nv * c / nchunk; k < nv * (c + 1) / nchunk; ++k) {
+      const Span& S = span[k];
+      Ref R;
+      R.k = static_cast<int32_t>(k);
+      for (int ty = S.ty0; ty < S.ty1; ++ty) {
+        const int py0 = ty * TILE, py1 = std::min(py0 + TILE, height);
+        R.y0 = static_cast<uint8_t>(std::max(py0, S.ry0) - py0);
+        R.y1 = static_cast<uint8_t>(std::min(py1, S.ry1) - py0);
+        for (int tx = S.tx0; tx < S.tx1; ++tx) {
+          const int px0 = tx * TILE, px1 = std::min(px0 + TILE, width);
+          R.x0 = static_cast<uint8_t>(std::max(px0, S.rx0) - px0);
+          R.x1 = static_cast<uint8_t>(std::min(px1, S.rx1) - px0);
+          const int64_t j = fill[int64_t(ty) * tw + tx]++;
+          ids[j] = order[k];
+          refs[j] = R;
+        }
       }
     }
   }
@@ -363,12 +412,13 @@ inline void lane_span(int x0, int x1, int& c0, int& c1) {
 // some lane above the pair's skip threshold (and not finished: keep(v) true for some lane). Returns their number;
 // pw[j] and idx[j] for j below it.
 template <typename T, typename Keep>
-inline int candidates(const Pair<T>& P, const typename Simd<T>::V* xs, int py0, Keep keep, typename Simd<T>::V* pw,
+inline int candidates(const Gauss<T>& P, const Ref& R, const typename Simd<T>::V* xs, int py0, Keep keep,
+                      typename Simd<T>::V* pw,
                       int16_t* idx, typename Simd<T>::V* dx) {
   using V = typename Simd<T>::V;
   constexpr int W = Simd<T>::W, N = Simd<T>::N;
   int c0, c1;
-  lane_span<W>(P.x0, P.x1, c0, c1);
+  lane_span<W>(R.x0, R.x1, c0, c1);
   V cdx[N], bdx[N];
   for (int c = 0; c < N; ++c) dx[c] = xs[c] - P.mx;
   for (int c = c0; c < c1; ++c) {
@@ -376,7 +426,7 @@ inline int candidates(const Pair<T>& P, const typename Simd<T>::V* xs, int py0, 
     bdx[c] = P.cb * dx[c];
   }
   int nv = 0;
-  for (int r = P.y0; r < P.y1; ++r) {
+  for (int r = R.y0; r < R.y1; ++r) {
     const T dy = T(py0 + r) - P.my;
     const T cdy = P.cc * dy * dy;
     for (int c = c0; c < c1; ++c) {
@@ -392,8 +442,9 @@ inline int candidates(const Pair<T>& P, const typename Simd<T>::V* xs, int py0, 
 }
 
 template <typename T>
-void forward_impl(const Pair<T>* pairs, const int64_t* tstart, const int64_t* tcount, const T* bg, int width,
-                  int height, int threads, T* out_rgb, T* out_alpha, T* out_depth, T* out_T, int32_t* out_last) {
+void forward_impl(const Gauss<T>* recs, const Ref* refs, const int64_t* tstart, const int64_t* tcount, const T* bg,
+                  int width, int height, int threads, T* out_rgb, T* out_alpha, T* out_depth, T* out_T,
+                  int32_t* out_last) {
   using V = typename Simd<T>::V;
   using M = typename Simd<T>::M;
   constexpr int W = Simd<T>::W, N = Simd<T>::N, NV = TILE * N;
@@ -424,8 +475,10 @@ void forward_impl(const Pair<T>* pairs, const int64_t* tstart, const int64_t* tc
     int16_t idx[NV];
     const int64_t s = tstart[t], cnt = tcount[t];
     for (int64_t k = 0; k < cnt; ++k) {
-      const Pair<T>& P = pairs[s + k];
-      const int nv = candidates<T>(P, xs, py0, [&](int v) { return Tr[v] > T(0); }, pw, idx, dx);
+      if (k + 2 < cnt) __builtin_prefetch(recs + refs[s + k + 2].k);
+      const Ref& R = refs[s + k];
+      const Gauss<T>& P = recs[R.k];
+      const int nv = candidates<T>(P, R, xs, py0, [&](int v) { return Tr[v] > T(0); }, pw, idx, dx);
       if (nv == 0) continue;
       vexp_all(pw, ex, nv);
       const T o = P.o, cr = P.cr, cg = P.cg, cbl = P.cbl, z = P.z;
@@ -474,9 +527,9 @@ void forward_impl(const Pair<T>* pairs, const int64_t* tstart, const int64_t* tc
 // pixels of (polynomials in dx, dy) x d power: with dx fixed per lane and dy per row they are kept as per-lane
 // sums of d power and dy d power and dy^2 d power, combined with dx once per pair.
 template <typename T>
-void backward_impl(const Pair<T>* pairs, const int64_t* tstart, const int64_t* tcount, const T* bg, const T* final_T,
-                   const int32_t* last_in, const T* g_rgb, const T* g_alpha, const T* g_depth, int width, int height,
-                   int threads, T* pair_grad) {
+void backward_impl(const Gauss<T>* recs, const Ref* refs, const int64_t* tstart, const int64_t* tcount, const T* bg,
+                   const T* final_T, const int32_t* last_in, const T* g_rgb, const T* g_alpha, const T* g_depth,
+                   int width, int height, int threads, T* pair_grad) {
   using V = typename Simd<T>::V;
   using M = typename Simd<T>::M;
   constexpr int W = Simd<T>::W, N = Simd<T>::N, NV = TILE * N;
@@ -517,10 +570,12 @@ void backward_impl(const Pair<T>* pairs, const int64_t* tstart, const int64_t* t
     V pw[NV], ex[NV], dx[N];
     int16_t idx[NV];
     for (int64_t k = max_last - 1; k >= 0; --k) {
-      const Pair<T>& P = pairs[s + k];
+      if (k >= 2) __builtin_prefetch(recs + refs[s + k - 2].k);
+      const Ref& R = refs[s + k];
+      const Gauss<T>& P = recs[R.k];
       T* slot = pair_grad + (s + k) * NGRAD;
       const V kk = splat<V>(k);
-      const int nv = candidates<T>(P, xs, py0, [&](int v) { return kk < last[v]; }, pw, idx, dx);
+      const int nv = candidates<T>(P, R, xs, py0, [&](int v) { return kk < last[v]; }, pw, idx, dx);
       if (nv == 0) {
         for (int c = 0; c < NGRAD; ++c) slot[c] = T(0);
         continue;
@@ -835,8 +890,8 @@ void check(const torch::Tensor& t, const char* name, int64_t n, int64_t cols) {
 }  // namespace
 
 // Returns rgb [H,W,3], alpha [H,W], depth [H,W], final_T [H,W], last [H,W] int32, ids [M] int32,
-// tile_start [n_tiles] int64, tile_count [n_tiles] int64, pairs [M * record size] uint8 (the packed
-// (tile, Gaussian) records the backward reads).
+// tile_start [n_tiles] int64, tile_count [n_tiles] int64, and what the backward reads besides: recs
+// [visible * record size] uint8 (the Gaussian records, depth order) and refs [M] int64 (the packed pairs).
 std::vector<torch::Tensor> rasterize_forward(torch::Tensor means2d, torch::Tensor conics, torch::Tensor opac,
                                              torch::Tensor colors, torch::Tensor depths, torch::Tensor radii,
                                              torch::Tensor bg, int64_t width, int64_t height, int64_t threads) {
@@ -855,7 +910,7 @@ std::vector<torch::Tensor> rasterize_forward(torch::Tensor means2d, torch::Tenso
   auto depth = torch::empty({height, width}, opts);
   auto final_T = torch::empty({height, width}, opts);
   auto last = torch::empty({height, width}, opts.dtype(torch::kInt32));
-  torch::Tensor ids, tstart, tcount, pairs;
+  torch::Tensor ids, tstart, tcount, recs, refs;
   AT_DISPATCH_FLOATING_TYPES(means2d.scalar_type(), "rasterize_forward", [&] {
     Bins<scalar_t> bins = bin_gaussians<scalar_t>(
         means2d.data_ptr<scalar_t>(), conics.data_ptr<scalar_t>(), opac.data_ptr<scalar_t>(),
@@ -868,23 +923,24 @@ std::vector<torch::Tensor> rasterize_forward(torch::Tensor means2d, torch::Tenso
     tcount = torch::empty({nt}, opts.dtype(torch::kInt64));
     std::copy(bins.start.begin(), bins.start.end(), tstart.data_ptr<int64_t>());
     std::copy(bins.count.begin(), bins.count.end(), tcount.data_ptr<int64_t>());
-    ids = bins.ids, pairs = bins.pairs;
-    forward_impl<scalar_t>(reinterpret_cast<const Pair<scalar_t>*>(pairs.data_ptr<uint8_t>()),
-                           tstart.data_ptr<int64_t>(), tcount.data_ptr<int64_t>(), bg.data_ptr<scalar_t>(),
-                           int(width), int(height), int(threads), rgb.data_ptr<scalar_t>(),
-                           alpha.data_ptr<scalar_t>(), depth.data_ptr<scalar_t>(), final_T.data_ptr<scalar_t>(),
-                           last.data_ptr<int32_t>());
+    ids = bins.ids, recs = bins.recs, refs = bins.refs;
+    forward_impl<scalar_t>(reinterpret_cast<const Gauss<scalar_t>*>(recs.data_ptr<uint8_t>()),
+                           reinterpret_cast<const Ref*>(refs.data_ptr<int64_t>()), tstart.data_ptr<int64_t>(),
+                           tcount.data_ptr<int64_t>(), bg.data_ptr<scalar_t>(), int(width), int(height),
+                           int(threads), rgb.data_ptr<scalar_t>(), alpha.data_ptr<scalar_t>(),
+                           depth.data_ptr<scalar_t>(), final_T.data_ptr<scalar_t>(), last.data_ptr<int32_t>());
   });
-  return {rgb, alpha, depth, final_T, last, ids, tstart, tcount, pairs};
+  return {rgb, alpha, depth, final_T, last, ids, tstart, tcount, recs, refs};
 }
 
 // Returns gradients: means2d [N,2], conics [N,3], opacities [N], colors [N,3], depths [N]; n = N, and the other
-// tensors as the forward returned them (pairs, ids, tile_start, tile_count, final_T, last) or passed them (bg).
-std::vector<torch::Tensor> rasterize_backward(torch::Tensor pairs, torch::Tensor ids, torch::Tensor tstart,
-                                              torch::Tensor tcount,
-                                              torch::Tensor bg, torch::Tensor final_T, torch::Tensor last,
-                                              torch::Tensor g_rgb, torch::Tensor g_alpha, torch::Tensor g_depth,
-                                              int64_t n, int64_t width, int64_t height, int64_t threads) {
+// tensors as the forward returned them (recs, refs, ids, tile_start, tile_count, final_T, last) or was passed
+// them (bg).
+std::vector<torch::Tensor> rasterize_backward(torch::Tensor recs, torch::Tensor refs, torch::Tensor ids,
+                                              torch::Tensor tstart, torch::Tensor tcount, torch::Tensor bg,
+                                              torch::Tensor final_T, torch::Tensor last, torch::Tensor g_rgb,
+                                              torch::Tensor g_alpha, torch::Tensor g_depth, int64_t n, int64_t width,
+                                              int64_t height, int64_t threads) {
   const int64_t tw = (width + TILE - 1) / TILE, th = (height + TILE - 1) / TILE, nt = tw * th;
   TORCH_CHECK(g_rgb.is_contiguous() && g_alpha.is_contiguous() && g_depth.is_contiguous(),
               "output gradients must be contiguous");
@@ -898,26 +954,32 @@ std::vector<torch::Tensor> rasterize_backward(torch::Tensor pairs, torch::Tensor
   TORCH_CHECK(tstart.is_contiguous() && tcount.is_contiguous() && tstart.scalar_type() == torch::kInt64 &&
                   tcount.scalar_type() == torch::kInt64 && tstart.numel() == nt && tcount.numel() == nt,
               "tile_start / tile_count must be the int64 tensors the forward returned");
-  TORCH_CHECK(pairs.is_contiguous() && pairs.scalar_type() == torch::kUInt8, "pairs must be the forward's uint8 tensor");
+  TORCH_CHECK(recs.is_contiguous() && recs.scalar_type() == torch::kUInt8, "recs must be the forward's uint8 tensor");
+  TORCH_CHECK(refs.is_contiguous() && refs.scalar_type() == torch::kInt64, "refs must be the forward's int64 tensor");
+  const int64_t m = refs.numel();
+  TORCH_CHECK(ids.is_contiguous() && ids.scalar_type() == torch::kInt32 && ids.numel() == m,
+              "ids must be the forward's int32 tensor, one per pair");
   auto opts = final_T.options();
   auto grad = torch::zeros({n, NGRAD}, opts);
   AT_DISPATCH_FLOATING_TYPES(final_T.scalar_type(), "rasterize_backward", [&] {
-    using P = Pair<scalar_t>;
-    TORCH_CHECK(pairs.numel() % int64_t(sizeof(P)) == 0, "pairs does not hold whole records of this dtype");
-    const int64_t m = pairs.numel() / int64_t(sizeof(P));
-    const P* rec = reinterpret_cast<const P*>(pairs.data_ptr<uint8_t>());
+    using G = Gauss<scalar_t>;
+    TORCH_CHECK(recs.numel() % int64_t(sizeof(G)) == 0, "recs does not hold whole records of this dtype");
+    const int64_t nv = recs.numel() / int64_t(sizeof(G));
+    const G* rec = reinterpret_cast<const G*>(recs.data_ptr<uint8_t>());
+    const Ref* ref = reinterpret_cast<const Ref*>(refs.data_ptr<int64_t>());
     const int64_t* st = tstart.data_ptr<int64_t>();
     const int64_t* ct = tcount.data_ptr<int64_t>();
     for (int64_t t = 0; t < nt; ++t)
-      TORCH_CHECK(st[t] >= 0 && ct[t] >= 0 && st[t] + ct[t] <= m, "tile lists outside the pair records");
-    TORCH_CHECK(ids.is_contiguous() && ids.scalar_type() == torch::kInt32 && ids.numel() == m,
-                "ids must be the forward's int32 tensor, one per pair record");
+      TORCH_CHECK(st[t] >= 0 && ct[t] >= 0 && st[t] + ct[t] <= m, "tile lists outside the pairs");
     const int32_t* id = ids.data_ptr<int32_t>();
-    for (int64_t j = 0; j < m; ++j) TORCH_CHECK(id[j] >= 0 && id[j] < n, "pair ids outside the Gaussians");
+    for (int64_t j = 0; j < m; ++j)
+      TORCH_CHECK(id[j] >= 0 && id[j] < n && ref[j].k >= 0 && ref[j].k < nv && ref[j].x1 <= TILE &&
+                      ref[j].y1 <= TILE,
+                  "pairs outside the Gaussians or records");
     // Every slot of a listed pair is written (zeros where no pixel composites it).
     auto pair_grad = torch::empty({m, NGRAD}, opts);
     scalar_t* pg = pair_grad.data_ptr<scalar_t>();
-    backward_impl<scalar_t>(rec, st, ct, bg.data_ptr<scalar_t>(), final_T.data_ptr<scalar_t>(),
+    backward_impl<scalar_t>(rec, ref, st, ct, bg.data_ptr<scalar_t>(), final_T.data_ptr<scalar_t>(),
                             last.data_ptr<int32_t>(), g_rgb.data_ptr<scalar_t>(), g_alpha.data_ptr<scalar_t>(),
                             g_depth.data_ptr<scalar_t>(), int(width), int(height), int(threads), pg);
     sum_pairs<scalar_t>(pg, id, m, n, int(threads), grad.data_ptr<scalar_t>());
