@@ -49,12 +49,13 @@ struct Consts {
 // Gaussian in double and intersected with the image and the tiles by span_of. Two steps:
 // - loose: the bounding box of the ellipse d^T C d <= L, L = 2 ln(255 o) + 1e-3 (a slack on the exponent far
 //   above float rounding), widened by one pixel, so the exact per-pixel tests decide every borderline case;
-// - tight, inside it: a pixel composites only if its power, as computed in T, is at least Pair::thr =
-//   -ln(255 o) - 1e-3 (see there). On the loose box that power is within E = 4 eps (|a| ex^2 + |c| ey^2 +
-//   2 |b| ex ey) of the exact one (eps = T's machine epsilon; a few roundings of terms at most that large), so
-//   compositing needs d^T C d <= L + 1e-3 + 2 E (+ the rounding of thr): the integer pixels of that ellipse's
-//   bounding box. This leaves out the rows and columns the loose box adds (about a third of them here) and the
-//   tiles met only by those.
+// - tight, inside it: a pixel composites only if alpha = o exp(power) >= 1/255 with power and exp as the kernel
+//   computes them in T, so only if that power is at least thr = -ln(255 o) - 1e-3 (the margin is far above the
+//   error of the exp and of the rounding of o exp). On the loose box that power is within E = 4 eps (|a| ex^2 +
+//   |c| ey^2 + 2 |b| ex ey) of the exact one (eps = T's machine epsilon; a few roundings of terms at most that
+//   large), so compositing needs d^T C d <= L + 1e-3 + 2 E: the integer pixels of that ellipse's bounding box
+//   (widened by a few rounding units). This leaves out the rows and columns the loose box adds (about a third
+//   of them on the benchmark scene) and the tiles met only by those.
 // An unusable conic reaches everywhere (-inf, inf); an opacity below 1/255 (or NaN) reaches nowhere.
 struct Reach {
   double x0, x1, y0, y1;
@@ -103,10 +104,6 @@ inline void tile_rect(T u, T v, T r, int tw, int th, int& x0, int& x1, int& y0, 
 template <typename T>
 struct alignas(sizeof(T) == 4 ? 64 : 32) Gauss {
   T mx, my, ca, cb, cc, o, cr, cg, cbl, z;
-  // Below this power, alpha < 1/255 for certain: ln(1 / (255 o)) less a margin (1e-3) far above the error of
-  // the exp and of the rounding. A vector of pixels that are all below it (or all finished) is skipped before
-  // its exp; the exact per-pixel tests decide the others, so skipping changes no result.
-  T thr;
   int32_t g;  // Gaussian index
 };
 static_assert(sizeof(Gauss<float>) == 64 && sizeof(Gauss<double>) == 96, "record layout");
@@ -228,7 +225,6 @@ Bins<T> bin_gaussians(const T* means2d, const T* conics, const T* opac, const T*
     R.o = opac[g];
     R.cr = colors[3 * g], R.cg = colors[3 * g + 1], R.cbl = colors[3 * g + 2];
     R.z = depths[g];
-    R.thr = T(-std::log(255.0 * double(opac[g])) - 1e-3);
     R.g = g;
   }
   const int nchunk = std::max(1, threads);
@@ -316,24 +312,30 @@ inline auto hsum(const V& v) {
   return s;
 }
 
-// Whether any lane of a comparison result (lanes 0 or -1) is set: one test instruction on x86.
+// The lanes of a comparison result (lanes 0 or -1) as bits, lane i in bit i: one instruction or two on x86.
 template <typename M>
-inline bool any_lane(const M& m) {
+inline uint32_t lane_bits(const M& m) {
 #if defined(__AVX512F__)
   if constexpr (sizeof(M) == 64) {
-    if constexpr (sizeof(m[0]) == 4) return _mm512_test_epi32_mask((__m512i)m, (__m512i)m) != 0;
-    else return _mm512_test_epi64_mask((__m512i)m, (__m512i)m) != 0;
+    if constexpr (sizeof(m[0]) == 4) return _mm512_test_epi32_mask((__m512i)m, (__m512i)m);
+    else return _mm512_test_epi64_mask((__m512i)m, (__m512i)m);
   }
 #endif
 #if defined(__AVX__)
-  if constexpr (sizeof(M) == 32) return !_mm256_testz_si256((__m256i)m, (__m256i)m);
+  if constexpr (sizeof(M) == 32) {
+    if constexpr (sizeof(m[0]) == 4) return _mm256_movemask_ps((__m256)m);
+    else return _mm256_movemask_pd((__m256d)m);
+  }
 #endif
 #if defined(__SSE2__)
-  if constexpr (sizeof(M) == 16) return _mm_movemask_epi8((__m128i)m) != 0;
+  if constexpr (sizeof(M) == 16) {
+    if constexpr (sizeof(m[0]) == 4) return _mm_movemask_ps((__m128)m);
+    else return _mm_movemask_pd((__m128d)m);
+  }
 #endif
-  auto acc = m[0];
-  for (int i = 1; i < int(sizeof(M) / sizeof(acc)); ++i) acc |= m[i];
-  return acc != 0;
+  uint32_t bits = 0;
+  for (int i = 0; i < int(sizeof(M) / sizeof(m[0])); ++i) bits |= uint32_t(m[i] != 0) << i;
+  return bits;
 }
 
 // a * b + c for float vectors, fused where the target has FMA (used only inside the exp below, whose result is
@@ -408,13 +410,13 @@ inline void lane_span(int x0, int x1, int& c0, int& c1) {
 }
 
 // A tile's pixels as vectors: v = row * N + vector within the row, W lanes each.
-// For one pair, the powers of the vectors in its reach box, and the list of those to evaluate: the vectors with
-// some lane above the pair's skip threshold (and not finished: keep(v) true for some lane). Returns their number;
-// pw[j] and idx[j] for j below it.
+// For one pair, the powers of the vectors in its reach box, and the list of those to evaluate: the vectors for
+// which keep(v) (a scalar test: some pixel still composites there). Returns their number; pw[j] and idx[j] for j
+// below it. (Testing the powers themselves against the 1/255 threshold, vector by vector, cost more than the
+// exps and compositing it saved once the reach box is tight.)
 template <typename T, typename Keep>
 inline int candidates(const Gauss<T>& P, const Ref& R, const typename Simd<T>::V* xs, int py0, Keep keep,
-                      typename Simd<T>::V* pw,
-                      int16_t* idx, typename Simd<T>::V* dx) {
+                      typename Simd<T>::V* pw, int16_t* idx, typename Simd<T>::V* dx) {
   using V = typename Simd<T>::V;
   constexpr int W = Simd<T>::W, N = Simd<T>::N;
   int c0, c1;
@@ -431,11 +433,10 @@ inline int candidates(const Gauss<T>& P, const Ref& R, const typename Simd<T>::V
     const T cdy = P.cc * dy * dy;
     for (int c = c0; c < c1; ++c) {
       // The reference's rounding: -0.5 (a dx dx + c dy dy) - b dx dy, products left to right.
-      const V p = T(-0.5) * (cdx[c] + cdy) - bdx[c] * dy;
       const int v = r * N + c;
-      pw[nv] = p;
+      pw[nv] = T(-0.5) * (cdx[c] + cdy) - bdx[c] * dy;
       idx[nv] = static_cast<int16_t>(v);
-      nv += any_lane((p >= P.thr) & keep(v));
+      nv += keep(v);
     }
   }
   return nv;
@@ -470,15 +471,18 @@ void forward_impl(const Gauss<T>* recs, const Ref* refs, const int64_t* tstart, 
         ar[v] = ag[v] = ab[v] = az[v] = last[v] = zero;
         for (int i = 0; i < W; ++i) Tr[v][i] = (px0 + c * W + i < px1 && py0 + r < py1) ? T(1) : T(-1);
       }
-    M stopped = splat<M>(0);  // lanes hold -(number of pixels of that lane that finished)
+    // Per vector, the lanes (bits) of the pixels not finished; and the number of finished pixels.
+    uint32_t live[NV];
+    for (int v = 0; v < NV; ++v) live[v] = lane_bits(Tr[v] > T(0));
+    int n_done = 0;
     V pw[NV], ex[NV], dx[N];
     int16_t idx[NV];
     const int64_t s = tstart[t], cnt = tcount[t];
     for (int64_t k = 0; k < cnt; ++k) {
-      if (k + 2 < cnt) __builtin_prefetch(recs + refs[s + k + 2].k);
+      if (k + 4 < cnt) __builtin_prefetch(recs + refs[s + k + 4].k);
       const Ref& R = refs[s + k];
       const Gauss<T>& P = recs[R.k];
-      const int nv = candidates<T>(P, R, xs, py0, [&](int v) { return Tr[v] > T(0); }, pw, idx, dx);
+      const int nv = candidates<T>(P, R, xs, py0, [&](int v) { return live[v] != 0; }, pw, idx, dx);
       if (nv == 0) continue;
       vexp_all(pw, ex, nv);
       const T o = P.o, cr = P.cr, cg = P.cg, cbl = P.cbl, z = P.z;
@@ -499,9 +503,11 @@ void forward_impl(const Gauss<T>* recs, const Ref* refs, const int64_t* tstart, 
         az[v] += w * z;
         Tr[v] = use ? next : (stop ? -tr : tr);
         last[v] = use ? kk : last[v];
-        stopped += stop;
+        const uint32_t stopped = lane_bits(stop);
+        live[v] &= ~stopped;
+        n_done += __builtin_popcount(stopped);
       }
-      if (-hsum(stopped) >= n_pix) break;
+      if (n_done >= n_pix) break;
     }
     for (int y = py0; y < py1; ++y)
       for (int x = px0; x < px1; ++x) {
@@ -565,17 +571,22 @@ void backward_impl(const Gauss<T>* recs, const Ref* refs, const int64_t* tstart,
         Gz[v][i] = g_depth[q], Ga[v][i] = g_alpha[q];
         D[v][i] = g_rgb[3 * q] * bg[0] + g_rgb[3 * q + 1] * bg[1] + g_rgb[3 * q + 2] * bg[2];
       }
+    int32_t vlast[NV];  // per vector, the largest count
+    for (int v = 0; v < NV; ++v) {
+      vlast[v] = 0;
+      for (int i = 0; i < W; ++i) vlast[v] = std::max(vlast[v], static_cast<int32_t>(last[v][i]));
+    }
     for (int64_t k = max_last; k < cnt; ++k)  // behind every pixel's last Gaussian: no gradient
       for (int c = 0; c < NGRAD; ++c) pair_grad[(s + k) * NGRAD + c] = T(0);
     V pw[NV], ex[NV], dx[N];
     int16_t idx[NV];
     for (int64_t k = max_last - 1; k >= 0; --k) {
-      if (k >= 2) __builtin_prefetch(recs + refs[s + k - 2].k);
+      if (k >= 4) __builtin_prefetch(recs + refs[s + k - 4].k);
       const Ref& R = refs[s + k];
       const Gauss<T>& P = recs[R.k];
       T* slot = pair_grad + (s + k) * NGRAD;
       const V kk = splat<V>(k);
-      const int nv = candidates<T>(P, R, xs, py0, [&](int v) { return kk < last[v]; }, pw, idx, dx);
+      const int nv = candidates<T>(P, R, xs, py0, [&](int v) { return k < vlast[v]; }, pw, idx, dx);
       if (nv == 0) {
         for (int c = 0; c < NGRAD; ++c) slot[c] = T(0);
         continue;
