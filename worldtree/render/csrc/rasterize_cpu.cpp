@@ -305,11 +305,21 @@ inline V splat(S x) {
   return v + static_cast<decltype(v[0] + 0)>(x);
 }
 
+// Sum of the lanes, as a tree: the two halves added, recursively (log2(W) vector additions instead of a chain of
+// W - 1 scalar ones, ten of which ended every pair of the backward).
 template <typename V>
 inline auto hsum(const V& v) {
-  auto s = v[0];
-  for (int i = 1; i < int(sizeof(V) / sizeof(s)); ++i) s += v[i];
-  return s;
+  using E = std::remove_cv_t<std::remove_reference_t<decltype(v[0])>>;
+  constexpr int n = int(sizeof(V) / sizeof(E));
+  if constexpr (n <= 2) {
+    return n == 1 ? E(v[0]) : E(v[0] + v[1]);
+  } else {
+    typedef E H __attribute__((vector_size(sizeof(V) / 2)));
+    H lo, hi;
+    std::memcpy(&lo, &v, sizeof(H));
+    std::memcpy(&hi, reinterpret_cast<const char*>(&v) + sizeof(H), sizeof(H));
+    return hsum(lo + hi);
+  }
 }
 
 // The lanes of a comparison result (lanes 0 or -1) as bits, lane i in bit i: one instruction or two on x86.
