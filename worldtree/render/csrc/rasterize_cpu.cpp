@@ -349,16 +349,21 @@ inline uint32_t lane_bits(const M& m) {
   return bits;
 }
 
-// a * b + c for float vectors, fused where the target has FMA (used only inside the exp below, whose result is
-// an approximation either way; the compositing itself is never fused, see kernel_build.COMMON_CFLAGS).
+// a * b + c, fused where the target has FMA. Used inside the exp below (whose result is an approximation either
+// way) and for the backward's gradient sums; the forward's compositing is never fused, so that it rounds like
+// the PyTorch reference (see kernel_build.COMMON_CFLAGS).
 template <typename V>
 inline V fmadd(const V& a, const V& b, const V& c) {
+  constexpr bool f32 = sizeof(a[0]) == 4;
 #if defined(__AVX512F__)
-  if constexpr (sizeof(V) == 64) return (V)_mm512_fmadd_ps((__m512)a, (__m512)b, (__m512)c);
+  if constexpr (sizeof(V) == 64 && f32) return (V)_mm512_fmadd_ps((__m512)a, (__m512)b, (__m512)c);
+  if constexpr (sizeof(V) == 64 && !f32) return (V)_mm512_fmadd_pd((__m512d)a, (__m512d)b, (__m512d)c);
 #endif
 #if defined(__FMA__)
-  if constexpr (sizeof(V) == 32) return (V)_mm256_fmadd_ps((__m256)a, (__m256)b, (__m256)c);
-  if constexpr (sizeof(V) == 16) return (V)_mm_fmadd_ps((__m128)a, (__m128)b, (__m128)c);
+  if constexpr (sizeof(V) == 32 && f32) return (V)_mm256_fmadd_ps((__m256)a, (__m256)b, (__m256)c);
+  if constexpr (sizeof(V) == 32 && !f32) return (V)_mm256_fmadd_pd((__m256d)a, (__m256d)b, (__m256d)c);
+  if constexpr (sizeof(V) == 16 && f32) return (V)_mm_fmadd_ps((__m128)a, (__m128)b, (__m128)c);
+  if constexpr (sizeof(V) == 16 && !f32) return (V)_mm_fmadd_pd((__m128d)a, (__m128d)b, (__m128d)c);
 #endif
   return a * b + c;
 }
@@ -384,9 +389,26 @@ inline void vexp_n(const Simd<float>::V* x, Simd<float>::V* out) {
     xc[j] = x[j] < lo ? lo : x[j];
     xc[j] = xc[j] > zero ? zero : xc[j];
   }
-  for (int j = 0; j < K; ++j) t[j] = xc[j] * 1.44269504088896341f + magic;
-  for (int j = 0; j < K; ++j) r[j] = fmadd(t[j] - magic, nl2hi, xc[j]);  // exact: k ln2hi has few bits
-  for (int j = 0; j < K; ++j) r[j] = fmadd(t[j] - magic, nl2lo, r[j]);
+#if defined(__AVX512F__) && defined(__AVX512VL__)
+  // AVX-512: k rounded by vrndscaleps and 2^k applied by vscalefps, the same numbers in three fewer operations.
+  constexpr bool avx512 = sizeof(V) == 32;
+#else
+  constexpr bool avx512 = false;
+#endif
+  V kf[K];
+  for (int j = 0; j < K; ++j) {
+    if constexpr (avx512) {
+#if defined(__AVX512F__) && defined(__AVX512VL__)
+      kf[j] = (V)_mm256_roundscale_ps((__m256)(xc[j] * 1.44269504088896341f),
+                                      _MM_FROUND_TO_NEAREST_INT | _MM_FROUND_NO_EXC);
+#endif
+    } else {
+      t[j] = xc[j] * 1.44269504088896341f + magic;
+      kf[j] = t[j] - magic;
+    }
+  }
+  for (int j = 0; j < K; ++j) r[j] = fmadd(kf[j], nl2hi, xc[j]);  // exact: k ln2hi has few bits
+  for (int j = 0; j < K; ++j) r[j] = fmadd(kf[j], nl2lo, r[j]);
   for (int j = 0; j < K; ++j) p[j] = fmadd(c6, r[j], c5);
   for (int j = 0; j < K; ++j) p[j] = fmadd(p[j], r[j], c4);
   for (int j = 0; j < K; ++j) p[j] = fmadd(p[j], r[j], c3);
@@ -394,8 +416,14 @@ inline void vexp_n(const Simd<float>::V* x, Simd<float>::V* out) {
   for (int j = 0; j < K; ++j) p[j] = fmadd(p[j], r[j], one);
   for (int j = 0; j < K; ++j) p[j] = fmadd(p[j], r[j], one);
   for (int j = 0; j < K; ++j) {
-    const M bits = (reinterpret_cast<const M&>(t[j]) + (127 - 0x4B400000)) << 23;  // 2^k, k in [-126, 0]
-    out[j] = p[j] * reinterpret_cast<const V&>(bits);
+    if constexpr (avx512) {
+#if defined(__AVX512F__) && defined(__AVX512VL__)
+      out[j] = (V)_mm256_scalef_ps((__m256)p[j], (__m256)kf[j]);
+#endif
+    } else {
+      const M bits = (reinterpret_cast<const M&>(t[j]) + (127 - 0x4B400000)) << 23;  // 2^k, k in [-126, 0]
+      out[j] = p[j] * reinterpret_cast<const V&>(bits);
+    }
   }
 }
 template <int K>
@@ -418,6 +446,15 @@ template <int W>
 inline void lane_span(int x0, int x1, int& c0, int& c1) {
   c0 = x0 / W;
   c1 = (x1 + W - 1) / W;
+}
+
+// The tiles, longest list first: handed out in that order (dynamic schedule), the threads finish together
+// instead of one of them ending on a long tile.
+inline std::vector<int> busiest_first(const int64_t* count, int n_tiles) {
+  std::vector<int> order(n_tiles);
+  std::iota(order.begin(), order.end(), 0);
+  std::stable_sort(order.begin(), order.end(), [&](int a, int b) { return count[a] > count[b]; });
+  return order;
 }
 
 // A tile's pixels as vectors: v = row * N + vector within the row, W lanes each.
@@ -464,8 +501,10 @@ void forward_impl(const Gauss<T>* recs, const Ref* refs, const int64_t* tstart, 
   const int n_tiles = tw * th;
   const V amax = splat<V>(Consts<T>::alpha_max), zero = splat<V>(0);
   const T amin = Consts<T>::alpha_min, tmin = Consts<T>::t_min;
+  const std::vector<int> order = busiest_first(tcount, n_tiles);
 #pragma omp parallel for schedule(dynamic, 1) num_threads(threads)
-  for (int t = 0; t < n_tiles; ++t) {
+  for (int i = 0; i < n_tiles; ++i) {
+    const int t = order[i];
     const int px0 = (t % tw) * TILE, py0 = (t / tw) * TILE;
     const int px1 = std::min(px0 + TILE, width), py1 = std::min(py0 + TILE, height);
     const int n_pix = (px1 - px0) * (py1 - py0);
@@ -554,8 +593,10 @@ void backward_impl(const Gauss<T>* recs, const Ref* refs, const int64_t* tstart,
   const int n_tiles = tw * th;
   const V amax = splat<V>(Consts<T>::alpha_max), zero = splat<V>(0);
   const T amin = Consts<T>::alpha_min;
+  const std::vector<int> order = busiest_first(tcount, n_tiles);
 #pragma omp parallel for schedule(dynamic, 1) num_threads(threads)
-  for (int t = 0; t < n_tiles; ++t) {
+  for (int i = 0; i < n_tiles; ++i) {
+    const int t = order[i];
     const int64_t s = tstart[t], cnt = tcount[t];
     if (cnt == 0) continue;
     const int px0 = (t % tw) * TILE, py0 = (t / tw) * TILE;
@@ -605,6 +646,7 @@ void backward_impl(const Gauss<T>* recs, const Ref* refs, const int64_t* tstart,
       vexp_all(pw, ex, nv);
       const T o = P.o, cr = P.cr, cg = P.cg, cbl = P.cbl, z = P.z;
       V d_o = zero, d_r = zero, d_g = zero, d_bl = zero, d_z = zero, s_yy = zero;
+      const V vcg = splat<V>(cg), vcb = splat<V>(cbl), vz = splat<V>(z);
       V s_p[N], s_yp[N];  // per lane: sum of d power, of dy d power
       for (int c = 0; c < N; ++c) s_p[c] = s_yp[c] = zero;
       for (int j = 0; j < nv; ++j) {
@@ -615,19 +657,20 @@ void backward_impl(const Gauss<T>* recs, const Ref* refs, const int64_t* tstart,
         const M active = (kk < last[v]) & (pw[j] <= T(0)) & (alpha >= amin);
         const V t_k = Tr[v] / (T(1) - alpha);  // transmittance in front of this Gaussian
         const V w = active ? alpha * t_k : zero;
-        d_r += w * Gr[v];
-        d_g += w * Gg[v];
-        d_bl += w * Gb[v];
-        d_z += w * Gz[v];
-        const V diff = Gr[v] * cr + Gg[v] * cg + Gb[v] * cbl + Gz[v] * z + Ga[v] - D[v];
+        d_r = fmadd(w, Gr[v], d_r);
+        d_g = fmadd(w, Gg[v], d_g);
+        d_bl = fmadd(w, Gb[v], d_bl);
+        d_z = fmadd(w, Gz[v], d_z);
+        const V gc = fmadd(Gz[v], vz, fmadd(Gb[v], vcb, fmadd(Gg[v], vcg, Gr[v] * cr)));
+        const V diff = (gc + Ga[v]) - D[v];
         const V d_alpha = (active & (raw <= amax)) ? diff * t_k : zero;  // clamped alpha: no gradient
-        D[v] = active ? D[v] + alpha * diff : D[v];
+        D[v] = active ? fmadd(alpha, diff, D[v]) : D[v];
         Tr[v] = active ? t_k : Tr[v];
-        d_o += ex[j] * d_alpha;
+        d_o = fmadd(ex[j], d_alpha, d_o);
         const V d_pow = raw * d_alpha;
         s_p[c] += d_pow;
-        s_yp[c] += dy * d_pow;
-        s_yy += (dy * dy) * d_pow;
+        s_yp[c] = fmadd(splat<V>(dy), d_pow, s_yp[c]);
+        s_yy = fmadd(splat<V>(dy * dy), d_pow, s_yy);
       }
       // d power / d(mx, my, a, b, c) = (a dx + b dy, b dx + c dy, -dx^2 / 2, -dx dy, -dy^2 / 2).
       V sx = zero, sxx = zero, sy = zero, sxy = zero;
