@@ -739,71 +739,114 @@ Camera make_camera(const torch::Tensor& K, const torch::Tensor& w2c, int64_t wid
   return c;
 }
 
-// Everything the forward computes for one Gaussian, kept for its backward.
+// The projection runs PL Gaussians at once, one per lane of a vector of doubles (4 with AVX, 2 with SSE2): every
+// lane does exactly the operations of the one-Gaussian formula in the same order (nothing is fused), so the
+// results are those of one Gaussian at a time, and a lane culled early computes on regardless (its results
+// are not used).
+constexpr int PL = VBYTES / int(sizeof(double));
+typedef double DV __attribute__((vector_size(PL * sizeof(double))));
+typedef int64_t DM __attribute__((vector_size(PL * sizeof(double))));
+
+inline DV bc(double x) { return splat<DV>(x); }
+inline DM finite(const DV& x) { return (x - x) == 0.0; }             // std::isfinite, lane by lane
+inline DV sel(const DM& m, const DV& a, const DV& b) { return m ? a : b; }
+inline DV vmax(const DV& a, const DV& b) { return a < b ? b : a; }  // std::max(a, b), lane by lane
+inline DV vmin(const DV& a, const DV& b) { return b < a ? b : a; }  // std::min(a, b), lane by lane
+inline DV vsqrt(const DV& x) {  // correctly rounded, like std::sqrt
+#if defined(__AVX__)
+  return (DV)_mm256_sqrt_pd((__m256d)x);  // VBYTES = 32: PL = 4
+#elif defined(__SSE2__)
+  return (DV)_mm_sqrt_pd((__m128d)x);  // PL = 2
+#else
+  DV r = x;
+  for (int i = 0; i < PL; ++i) r[i] = std::sqrt(x[i]);
+  return r;
+#endif
+}
+inline DV vexp(const DV& x) {
+  DV r = x;
+  for (int i = 0; i < PL; ++i) r[i] = std::exp(x[i]);
+  return r;
+}
+
+// Everything the forward computes for a Gaussian (a lane), kept for its backward.
 struct ProjState {
-  double m[3], qn, qh[4], s[3], Rq[9], M[9], p[3], rz, X, Y, xin, yin, W[9], A0[3], A1[3], a, b, c, det;
-  double C[3];  // A0 x A1, from the scaled minors (accurate where the rows are nearly parallel)
+  DV m[3], qn, qh[4], s[3], Rq[9], M[9], p[3], rz, X, Y, xin, yin, W[9], A0[3], A1[3], a, b, c, det;
+  DV C[3];  // A0 x A1, from the scaled minors (accurate where the rows are nearly parallel)
 };
 
-// Returns false when the Gaussian is culled before its covariance is known to be usable.
-inline bool project_one(const Camera& cam, const double* m, const double* q, const double* ls, ProjState& S) {
-  for (int i = 0; i < 3; ++i)
-    if (!std::isfinite(m[i]) || !std::isfinite(ls[i])) return false;
-  for (int i = 0; i < 4; ++i)
-    if (!std::isfinite(q[i])) return false;
-  S.qn = std::sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]);
-  if (!(S.qn > 1e-8)) return false;
+// Returns the lanes whose Gaussian is not culled before its covariance is known to be usable.
+inline DM project_one(const Camera& cam, const DV* m, const DV* q, const DV* ls, ProjState& S) {
+  DM ok = finite(m[0]) & finite(m[1]) & finite(m[2]) & finite(ls[0]) & finite(ls[1]) & finite(ls[2]);
+  ok &= finite(q[0]) & finite(q[1]) & finite(q[2]) & finite(q[3]);
+  S.qn = vsqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]);
+  ok &= S.qn > 1e-8;
   for (int i = 0; i < 3; ++i) S.m[i] = m[i];
   for (int r = 0; r < 3; ++r)
     S.p[r] = cam.R[3 * r] * m[0] + cam.R[3 * r + 1] * m[1] + cam.R[3 * r + 2] * m[2] + cam.t[r];
-  if (!(std::isfinite(S.p[0]) && std::isfinite(S.p[1]) && std::isfinite(S.p[2]) && S.p[2] > cam.near)) return false;
-  for (int i = 0; i < 4; ++i) S.qh[i] = q[i] / S.qn;
-  const double w = S.qh[0], x = S.qh[1], y = S.qh[2], z = S.qh[3];
-  const double Rq[9] = {1 - 2 * (y * y + z * z), 2 * (x * y - w * z),     2 * (x * z + w * y),
-                        2 * (x * y + w * z),     1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-                        2 * (x * z - w * y),     2 * (y * z + w * x),     1 - 2 * (x * x + y * y)};
-  for (int i = 0; i < 3; ++i) S.s[i] = std::exp(ls[i]);
+  ok &= finite(S.p[0]) & finite(S.p[1]) & finite(S.p[2]) & (S.p[2] > cam.near);
+  const DV iqn = 1.0 / S.qn;
+  for (int i = 0; i < 4; ++i) S.qh[i] = q[i] * iqn;
+  const DV w = S.qh[0], x = S.qh[1], y = S.qh[2], z = S.qh[3];
+  const DV Rq[9] = {1 - 2 * (y * y + z * z), 2 * (x * y - w * z),     2 * (x * z + w * y),
+                    2 * (x * y + w * z),     1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+                    2 * (x * z - w * y),     2 * (y * z + w * x),     1 - 2 * (x * x + y * y)};
+  for (int i = 0; i < 3; ++i) S.s[i] = vexp(ls[i]);
   for (int j = 0; j < 3; ++j)
     for (int k = 0; k < 3; ++k) {
       S.Rq[3 * j + k] = Rq[3 * j + k];
       S.M[3 * j + k] = Rq[3 * j + k] * S.s[k];
     }
   // Bq = R Rq, so W = R M = Bq diag(s); B = J Bq and A = J W = B diag(s). B also gives the determinant below.
-  double Bq[9];
+  DV Bq[9];
   for (int r = 0; r < 3; ++r)
     for (int k = 0; k < 3; ++k) {
       Bq[3 * r + k] = cam.R[3 * r] * Rq[k] + cam.R[3 * r + 1] * Rq[3 + k] + cam.R[3 * r + 2] * Rq[6 + k];
       S.W[3 * r + k] = Bq[3 * r + k] * S.s[k];
     }
   S.rz = 1.0 / S.p[2];
-  const double xr = S.p[0] * S.rz, yr = S.p[1] * S.rz;
-  S.X = std::min(std::max(xr, -cam.lxn), cam.lxp);
-  S.Y = std::min(std::max(yr, -cam.lyn), cam.lyp);
-  S.xin = (xr > -cam.lxn && xr < cam.lxp) ? 1.0 : 0.0;  // direction not clamped: J follows x
-  S.yin = (yr > -cam.lyn && yr < cam.lyp) ? 1.0 : 0.0;
-  const double j00 = cam.fx * S.rz, j02 = -cam.fx * S.X * S.rz, j11 = cam.fy * S.rz, j12 = -cam.fy * S.Y * S.rz;
-  double B0[3], B1[3];
+  const DV xr = S.p[0] * S.rz, yr = S.p[1] * S.rz;
+  S.X = vmin(vmax(xr, bc(-cam.lxn)), bc(cam.lxp));
+  S.Y = vmin(vmax(yr, bc(-cam.lyn)), bc(cam.lyp));
+  S.xin = sel((xr > -cam.lxn) & (xr < cam.lxp), bc(1.0), bc(0.0));  // direction not clamped: J follows x
+  S.yin = sel((yr > -cam.lyn) & (yr < cam.lyp), bc(1.0), bc(0.0));
+  const DV j00 = cam.fx * S.rz, j02 = -cam.fx * S.X * S.rz, j11 = cam.fy * S.rz, j12 = -cam.fy * S.Y * S.rz;
+  DV B0[3], B1[3];
   for (int k = 0; k < 3; ++k) {
     B0[k] = j00 * Bq[k] + j02 * Bq[6 + k];
     B1[k] = j11 * Bq[3 + k] + j12 * Bq[6 + k];
     S.A0[k] = B0[k] * S.s[k];
     S.A1[k] = B1[k] * S.s[k];
   }
-  const double sq0 = S.A0[0] * S.A0[0] + S.A0[1] * S.A0[1] + S.A0[2] * S.A0[2];
-  const double sq1 = S.A1[0] * S.A1[0] + S.A1[1] * S.A1[1] + S.A1[2] * S.A1[2];
+  const DV sq0 = S.A0[0] * S.A0[0] + S.A0[1] * S.A0[1] + S.A0[2] * S.A0[2];
+  const DV sq1 = S.A1[0] * S.A1[0] + S.A1[1] * S.A1[1] + S.A1[2] * S.A1[2];
   S.a = sq0 + cam.eps2d;
   S.b = S.A0[0] * S.A1[0] + S.A0[1] * S.A1[1] + S.A0[2] * S.A1[2];
   S.c = sq1 + cam.eps2d;
   // det = a c - b^2, written without its cancellation (which leaves only rounding noise, of either sign, for
   // large thin footprints): by Cauchy-Binet det(A A^T) is the sum over column pairs of
   // (s_i s_j minor_ij(B))^2, and the eps2d terms are positive. Same as projection.py.
-  const double t01 = S.s[0] * S.s[1] * (B0[0] * B1[1] - B0[1] * B1[0]);
-  const double t02 = S.s[0] * S.s[2] * (B0[0] * B1[2] - B0[2] * B1[0]);
-  const double t12 = S.s[1] * S.s[2] * (B0[1] * B1[2] - B0[2] * B1[1]);
+  const DV t01 = S.s[0] * S.s[1] * (B0[0] * B1[1] - B0[1] * B1[0]);
+  const DV t02 = S.s[0] * S.s[2] * (B0[0] * B1[2] - B0[2] * B1[0]);
+  const DV t12 = S.s[1] * S.s[2] * (B0[1] * B1[2] - B0[2] * B1[1]);
   S.det = t01 * t01 + t02 * t02 + t12 * t12 + cam.eps2d * (sq0 + sq1) + cam.eps2d * cam.eps2d;
   S.C[0] = t12, S.C[1] = -t02, S.C[2] = t01;
-  return std::isfinite(S.a) && std::isfinite(S.b) && std::isfinite(S.c) && std::isfinite(S.det) && S.det > 0 &&
-         std::isfinite(S.c / S.det) && std::isfinite(S.a / S.det);
+  ok &= finite(S.a) & finite(S.b) & finite(S.c) & finite(S.det) & (S.det > 0) & finite(S.c / S.det) &
+        finite(S.a / S.det);
+  return ok;
+}
+
+// The lanes of Gaussians i0 .. i0 + PL - 1 (those below n and with use(i)); the others get harmless inputs.
+template <typename T, typename Use>
+inline void load_lanes(const T* means, const T* quats, const T* lsc, int64_t i0, int64_t n, Use use, DV* m, DV* q,
+                       DV* ls, bool* live) {
+  for (int L = 0; L < PL; ++L) {
+    const int64_t i = i0 + L;
+    live[L] = i < n && use(i);
+    for (int k = 0; k < 3; ++k) m[k][L] = live[L] ? double(means[3 * i + k]) : 0.0;
+    for (int k = 0; k < 4; ++k) q[k][L] = live[L] ? double(quats[4 * i + k]) : (k == 0 ? 1.0 : 0.0);
+    for (int k = 0; k < 3; ++k) ls[k][L] = live[L] ? double(lsc[3 * i + k]) : 0.0;
+  }
 }
 
 template <typename T>
@@ -811,42 +854,46 @@ void project_forward_impl(const Camera& cam, const T* means, const T* quats, con
                           int threads, T* means2d, T* conics, T* depths, int32_t* radii) {
   const int tw = (cam.width + TILE - 1) / TILE, th = (cam.height + TILE - 1) / TILE;
 #pragma omp parallel for schedule(static) num_threads(threads)
-  for (int64_t i = 0; i < n; ++i) {
-    means2d[2 * i] = means2d[2 * i + 1] = T(0);
-    conics[3 * i] = conics[3 * i + 1] = conics[3 * i + 2] = T(0);
-    depths[i] = T(0);
-    radii[i] = 0;
-    if (!keep[i]) continue;
-    const double m[3] = {double(means[3 * i]), double(means[3 * i + 1]), double(means[3 * i + 2])};
-    const double q[4] = {double(quats[4 * i]), double(quats[4 * i + 1]), double(quats[4 * i + 2]),
-                         double(quats[4 * i + 3])};
-    const double ls[3] = {double(lsc[3 * i]), double(lsc[3 * i + 1]), double(lsc[3 * i + 2])};
+  for (int64_t i0 = 0; i0 < n; i0 += PL) {
+    DV m[3], q[4], ls[3];
+    bool live[PL];
+    load_lanes<T>(means, quats, lsc, i0, n, [&](int64_t i) { return keep[i]; }, m, q, ls, live);
     ProjState S;
-    if (!project_one(cam, m, q, ls, S)) continue;
-    {
-      // Cull what the storage type cannot hold, as the PyTorch projection does in that dtype: a covariance or
-      // determinant that overflows, or a conic that is not finite and positive on its diagonal.
-      const T ta = T(S.a), tc = T(S.c), tdet = T(S.det);
-      const T c0 = T(S.c / S.det), c1 = T(-S.b / S.det), c2 = T(S.a / S.det);
-      if (!(std::isfinite(double(tdet)) && tdet > T(0) && std::isfinite(double(ta)) && std::isfinite(double(tc))))
-        continue;
-      if (!(std::isfinite(double(c0)) && std::isfinite(double(c1)) && std::isfinite(double(c2)) && c0 > T(0) &&
-            c2 > T(0)))
-        continue;
+    const DM ok = project_one(cam, m, q, ls, S);
+    for (int L = 0; L < PL && i0 + L < n; ++L) {
+      const int64_t i = i0 + L;
+      means2d[2 * i] = means2d[2 * i + 1] = T(0);
+      conics[3 * i] = conics[3 * i + 1] = conics[3 * i + 2] = T(0);
+      depths[i] = T(0);
+      radii[i] = 0;
+      if (!live[L] || !ok[L]) continue;
+      const double a = S.a[L], b = S.b[L], c = S.c[L], det = S.det[L];
+      {
+        // Cull what the storage type cannot hold, as the PyTorch projection does in that dtype: a covariance or
+        // determinant that overflows, or a conic that is not finite and positive on its diagonal.
+        const T ta = T(a), tc = T(c), tdet = T(det);
+        const T c0 = T(c / det), c1 = T(-b / det), c2 = T(a / det);
+        if (!(std::isfinite(double(tdet)) && tdet > T(0) && std::isfinite(double(ta)) && std::isfinite(double(tc))))
+          continue;
+        if (!(std::isfinite(double(c0)) && std::isfinite(double(c1)) && std::isfinite(double(c2)) && c0 > T(0) &&
+              c2 > T(0)))
+          continue;
+      }
+      const double mid = 0.5 * (a + c);
+      double r = std::ceil(3.0 * std::sqrt(mid + std::sqrt(std::max(mid * mid - det, 0.1))));
+      r = std::min(r, double(1 << 24));
+      if (!(r > 0)) continue;
+      const double rz = S.rz[L];
+      const T u = T(cam.fx * S.p[0][L] * rz + cam.cx), v = T(cam.fy * S.p[1][L] * rz + cam.cy);
+      if (!std::isfinite(double(u)) || !std::isfinite(double(v))) continue;
+      int x0, x1, y0, y1;
+      tile_rect<T>(u, v, T(r), tw, th, x0, x1, y0, y1);
+      if (!(x1 > x0 && y1 > y0)) continue;
+      means2d[2 * i] = u, means2d[2 * i + 1] = v;
+      conics[3 * i] = T(c / det), conics[3 * i + 1] = T(-b / det), conics[3 * i + 2] = T(a / det);
+      depths[i] = T(S.p[2][L]);
+      radii[i] = static_cast<int32_t>(r);
     }
-    const double mid = 0.5 * (S.a + S.c);
-    double r = std::ceil(3.0 * std::sqrt(mid + std::sqrt(std::max(mid * mid - S.det, 0.1))));
-    r = std::min(r, double(1 << 24));
-    if (!(r > 0)) continue;
-    const T u = T(cam.fx * S.p[0] * S.rz + cam.cx), v = T(cam.fy * S.p[1] * S.rz + cam.cy);
-    if (!std::isfinite(double(u)) || !std::isfinite(double(v))) continue;
-    int x0, x1, y0, y1;
-    tile_rect<T>(u, v, T(r), tw, th, x0, x1, y0, y1);
-    if (!(x1 > x0 && y1 > y0)) continue;
-    means2d[2 * i] = u, means2d[2 * i + 1] = v;
-    conics[3 * i] = T(S.c / S.det), conics[3 * i + 1] = T(-S.b / S.det), conics[3 * i + 2] = T(S.a / S.det);
-    depths[i] = T(S.p[2]);
-    radii[i] = static_cast<int32_t>(r);
   }
 }
 
@@ -854,92 +901,108 @@ template <typename T>
 void project_backward_impl(const Camera& cam, const T* means, const T* quats, const T* lsc, const int32_t* radii,
                            int64_t n, const T* g_m2d, const T* g_con, const T* g_z, int threads, T* d_means,
                            T* d_quats, T* d_ls, double* d_Rt /* [n][12], summed by the caller in order */) {
-#pragma omp parallel num_threads(threads)
-  {
-#pragma omp for schedule(static)
-    for (int64_t i = 0; i < n; ++i) {
-      double* acc = d_Rt + 12 * i;
+#pragma omp parallel for schedule(static) num_threads(threads)
+  for (int64_t i0 = 0; i0 < n; i0 += PL) {
+    DV m[3], q[4], ls[3];
+    bool live[PL];
+    load_lanes<T>(means, quats, lsc, i0, n, [&](int64_t i) { return radii[i] > 0; }, m, q, ls, live);
+    for (int L = 0; L < PL && i0 + L < n; ++L) {
+      const int64_t i = i0 + L;
       for (int k = 0; k < 3; ++k) d_means[3 * i + k] = d_ls[3 * i + k] = T(0);
       for (int k = 0; k < 4; ++k) d_quats[4 * i + k] = T(0);
-      if (radii[i] <= 0) continue;  // culled: exactly zero gradient
-      const double m[3] = {double(means[3 * i]), double(means[3 * i + 1]), double(means[3 * i + 2])};
-      const double q[4] = {double(quats[4 * i]), double(quats[4 * i + 1]), double(quats[4 * i + 2]),
-                           double(quats[4 * i + 3])};
-      const double ls[3] = {double(lsc[3 * i]), double(lsc[3 * i + 1]), double(lsc[3 * i + 2])};
-      ProjState S;
-      if (!project_one(cam, m, q, ls, S)) continue;
-      const double a = S.a, b = S.b, c = S.c, det = S.det, d2 = det * det;
-      const double g0 = double(g_con[3 * i]), g1 = double(g_con[3 * i + 1]), g2 = double(g_con[3 * i + 2]);
-      // conic = (c, -b, a) / det. The numerators go through a, b, c; det through its own gradient,
-      // d det / dA0 = 2 (A1 x C + eps A0), d det / dA1 = 2 (C x A0 + eps A1) with C = A0 x A1: going through
-      // d(a c - b^2) instead would cancel huge terms for long thin footprints (as the forward would).
-      const double ga = g2 / det, gb = -g1 / det, gc = g0 / det;
-      const double gdet = -(g0 * c - g1 * b + g2 * a) / d2;
-      const double* A0 = S.A0;
-      const double* A1 = S.A1;
-      const double* C = S.C;
-      const double A1xC[3] = {A1[1] * C[2] - A1[2] * C[1], A1[2] * C[0] - A1[0] * C[2], A1[0] * C[1] - A1[1] * C[0]};
-      const double CxA0[3] = {C[1] * A0[2] - C[2] * A0[1], C[2] * A0[0] - C[0] * A0[2], C[0] * A0[1] - C[1] * A0[0]};
-      double dA0[3], dA1[3];
-      for (int k = 0; k < 3; ++k) {
-        dA0[k] = 2 * ga * A0[k] + gb * A1[k] + 2 * gdet * (A1xC[k] + cam.eps2d * A0[k]);
-        dA1[k] = gb * A0[k] + 2 * gc * A1[k] + 2 * gdet * (CxA0[k] + cam.eps2d * A1[k]);
-      }
-      const double rz = S.rz, fx = cam.fx, fy = cam.fy;
-      const double j00 = fx * rz, j02 = -fx * S.X * rz, j11 = fy * rz, j12 = -fy * S.Y * rz;
-      double dW[9];
-      double dj00 = 0, dj02 = 0, dj11 = 0, dj12 = 0;
-      for (int k = 0; k < 3; ++k) {
-        dW[k] = j00 * dA0[k];
-        dW[3 + k] = j11 * dA1[k];
-        dW[6 + k] = j02 * dA0[k] + j12 * dA1[k];
-        dj00 += dA0[k] * S.W[k];
-        dj02 += dA0[k] * S.W[6 + k];
-        dj11 += dA1[k] * S.W[3 + k];
-        dj12 += dA1[k] * S.W[6 + k];
-      }
-      // W = R M.
-      double dR[9], dM[9];
-      for (int r = 0; r < 3; ++r)
-        for (int j = 0; j < 3; ++j)
-          dR[3 * r + j] = dW[3 * r] * S.M[3 * j] + dW[3 * r + 1] * S.M[3 * j + 1] + dW[3 * r + 2] * S.M[3 * j + 2];
+    }
+    if (std::none_of(live, live + PL, [](bool b) { return b; })) continue;
+    ProjState S;
+    const DM ok = project_one(cam, m, q, ls, S);
+    DV gu, gv, gz, g0, g1, g2;
+    for (int L = 0; L < PL; ++L) {
+      const int64_t i = live[L] ? i0 + L : -1;
+      gu[L] = i >= 0 ? double(g_m2d[2 * i]) : 0.0, gv[L] = i >= 0 ? double(g_m2d[2 * i + 1]) : 0.0;
+      gz[L] = i >= 0 ? double(g_z[i]) : 0.0;
+      g0[L] = i >= 0 ? double(g_con[3 * i]) : 0.0, g1[L] = i >= 0 ? double(g_con[3 * i + 1]) : 0.0;
+      g2[L] = i >= 0 ? double(g_con[3 * i + 2]) : 0.0;
+    }
+    const DV a = S.a, b = S.b, c = S.c, det = S.det, d2 = det * det;
+    // conic = (c, -b, a) / det. The numerators go through a, b, c; det through its own gradient,
+    // d det / dA0 = 2 (A1 x C + eps A0), d det / dA1 = 2 (C x A0 + eps A1) with C = A0 x A1: going through
+    // d(a c - b^2) instead would cancel huge terms for long thin footprints (as the forward would).
+    const DV idet = 1.0 / det;
+    const DV ga = g2 * idet, gb = -g1 * idet, gc = g0 * idet;
+    const DV gdet = -(g0 * c - g1 * b + g2 * a) / d2;
+    const DV* A0 = S.A0;
+    const DV* A1 = S.A1;
+    const DV* C = S.C;
+    const DV A1xC[3] = {A1[1] * C[2] - A1[2] * C[1], A1[2] * C[0] - A1[0] * C[2], A1[0] * C[1] - A1[1] * C[0]};
+    const DV CxA0[3] = {C[1] * A0[2] - C[2] * A0[1], C[2] * A0[0] - C[0] * A0[2], C[0] * A0[1] - C[1] * A0[0]};
+    DV dA0[3], dA1[3];
+    for (int k = 0; k < 3; ++k) {
+      dA0[k] = 2 * ga * A0[k] + gb * A1[k] + 2 * gdet * (A1xC[k] + cam.eps2d * A0[k]);
+      dA1[k] = gb * A0[k] + 2 * gc * A1[k] + 2 * gdet * (CxA0[k] + cam.eps2d * A1[k]);
+    }
+    const DV rz = S.rz;
+    const double fx = cam.fx, fy = cam.fy;
+    const DV j00 = fx * rz, j02 = -fx * S.X * rz, j11 = fy * rz, j12 = -fy * S.Y * rz;
+    DV dW[9];
+    DV dj00 = bc(0), dj02 = bc(0), dj11 = bc(0), dj12 = bc(0);
+    for (int k = 0; k < 3; ++k) {
+      dW[k] = j00 * dA0[k];
+      dW[3 + k] = j11 * dA1[k];
+      dW[6 + k] = j02 * dA0[k] + j12 * dA1[k];
+      dj00 += dA0[k] * S.W[k];
+      dj02 += dA0[k] * S.W[6 + k];
+      dj11 += dA1[k] * S.W[3 + k];
+      dj12 += dA1[k] * S.W[6 + k];
+    }
+    // W = R M.
+    DV dR[9], dM[9];
+    for (int r = 0; r < 3; ++r)
       for (int j = 0; j < 3; ++j)
-        for (int k = 0; k < 3; ++k)
-          dM[3 * j + k] = cam.R[j] * dW[k] + cam.R[3 + j] * dW[3 + k] + cam.R[6 + j] * dW[6 + k];
-      // M = Rq diag(s), s = exp(log_scales).
-      double dRq[9];
-      for (int k = 0; k < 3; ++k) {
-        double ds = 0;
-        for (int j = 0; j < 3; ++j) {
-          dRq[3 * j + k] = dM[3 * j + k] * S.s[k];
-          ds += dM[3 * j + k] * S.Rq[3 * j + k];
-        }
-        d_ls[3 * i + k] = T(ds * S.s[k]);
+        dR[3 * r + j] = dW[3 * r] * S.M[3 * j] + dW[3 * r + 1] * S.M[3 * j + 1] + dW[3 * r + 2] * S.M[3 * j + 2];
+    for (int j = 0; j < 3; ++j)
+      for (int k = 0; k < 3; ++k)
+        dM[3 * j + k] = cam.R[j] * dW[k] + cam.R[3 + j] * dW[3 + k] + cam.R[6 + j] * dW[6 + k];
+    // M = Rq diag(s), s = exp(log_scales).
+    DV dRq[9], dls[3];
+    for (int k = 0; k < 3; ++k) {
+      DV ds = bc(0);
+      for (int j = 0; j < 3; ++j) {
+        dRq[3 * j + k] = dM[3 * j + k] * S.s[k];
+        ds += dM[3 * j + k] * S.Rq[3 * j + k];
       }
-      const double w = S.qh[0], x = S.qh[1], y = S.qh[2], z = S.qh[3];
-      const double* G = dRq;
-      const double dqh[4] = {
-          2 * (-z * G[1] + y * G[2] + z * G[3] - x * G[5] - y * G[6] + x * G[7]),
-          2 * (y * G[1] + z * G[2] + y * G[3] - 2 * x * G[4] - w * G[5] + z * G[6] + w * G[7] - 2 * x * G[8]),
-          2 * (-2 * y * G[0] + x * G[1] + w * G[2] + x * G[3] + z * G[5] - w * G[6] + z * G[7] - 2 * y * G[8]),
-          2 * (-2 * z * G[0] - w * G[1] + x * G[2] + w * G[3] - 2 * z * G[4] + y * G[5] + x * G[6] + y * G[7])};
-      const double dot = dqh[0] * S.qh[0] + dqh[1] * S.qh[1] + dqh[2] * S.qh[2] + dqh[3] * S.qh[3];
-      for (int k = 0; k < 4; ++k) d_quats[4 * i + k] = T((dqh[k] - S.qh[k] * dot) / S.qn);
-      // Camera point p: from the 2D mean, the depth and the Jacobian entries.
-      const double gu = double(g_m2d[2 * i]), gv = double(g_m2d[2 * i + 1]);
-      const double px = S.p[0], py = S.p[1];
-      double dp[3];
-      dp[0] = gu * fx * rz - dj02 * fx * rz * S.xin * rz;
-      dp[1] = gv * fy * rz - dj12 * fy * rz * S.yin * rz;
-      dp[2] = double(g_z[i]) - gu * fx * px * rz * rz - gv * fy * py * rz * rz - dj00 * fx * rz * rz -
-              dj11 * fy * rz * rz - dj02 * fx * (S.xin * (-px * rz * rz) * rz - S.X * rz * rz) -
-              dj12 * fy * (S.yin * (-py * rz * rz) * rz - S.Y * rz * rz);
-      // p = R m + t.
-      for (int j = 0; j < 3; ++j)
-        d_means[3 * i + j] = T(cam.R[j] * dp[0] + cam.R[3 + j] * dp[1] + cam.R[6 + j] * dp[2]);
+      dls[k] = ds * S.s[k];
+    }
+    const DV w = S.qh[0], x = S.qh[1], y = S.qh[2], z = S.qh[3];
+    const DV* G = dRq;
+    const DV dqh[4] = {
+        2 * (-z * G[1] + y * G[2] + z * G[3] - x * G[5] - y * G[6] + x * G[7]),
+        2 * (y * G[1] + z * G[2] + y * G[3] - 2 * x * G[4] - w * G[5] + z * G[6] + w * G[7] - 2 * x * G[8]),
+        2 * (-2 * y * G[0] + x * G[1] + w * G[2] + x * G[3] + z * G[5] - w * G[6] + z * G[7] - 2 * y * G[8]),
+        2 * (-2 * z * G[0] - w * G[1] + x * G[2] + w * G[3] - 2 * z * G[4] + y * G[5] + x * G[6] + y * G[7])};
+    const DV dot = dqh[0] * S.qh[0] + dqh[1] * S.qh[1] + dqh[2] * S.qh[2] + dqh[3] * S.qh[3];
+    const DV iqn = 1.0 / S.qn;
+    DV dq[4];
+    for (int k = 0; k < 4; ++k) dq[k] = (dqh[k] - S.qh[k] * dot) * iqn;
+    // Camera point p: from the 2D mean, the depth and the Jacobian entries.
+    const DV px = S.p[0], py = S.p[1];
+    DV dp[3];
+    dp[0] = gu * fx * rz - dj02 * fx * rz * S.xin * rz;
+    dp[1] = gv * fy * rz - dj12 * fy * rz * S.yin * rz;
+    dp[2] = gz - gu * fx * px * rz * rz - gv * fy * py * rz * rz - dj00 * fx * rz * rz - dj11 * fy * rz * rz -
+            dj02 * fx * (S.xin * (-px * rz * rz) * rz - S.X * rz * rz) -
+            dj12 * fy * (S.yin * (-py * rz * rz) * rz - S.Y * rz * rz);
+    // p = R m + t.
+    DV dmean[3];
+    for (int j = 0; j < 3; ++j) dmean[j] = cam.R[j] * dp[0] + cam.R[3 + j] * dp[1] + cam.R[6 + j] * dp[2];
+    for (int L = 0; L < PL; ++L) {
+      if (!live[L] || !ok[L]) continue;  // culled: exactly zero gradient
+      const int64_t i = i0 + L;
+      for (int k = 0; k < 3; ++k) d_ls[3 * i + k] = T(dls[k][L]);
+      for (int k = 0; k < 4; ++k) d_quats[4 * i + k] = T(dq[k][L]);
+      for (int j = 0; j < 3; ++j) d_means[3 * i + j] = T(dmean[j][L]);
+      double* acc = d_Rt + 12 * i;
       for (int r = 0; r < 3; ++r) {
-        for (int j = 0; j < 3; ++j) acc[3 * r + j] += dR[3 * r + j] + dp[r] * S.m[j];
-        acc[9 + r] += dp[r];
+        for (int j = 0; j < 3; ++j) acc[3 * r + j] += dR[3 * r + j][L] + dp[r][L] * S.m[j][L];
+        acc[9 + r] += dp[r][L];
       }
     }
   }
