@@ -99,17 +99,17 @@ class _RasterizeCPU(torch.autograd.Function):
     def forward(ctx, means2d, conics, opacities, colors, depths, background, radii, width, height):
         mod = _load()
         threads = torch.get_num_threads()
-        rgb, alpha, depth, final_T, last, ids, tstart, tcount, recs, refs = mod.forward(
+        rgb, alpha, depth, final_T, last, _ids, tstart, tcount, recs, refs, gpos = mod.forward(
             means2d, conics, opacities, colors, depths, radii, background, width, height, threads
         )
         # The backward reads the Gaussians from the forward's packed records, not from the inputs.
-        ctx.save_for_backward(background, recs, refs, ids, tstart, tcount, final_T, last)
+        ctx.save_for_backward(background, recs, refs, gpos, tstart, tcount, final_T, last)
         ctx.size = (width, height, means2d.shape[0])
         return rgb, alpha, depth
 
     @staticmethod
     def backward(ctx, g_rgb, g_alpha, g_depth):
-        background, recs, refs, ids, tstart, tcount, final_T, last = ctx.saved_tensors
+        background, recs, refs, gpos, tstart, tcount, final_T, last = ctx.saved_tensors
         width, height, n = ctx.size
         g_rgb = torch.zeros_like(final_T)[..., None].expand(-1, -1, 3) if g_rgb is None else g_rgb
         g_alpha = torch.zeros_like(final_T) if g_alpha is None else g_alpha
@@ -117,7 +117,7 @@ class _RasterizeCPU(torch.autograd.Function):
         g_m, g_con, g_o, g_col, g_z = _load().backward(
             recs,
             refs,
-            ids,
+            gpos,
             tstart,
             tcount,
             background,

@@ -104,7 +104,9 @@ inline void tile_rect(T u, T v, T r, int tw, int th, int& x0, int& x1, int& y0, 
 template <typename T>
 struct alignas(sizeof(T) == 4 ? 64 : 32) Gauss {
   T mx, my, ca, cb, cc, o, cr, cg, cbl, z;
-  int32_t g;  // Gaussian index
+  int32_t g;       // Gaussian index
+  int32_t first;   // its pairs are Bins::gpos[first .. first + npairs), in tile order
+  int32_t npairs;
 };
 static_assert(sizeof(Gauss<float>) == 64 && sizeof(Gauss<double>) == 96, "record layout");
 
@@ -123,6 +125,7 @@ struct Bins {
   torch::Tensor ids;           // [M] int32 Gaussian index per (tile, Gaussian) pair, front to back within a tile
   torch::Tensor refs;          // [M] int64: the pairs (Ref) in the same order
   torch::Tensor recs;          // [visible * sizeof(Gauss<T>)] uint8: the records, front to back
+  torch::Tensor gpos;          // [M] int32: the pairs (their place in the tile lists) grouped by Gaussian
 };
 
 // The Gaussians with radius > 0 front to back, ties by index (what a stable sort by depth gives): an LSD radix
@@ -226,6 +229,15 @@ Bins<T> bin_gaussians(const T* means2d, const T* conics, const T* opac, const T*
     R.cr = colors[3 * g], R.cg = colors[3 * g + 1], R.cbl = colors[3 * g + 2];
     R.z = depths[g];
     R.g = g;
+    R.npairs = (span[k].tx1 - span[k].tx0) * (span[k].ty1 - span[k].ty0);
+  }
+  {
+    int64_t first = 0;
+    for (int64_t k = 0; k < nv; ++k) {
+      rec[k].first = static_cast<int32_t>(first);
+      first += rec[k].npairs;
+    }
+    TORCH_CHECK(first < (int64_t(1) << 31), "more than 2^31 (tile, Gaussian) pairs; use the reference backend");
   }
   const int nchunk = std::max(1, threads);
   std::vector<int64_t> slot(nchunk * nt, 0);  // [chunk][tile]: pairs, then first slot
@@ -252,7 +264,9 @@ Bins<T> bin_gaussians(const T* means2d, const T* conics, const T* opac, const T*
   }
   bins.ids = torch::empty({total}, torch::dtype(torch::kInt32));
   bins.refs = torch::empty({total}, torch::dtype(torch::kInt64));
+  bins.gpos = torch::empty({total}, torch::dtype(torch::kInt32));
   int32_t* ids = bins.ids.template data_ptr<int32_t>();
+  int32_t* gpos = bins.gpos.template data_ptr<int32_t>();
   Ref* refs = reinterpret_cast<Ref*>(bins.refs.template data_ptr<int64_t>());
 #pragma omp parallel for schedule(static, 1) num_threads(threads)
   for (int c = 0; c < nchunk; ++c) {
@@ -261,6 +275,7 @@ Bins<T> bin_gaussians(const T* means2d, const T* conics, const T* opac, const T*
       const Span& S = span[k];
       Ref R;
       R.k = static_cast<int32_t>(k);
+      int32_t* pos = gpos + rec[k].first;
       for (int ty = S.ty0; ty < S.ty1; ++ty) {
         const int py0 = ty * TILE, py1 = std::min(py0 + TILE, height);
         R.y0 = static_cast<uint8_t>(std::max(py0, S.ry0) - py0);
@@ -272,6 +287,7 @@ Bins<T> bin_gaussians(const T* means2d, const T* conics, const T* opac, const T*
           const int64_t j = fill[int64_t(ty) * tw + tx]++;
           ids[j] = order[k];
           refs[j] = R;
+          *pos++ = static_cast<int32_t>(j);
         }
       }
     }
@@ -688,23 +704,23 @@ void backward_impl(const Gauss<T>* recs, const Ref* refs, const int64_t* tstart,
   }
 }
 
-// Sum the per-(tile, Gaussian) slots into per-Gaussian gradients, in pair order (deterministic): each thread owns
-// a range of Gaussians and adds the slots of its own, so the order does not depend on the thread count.
+// Sum the per-(tile, Gaussian) slots into per-Gaussian gradients: per record (parallel), its slots in tile order
+// (deterministic whatever the threads), found through gpos.
 template <typename T>
-void sum_pairs(const T* pair_grad, const int32_t* ids, int64_t m, int64_t n, int threads, T* grad) {
-#pragma omp parallel num_threads(std::max(1, threads))
-  {
-#ifdef _OPENMP
-    const int64_t me = omp_get_thread_num(), all = omp_get_num_threads();
-#else
-    const int64_t me = 0, all = 1;
-#endif
-    const int64_t lo = n * me / all, hi = n * (me + 1) / all;
-    for (int64_t j = 0; j < m; ++j) {
-      const int64_t g = ids[j];
-      if (g < lo || g >= hi) continue;
-      for (int c = 0; c < NGRAD; ++c) grad[g * NGRAD + c] += pair_grad[j * NGRAD + c];
+void sum_pairs(const T* pair_grad, const Gauss<T>* recs, const int32_t* gpos, int64_t nv, int threads, T* grad) {
+#pragma omp parallel for schedule(static) num_threads(std::max(1, threads))
+  for (int64_t k = 0; k < nv; ++k) {
+    if (k + 4 < nv)
+      for (int i = 0; i < std::min(recs[k + 4].npairs, 4); ++i)
+        __builtin_prefetch(pair_grad + int64_t(gpos[recs[k + 4].first + i]) * NGRAD);
+    T acc[NGRAD] = {};
+    const int32_t* pos = gpos + recs[k].first;
+    for (int i = 0; i < recs[k].npairs; ++i) {
+      const T* p = pair_grad + int64_t(pos[i]) * NGRAD;
+      for (int c = 0; c < NGRAD; ++c) acc[c] += p[c];
     }
+    T* out = grad + int64_t(recs[k].g) * NGRAD;
+    for (int c = 0; c < NGRAD; ++c) out[c] = acc[c];
   }
 }
 
@@ -1019,7 +1035,8 @@ void check(const torch::Tensor& t, const char* name, int64_t n, int64_t cols) {
 
 // Returns rgb [H,W,3], alpha [H,W], depth [H,W], final_T [H,W], last [H,W] int32, ids [M] int32,
 // tile_start [n_tiles] int64, tile_count [n_tiles] int64, and what the backward reads besides: recs
-// [visible * record size] uint8 (the Gaussian records, depth order) and refs [M] int64 (the packed pairs).
+// [visible * record size] uint8 (the Gaussian records, depth order), refs [M] int64 (the packed pairs) and
+// gpos [M] int32 (the pairs grouped by Gaussian).
 std::vector<torch::Tensor> rasterize_forward(torch::Tensor means2d, torch::Tensor conics, torch::Tensor opac,
                                              torch::Tensor colors, torch::Tensor depths, torch::Tensor radii,
                                              torch::Tensor bg, int64_t width, int64_t height, int64_t threads) {
@@ -1038,7 +1055,7 @@ std::vector<torch::Tensor> rasterize_forward(torch::Tensor means2d, torch::Tenso
   auto depth = torch::empty({height, width}, opts);
   auto final_T = torch::empty({height, width}, opts);
   auto last = torch::empty({height, width}, opts.dtype(torch::kInt32));
-  torch::Tensor ids, tstart, tcount, recs, refs;
+  torch::Tensor ids, tstart, tcount, recs, refs, gpos;
   AT_DISPATCH_FLOATING_TYPES(means2d.scalar_type(), "rasterize_forward", [&] {
     Bins<scalar_t> bins = bin_gaussians<scalar_t>(
         means2d.data_ptr<scalar_t>(), conics.data_ptr<scalar_t>(), opac.data_ptr<scalar_t>(),
@@ -1051,20 +1068,20 @@ std::vector<torch::Tensor> rasterize_forward(torch::Tensor means2d, torch::Tenso
     tcount = torch::empty({nt}, opts.dtype(torch::kInt64));
     std::copy(bins.start.begin(), bins.start.end(), tstart.data_ptr<int64_t>());
     std::copy(bins.count.begin(), bins.count.end(), tcount.data_ptr<int64_t>());
-    ids = bins.ids, recs = bins.recs, refs = bins.refs;
+    ids = bins.ids, recs = bins.recs, refs = bins.refs, gpos = bins.gpos;
     forward_impl<scalar_t>(reinterpret_cast<const Gauss<scalar_t>*>(recs.data_ptr<uint8_t>()),
                            reinterpret_cast<const Ref*>(refs.data_ptr<int64_t>()), tstart.data_ptr<int64_t>(),
                            tcount.data_ptr<int64_t>(), bg.data_ptr<scalar_t>(), int(width), int(height),
                            int(threads), rgb.data_ptr<scalar_t>(), alpha.data_ptr<scalar_t>(),
                            depth.data_ptr<scalar_t>(), final_T.data_ptr<scalar_t>(), last.data_ptr<int32_t>());
   });
-  return {rgb, alpha, depth, final_T, last, ids, tstart, tcount, recs, refs};
+  return {rgb, alpha, depth, final_T, last, ids, tstart, tcount, recs, refs, gpos};
 }
 
 // Returns gradients: means2d [N,2], conics [N,3], opacities [N], colors [N,3], depths [N]; n = N, and the other
-// tensors as the forward returned them (recs, refs, ids, tile_start, tile_count, final_T, last) or was passed
+// tensors as the forward returned them (recs, refs, gpos, tile_start, tile_count, final_T, last) or was passed
 // them (bg).
-std::vector<torch::Tensor> rasterize_backward(torch::Tensor recs, torch::Tensor refs, torch::Tensor ids,
+std::vector<torch::Tensor> rasterize_backward(torch::Tensor recs, torch::Tensor refs, torch::Tensor gpos,
                                               torch::Tensor tstart, torch::Tensor tcount, torch::Tensor bg,
                                               torch::Tensor final_T, torch::Tensor last, torch::Tensor g_rgb,
                                               torch::Tensor g_alpha, torch::Tensor g_depth, int64_t n, int64_t width,
@@ -1085,8 +1102,8 @@ std::vector<torch::Tensor> rasterize_backward(torch::Tensor recs, torch::Tensor 
   TORCH_CHECK(recs.is_contiguous() && recs.scalar_type() == torch::kUInt8, "recs must be the forward's uint8 tensor");
   TORCH_CHECK(refs.is_contiguous() && refs.scalar_type() == torch::kInt64, "refs must be the forward's int64 tensor");
   const int64_t m = refs.numel();
-  TORCH_CHECK(ids.is_contiguous() && ids.scalar_type() == torch::kInt32 && ids.numel() == m,
-              "ids must be the forward's int32 tensor, one per pair");
+  TORCH_CHECK(gpos.is_contiguous() && gpos.scalar_type() == torch::kInt32 && gpos.numel() == m,
+              "gpos must be the forward's int32 tensor, one per pair");
   auto opts = final_T.options();
   auto grad = torch::zeros({n, NGRAD}, opts);
   AT_DISPATCH_FLOATING_TYPES(final_T.scalar_type(), "rasterize_backward", [&] {
@@ -1099,18 +1116,25 @@ std::vector<torch::Tensor> rasterize_backward(torch::Tensor recs, torch::Tensor 
     const int64_t* ct = tcount.data_ptr<int64_t>();
     for (int64_t t = 0; t < nt; ++t)
       TORCH_CHECK(st[t] >= 0 && ct[t] >= 0 && st[t] + ct[t] <= m, "tile lists outside the pairs");
-    const int32_t* id = ids.data_ptr<int32_t>();
+    const int32_t* pos = gpos.data_ptr<int32_t>();
     for (int64_t j = 0; j < m; ++j)
-      TORCH_CHECK(id[j] >= 0 && id[j] < n && ref[j].k >= 0 && ref[j].k < nv && ref[j].x1 <= TILE &&
+      TORCH_CHECK(pos[j] >= 0 && pos[j] < m && ref[j].k >= 0 && ref[j].k < nv && ref[j].x1 <= TILE &&
                       ref[j].y1 <= TILE,
-                  "pairs outside the Gaussians or records");
+                  "pairs outside the records");
+    int64_t slots = 0;
+    for (int64_t k = 0; k < nv; ++k) {
+      TORCH_CHECK(rec[k].g >= 0 && rec[k].g < n && rec[k].first == slots && rec[k].npairs >= 0,
+                  "records do not match these Gaussians");
+      slots += rec[k].npairs;
+    }
+    TORCH_CHECK(slots == m, "records and pairs do not match");
     // Every slot of a listed pair is written (zeros where no pixel composites it).
     auto pair_grad = torch::empty({m, NGRAD}, opts);
     scalar_t* pg = pair_grad.data_ptr<scalar_t>();
     backward_impl<scalar_t>(rec, ref, st, ct, bg.data_ptr<scalar_t>(), final_T.data_ptr<scalar_t>(),
                             last.data_ptr<int32_t>(), g_rgb.data_ptr<scalar_t>(), g_alpha.data_ptr<scalar_t>(),
                             g_depth.data_ptr<scalar_t>(), int(width), int(height), int(threads), pg);
-    sum_pairs<scalar_t>(pg, id, m, n, int(threads), grad.data_ptr<scalar_t>());
+    sum_pairs<scalar_t>(pg, rec, pos, nv, int(threads), grad.data_ptr<scalar_t>());
   });
   using torch::indexing::Slice;
   return {grad.index({Slice(), Slice(0, 2)}), grad.index({Slice(), Slice(2, 5)}), grad.index({Slice(), 5}),
