@@ -8,11 +8,15 @@
 // below), which every pixel would skip anyway: the result is the same, the lists are shorter.
 // Pixel (i, j) has its centre at (u, v) = (j, i).
 //
+// Layout: the forward bins once (Bins: per visible Gaussian a 64-byte record in depth order, per (tile,
+// Gaussian) pair an 8-byte reference to it and the tile's part of the reach box) and composites tile by tile,
+// reading the records through the pairs; the backward reads the same records and pairs (saved by the forward).
+//
 // Backward: per pixel, walk the composited Gaussians back to front, recovering T before each one by division
-// (1 - alpha >= 0.01) and keeping B, the normalised colour behind it, so that d out / d alpha_k = T_k (c_k - B_k)
-// for every channel (r, g, b over the background, depth over 0, and the alpha channel as colour 1 over 0).
-// Each (tile, Gaussian) pair owns a gradient slot, so tiles run in parallel without atomics and the sum over
-// tiles is deterministic.
+// (1 - alpha >= 0.01); d out / d alpha_k = T_k (c_k - B_k) for every channel (r, g, b over the background,
+// depth over 0, and the alpha channel as colour 1 over 0), B_k the normalised colour behind it, of which only
+// the sum weighted by dL/d(out) is kept (backward_impl). Each (tile, Gaussian) pair owns a gradient slot, so
+// tiles run in parallel without atomics, and the slots are summed per Gaussian in tile order: deterministic.
 
 #include <torch/extension.h>
 
