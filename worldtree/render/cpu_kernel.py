@@ -99,40 +99,34 @@ class _RasterizeCPU(torch.autograd.Function):
     def forward(ctx, means2d, conics, opacities, colors, depths, background, radii, width, height):
         mod = _load()
         threads = torch.get_num_threads()
-        rgb, alpha, depth, final_T, last, ids, tstart, tcount, reach = mod.forward(
+        rgb, alpha, depth, final_T, last, _ids, tstart, tcount, recs, refs, gpos = mod.forward(
             means2d, conics, opacities, colors, depths, radii, background, width, height, threads
         )
-        ctx.save_for_backward(
-            means2d, conics, opacities, colors, depths, background, reach, ids, tstart, tcount, final_T, last
-        )
-        ctx.size = (width, height)
+        # The backward reads the Gaussians from the forward's packed records, not from the inputs.
+        ctx.save_for_backward(background, recs, refs, gpos, tstart, tcount, final_T, last)
+        ctx.size = (width, height, means2d.shape[0])
         return rgb, alpha, depth
 
     @staticmethod
     def backward(ctx, g_rgb, g_alpha, g_depth):
-        means2d, conics, opacities, colors, depths, background, reach, ids, tstart, tcount, final_T, last = (
-            ctx.saved_tensors
-        )
-        width, height = ctx.size
+        background, recs, refs, gpos, tstart, tcount, final_T, last = ctx.saved_tensors
+        width, height, n = ctx.size
         g_rgb = torch.zeros_like(final_T)[..., None].expand(-1, -1, 3) if g_rgb is None else g_rgb
         g_alpha = torch.zeros_like(final_T) if g_alpha is None else g_alpha
         g_depth = torch.zeros_like(final_T) if g_depth is None else g_depth
         g_m, g_con, g_o, g_col, g_z = _load().backward(
-            means2d,
-            conics,
-            opacities,
-            colors,
-            depths,
-            background,
-            reach,
-            ids,
+            recs,
+            refs,
+            gpos,
             tstart,
             tcount,
+            background,
             final_T,
             last,
             g_rgb.contiguous(),
             g_alpha.contiguous(),
             g_depth.contiguous(),
+            n,
             width,
             height,
             torch.get_num_threads(),

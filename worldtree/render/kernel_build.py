@@ -11,8 +11,9 @@ Three targets are compiled from the same source:
 ``WORLDTREE_RASTER_TARGET`` (``auto``, ``native``, ``avx2`` or ``portable``) chooses; ``auto`` (the default)
 takes ``native``, falls back to ``avx2`` where this CPU has it and then to ``portable`` (:func:`auto_order`).
 The kernel sizes its SIMD vectors from the target's instruction set, so every target computes the same image
-formation; their float results differ only by summation order. ``-ffp-contract=off`` keeps ``-mfma`` from
-fusing any multiply-add, so the AVX2 build rounds like the others.
+formation. ``-ffp-contract=off`` keeps the compiler from fusing multiply-adds, so the compositing rounds the same
+on every target; the float ``exp`` and the backward's gradient sums use FMA explicitly where the target has it,
+so the float results of the targets differ by a few roundings there (and by the order of the gradient sums).
 
 Cache: ``$TORCH_EXTENSIONS_DIR/worldtree/<name>`` (default root ``~/.cache/torch_extensions``), where the name
 carries a hash of everything that changes the built library: the source, the compile flags, the target, the
@@ -43,7 +44,8 @@ SOURCE = Path(__file__).parent / "csrc" / "rasterize_cpu.cpp"
 TARGETS = ("native", "avx2", "portable")
 ENV_TARGET = "WORLDTREE_RASTER_TARGET"
 
-# -ffp-contract=off: no fused multiply-adds, so the compositing rounds exactly like the PyTorch reference.
+# -ffp-contract=off: no fused multiply-adds the source does not ask for (the forward's compositing is unfused and
+# rounds like the PyTorch reference; the exp and the backward's sums ask for FMA explicitly).
 # No -ffast-math: the kernel's NaN guards (comparisons that are false for NaN) must keep their meaning.
 COMMON_CFLAGS = ("-O3", "-fopenmp", "-ffp-contract=off", "-std=c++17")
 LDFLAGS = ("-fopenmp",)
