@@ -304,11 +304,10 @@ def prior_use(c: BaseConfig, sources: dict[str, str]) -> dict[str, dict[str, Any
     ``what`` names the use and its weight (the config field and its value); a stage switched off by an
     ablation or a zero weight is left out. ``flow`` enters only through the masks and tracks it is chained
     into (stage ``priors``, and ``motion`` when the masks are refined)."""
-    ba = c.ba.enabled and "ba" not in c.ablate
-    sw = c.sw.enabled and "sw" not in c.ablate
+    # A stage switched off in its own settings is already in ``ablate`` (BaseConfig.__post_init__).
+    ba, sw = "ba" not in c.ablate, "sw" not in c.ablate
     ph = c.photometric
-    refine = c.refine_masks and c.priors.motion.enabled and c.priors.masks_source is None
-    classical_depth = sources.get("depth") == "classical"
+    refine = _refines_masks(c)
     depth: dict[str, str] = {}
     if ba:
         depth["ba"] = f"per-frame depth scales of the static tracks, ba.lambda_depth {c.ba.lambda_depth}"
@@ -318,8 +317,8 @@ def prior_use(c: BaseConfig, sources: dict[str, str]) -> dict[str, dict[str, Any
             depth["sw"] += f"; relative depth loss, sw.lambda_depth {c.sw.lambda_depth}"
     depth["scaffold"] = (
         "dynamic tracks and Gaussians lifted from it"
-        + ("; on moving pixels replaced by the tracks' trajectory depth" if classical_depth
-           and c.scaffold.trajectory_depth else "")
+        + ("; on moving pixels replaced by the tracks' trajectory depth" if _uses_trajectory_depth(c, sources)
+           else "")
     )  # fmt: skip
     if ph.lambda_depth > 0:
         depth["photometric"] = f"scale-and-shift-invariant depth L1, photometric.lambda_depth {ph.lambda_depth}"
@@ -338,6 +337,18 @@ def prior_use(c: BaseConfig, sources: dict[str, str]) -> dict[str, dict[str, Any
         flow["motion"] = "tracks re-chained inside the refined masks"
     out = {"depth": depth, "masks": masks, "tracks": tracks, "flow": flow}
     return {k: {"source": sources.get(k, "classical"), "used_in": v} for k, v in out.items()}
+
+
+def _refines_masks(c: BaseConfig) -> bool:
+    """Whether the motion stage refines the priors' masks (given motion evidence): ``refine_masks`` with motion
+    discovery on and no imported masks."""
+    return c.refine_masks and c.priors.motion.enabled and c.priors.masks_source is None
+
+
+def _uses_trajectory_depth(c: BaseConfig, sources: dict[str, str]) -> bool:
+    """Whether the scaffold stage replaces the depth of moving pixels by the tracks' trajectory depth: only the
+    classical prior is a static-world estimate there; imported depth measures the moving objects."""
+    return c.scaffold.trajectory_depth and sources.get("depth") == "classical"
 
 
 def _adjust(s: BaseState, enabled: bool) -> None:
@@ -416,7 +427,7 @@ def stage_motion(s: BaseState) -> None:
     and the motion proof read it."""
     c, sc, pri = s.cfg, s.scene, s.priors
     pc = c.priors
-    if not (c.refine_masks and pc.motion.enabled and pc.masks_source is None and pri.motion_evidence):
+    if not (_refines_masks(c) and pri.motion_evidence):
         return
     T, H, W = sc.images.shape[:3]
     st = s.static
@@ -527,8 +538,7 @@ def stage_scaffold(s: BaseState) -> None:
     scale = float(valid_depth.median()) if valid_depth.numel() else 1.0
     tracks = P["tracks"].float()[:, dyn_ids]
     vis = P["track_vis"][:, dyn_ids]
-    # Only the classical prior is a static-world estimate on moving objects; imported depth measures them.
-    if dyn_ids.numel() and c.scaffold.trajectory_depth and s.priors.sources.get("depth") == "classical":
+    if dyn_ids.numel() and _uses_trajectory_depth(c, s.priors.sources):
         depth = s.depth = _trajectory_depth(s, tracks, vis, scale)
     if dyn_ids.numel() == 0:
         scf = Scaffold.empty(sc.num_frames, c.scaffold.unit_ratio * scale, c.scaffold, device=s.device)

@@ -326,7 +326,7 @@ class NodeFit(PhotometricFit):
         # Frozen ancestors draw the same Gaussians at a frame every step: deform them once per frame (their
         # re-attachment is deterministic, so the memo stays exact) unless that would hold too much memory.
         n = sum(len(a.dynamic) for a in self.chain)
-        frozen = self.anc_opt is None and not any(a.trainable for a in self.chain)
+        frozen = not any(a.trainable for a in self.chain)
         self._anc_memo: dict[int, tuple[torch.Tensor, ...]] | None = (
             {} if frozen and n * self.T * 14 * 4 <= _ANCESTOR_MEMO_BYTES else None
         )
@@ -361,7 +361,7 @@ class NodeFit(PhotometricFit):
     def coupling_extra(self, j: int):
         """The ancestors as they draw node-local frame ``j`` (fixed in the neighbour coupling)."""
         with torch.no_grad():
-            return chain_gaussians_at(self.chain, self.t0 + int(j))
+            return self._ancestors_at(int(j))
 
     def track_means_at(self, j: int) -> torch.Tensor:
         """The root's track loss also colours the ancestors' Gaussians by their pixel in frame ``j``."""
