@@ -38,7 +38,7 @@ import numpy as np
 import torch
 
 from methods.model_folder import read_model_json
-from methods.registry import CommonConfig, MethodSpec, register_method, settings_of
+from methods.registry import QUICK_FULL_SIZE_PIXELS, CommonConfig, MethodSpec, register_method, settings_of
 from methods.stages import Ablation, Stage, run_stages, with_ablations
 from methods.static3dgs import scene_extent
 from worldtree.budget import node_budget
@@ -190,10 +190,11 @@ def paper_config(cls: type[BaseConfig] = BaseConfig, **fields: Any) -> BaseConfi
 
 def quick_config(cls: type[BaseConfig] = BaseConfig, **fields: Any) -> BaseConfig:
     """CPU-friendly schedule for a small scene: BA 300, SW 300, scaffold fit 100, photometric 600, test pose
-    60/10, half resolution, fewer initial Gaussians."""
+    60/10, half resolution (full resolution for a video of at most 2,000,000 pixels), fewer initial Gaussians."""
     return cls(
         steps=600,
         downscale=2,
+        full_size_pixels=QUICK_FULL_SIZE_PIXELS,
         ba=BundleAdjustConfig(steps=300, max_tracks=4000),
         sw=quick_static_warmup_config(),
         scaffold_fit=ScaffoldFitConfig(steps=100),

@@ -20,7 +20,7 @@ import numpy as np
 import torch
 
 from methods.model_folder import read_model_json
-from methods.registry import CommonConfig, MethodSpec, register_method
+from methods.registry import QUICK_FULL_SIZE_PIXELS, CommonConfig, MethodSpec, register_method
 from worldtree.budget import growth_cap, negligible, node_budget, render_contributions
 from worldtree.gaussian_frame import GaussianFrame, RenderMode, render_frame
 from worldtree.gaussians import GaussianSet
@@ -99,11 +99,12 @@ def paper_config() -> StaticConfig:
 
 
 def quick_config() -> StaticConfig:
-    """CPU-friendly: 1500 steps at half resolution, densify every 100 steps from 200 to 1000, no opacity reset,
+    """CPU-friendly: 1500 steps at half resolution (full resolution for a video of at most 2,000,000 pixels), densify every 100 steps from 200 to 1000, no opacity reset,
     view-independent colour."""
     return StaticConfig(
         steps=1500,
         downscale=2,
+        full_size_pixels=QUICK_FULL_SIZE_PIXELS,
         init_num_points=5_000,
         sh_degree=0,
         strategy=DensifyStrategy(

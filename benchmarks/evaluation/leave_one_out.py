@@ -2,7 +2,8 @@
 
 For each held-out training frame k: train a method on the other frames (re-indexed 0..T-2, times kept in
 order), render frame k's camera at frame k's time -- a view and a time the model never saw -- and score it
-against frame k at the method's working size: PSNR on the uint8 images, and masked PSNR (the `worldtree`
+against frame k at the method's working size (``--score-size full``: rendered and scored at the scene's own
+size, as the NVIDIA protocol scores at 480x270 whatever the training size): PSNR on the uint8 images, and masked PSNR (the `worldtree`
 protocol's: PSNR of the masked pixels' values) when the scene has a mask for frame k (``--masks DIR``, one
 per frame); both from :mod:`benchmarks.evaluation.metrics`.
 
@@ -124,8 +125,12 @@ def _to_u8(img: torch.Tensor) -> np.ndarray:
     return np.clip(np.round(img.detach().cpu().numpy() * 255.0), 0, 255).astype(np.uint8)
 
 
-def run_one(args, spec, cfg, scene: Scene, k: int, device, prior_dirs: dict[str, Path], out: Path) -> dict:
-    """Train ``spec`` on ``scene`` minus frame k, render frame k's camera at time k, score it."""
+def run_one(
+    args, spec, cfg, scene: Scene, k: int, device, prior_dirs: dict[str, Path], out: Path,
+    score_scene: Scene | None = None,
+) -> dict:
+    """Train ``spec`` on ``scene`` minus frame k, render frame k's camera at time k, score it (against
+    ``score_scene``'s frame k and through its camera when given: the same scene at another size)."""
     from worldtree.trainer import TrainContext
 
     sub = drop_frame(scene, k)
@@ -144,12 +149,14 @@ def run_one(args, spec, cfg, scene: Scene, k: int, device, prior_dirs: dict[str,
         t0 = time.perf_counter()
         method.fit(TrainContext(checkpoint_dir=None, progress=args.progress, resume=False))
         train_s = time.perf_counter() - t0
-    H, W = scene.height, scene.width
-    K, w2c = scene.Ks[k], scene.w2cs[k]
+    target = score_scene if score_scene is not None else scene
+    H, W = target.height, target.width
+    K, w2c = target.Ks[k], target.w2cs[k]
     t_k = k - 0.5  # frame k's time: halfway between the kept frames k-1 and k+1, re-indexed k-1 and k
-    pred, gt = _to_u8(render_between(method, K, w2c, W, H, t_k)), _to_u8(scene.images[k])
+    pred, gt = _to_u8(render_between(method, K, w2c, W, H, t_k)), _to_u8(target.images[k])
     write_image(out / f"k{k:02d}_{spec.name}.png", pred)
-    row = {"k": k, "method": spec.name, "psnr": score(pred, gt), "train_s": round(train_s, 1)}
+    row = {"k": k, "method": spec.name, "psnr": score(pred, gt), "train_s": round(train_s, 1),
+           "scored_size": [W, H]}
     stats = method.stats()
     node = node_at(method, t_k)
     if node is not None:  # a method with a tree: the node that drew time k, the tree's nodes and decisions
@@ -161,7 +168,7 @@ def run_one(args, spec, cfg, scene: Scene, k: int, device, prior_dirs: dict[str,
     # k+1 is a fitting problem, a sharp fit there and a blur at k an interpolation problem.
     row["psnr_train_neighbours"] = {}
     for side, t in (("prev", k - 1), ("next", k)):
-        got = _to_u8(render_training_frame(method, sub.Ks[t], sub.w2cs[t], W, H, t))
+        got = _to_u8(render_training_frame(method, sub.Ks[t], sub.w2cs[t], sub.width, sub.height, t))
         write_image(out / f"k{k:02d}_{spec.name}_{side}.png", got)
         row["psnr_train_neighbours"][side] = score(got, _to_u8(sub.images[t]))
     if args.masks is not None:
@@ -200,6 +207,10 @@ def main(argv: list[str] | None = None) -> None:
                         help=f"Override the steps of method {spec.name} only.")  # fmt: skip
     ap.add_argument("--seed", type=int, default=None)
     ap.add_argument("--downscale", type=int, default=None, help="Override the preset's image shrink.")
+    ap.add_argument(
+        "--score-size", default="train", choices=("train", "full"),
+        help="Render and score frame k at the method's training size (default) or at the scene's own size.",
+    )
     ap.add_argument("--device", default="auto")
     ap.add_argument("--depth-maps", type=Path, default=None)
     ap.add_argument("--depth-kind", default="depth", choices=("depth", "disparity"))
@@ -242,9 +253,8 @@ def main(argv: list[str] | None = None) -> None:
             flag = {"depth": "--depth-maps", "flow": "--flow", "masks": "--masks"}[n]
             raise UserError(f"{flag} {p}: no such folder; give the folder of per-frame files")
     # Every method's config resolved and checked (--set keys, ranges) before any work.
-    plans = [
-        (spec, cfg, _config_key(spec.name, cfg, args, prior_dirs)) for spec, cfg in resolve_configs(args)
-    ]
+    plans = [(spec, cfg, _config_key(spec.name, cfg, args, prior_dirs))
+             for spec, cfg in ((s, _training_size(c, args)) for s, c in resolve_configs(args))]  # fmt: skip
     scenes: dict[int, Scene] = {}
     for _, cfg, _ in plans:  # every held-out frame checked before any training
         if cfg.downscale not in scenes:
@@ -253,6 +263,7 @@ def main(argv: list[str] | None = None) -> None:
         for k in frames:
             if not 1 <= k <= n - 2:
                 raise UserError(f"--frames: {k} needs a frame on each side (1..{n - 2})")
+    score_scene = load_scene(args.scene, downscale=1, load_masks=False) if args.score_size == "full" else None
     device = pick_device(args.device)
     out.mkdir(parents=True, exist_ok=True)
     # One writer of OUT (loo.json and the temporary prior folders): every temporary folder found while
@@ -260,7 +271,7 @@ def main(argv: list[str] | None = None) -> None:
     with FolderLock(out, "leave-one-out folder"), _signals_raise():
         for stale in sorted(out.glob(f"{TMP_PREFIX}*")):
             shutil.rmtree(stale, ignore_errors=True)
-        _run_all(args, plans, scenes, frames, device, prior_dirs, out)
+        _run_all(args, plans, scenes, frames, device, prior_dirs, out, score_scene)
 
 
 #: Prefix of the temporary folders (the priors without the held-out frame) inside OUT.
@@ -381,6 +392,8 @@ def _config_key(method: str, cfg, args, prior_dirs: dict[str, Path]) -> str:
         "scene": str(args.scene.resolve()),
         "priors": {n: _folder_fingerprint(p) for n, p in sorted(prior_dirs.items())},
     }
+    if getattr(args, "score_size", "train") != "train":  # keys of training-size results stay as they were
+        record["score_size"] = args.score_size
     text = json.dumps(record, sort_keys=True, default=str)
     return hashlib.sha256(text.encode("utf-8")).hexdigest()[:16]
 
@@ -412,7 +425,8 @@ def _signals_raise():
 
 
 def _run_all(
-    args, plans, scenes: dict[int, Scene], frames: list[int], device, prior_dirs: dict[str, Path], out: Path
+    args, plans, scenes: dict[int, Scene], frames: list[int], device, prior_dirs: dict[str, Path], out: Path,
+    score_scene: Scene | None = None,
 ) -> None:
     res_path = out / "loo.json"
     try:
@@ -435,7 +449,7 @@ def _run_all(
             print(f"[loo] {args.label or '-'} k={k} {spec.name}: training on {scene.num_frames - 1} frames",
                   file=sys.stderr, flush=True)  # fmt: skip
             row = run_one(
-                args, spec, cfg, scene, k, device, prior_dirs if hasattr(cfg, "priors") else {}, out
+                args, spec, cfg, scene, k, device, prior_dirs if hasattr(cfg, "priors") else {}, out, score_scene
             )
             row.update(label=args.label, preset=args.preset, seed=cfg.seed, steps=cfg.steps,
                        downscale=cfg.downscale, version=worldtree.__version__, command=" ".join(sys.argv),
@@ -448,6 +462,21 @@ def _run_all(
             print(f"[loo] k={k} {spec.name}: PSNR {row['psnr']:.2f}{mp} (kept neighbours fitted at "
                   f"{nb['prev']:.2f} / {nb['next']:.2f}; {row['train_s']:.0f} s)", flush=True)  # fmt: skip
     _summary(results, args.label, {key for _, _, key in plans})
+
+
+def _training_size(cfg, args):
+    """``cfg`` with the shrink it trains at on the scene without one frame (its ``downscale_for`` that video,
+    as ``wtbench run``), unless ``--downscale`` or a ``--set downscale`` gave one."""
+    from methods.config_overrides import split_assignment
+    from worldtree.scene_schema import read_cameras
+
+    given = args.downscale is not None or any(split_assignment(split_scope(i)[1])[0] == "downscale"
+                                              for i in args.sets)  # fmt: skip
+    if given or not hasattr(cfg, "downscale_for"):
+        return cfg
+    doc = read_cameras(args.scene)
+    d = cfg.downscale_for(len(doc.frames) - 1, doc.width, doc.height)
+    return cfg if d == cfg.downscale else dataclasses.replace(cfg, downscale=d)
 
 
 def _has_field(cfg, dotted: str) -> bool:

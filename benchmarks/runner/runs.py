@@ -293,6 +293,7 @@ def execute(req: RunRequest) -> RunResult:
         raise UserError(f"--scene {root}: no such folder; give a scene folder written by `nvls build`")
     view = native_test_view(root)
     cfg, sets = resolve_config(spec, req)
+    cfg = training_size(cfg, root, req)
     _check_downscale(cfg.downscale, view, root, req)
     folder = _run_folder(req, spec, sets)
     device = pick_device(req.device)
@@ -324,6 +325,20 @@ def execute(req: RunRequest) -> RunResult:
     method = None if (folder.is_done() and not req.force) else build_method()
     with FolderLock(folder.root, "run folder"):
         return _execute_locked(req, spec, cfg, folder, root, view, device, timer, method, build_method)
+
+
+def training_size(cfg, root: Path, req: RunRequest):
+    """``cfg`` with the shrink it trains at on scene ``root``: its ``downscale_for`` the scene's training video
+    (the quick presets train a short video at full size), unless ``--downscale`` or ``--set downscale`` gave
+    one."""
+    given = "downscale" in req.overrides or any(split_assignment(i)[0] == "downscale" for i in req.sets)
+    if given or not hasattr(cfg, "downscale_for"):
+        return cfg
+    from worldtree.scene_schema import read_cameras
+
+    doc = read_cameras(root)
+    d = cfg.downscale_for(len(doc.frames), doc.width, doc.height)
+    return cfg if d == cfg.downscale else dataclasses.replace(cfg, downscale=d)
 
 
 def _check_downscale(downscale: int, view: TestView, root: Path, req: RunRequest) -> None:

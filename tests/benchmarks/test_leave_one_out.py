@@ -176,7 +176,7 @@ def test_node_opacities_between_frames_use_each_sets_local_time():
 # ---------------------------------------------------------------------------------------------- the command
 
 
-def _tiny_scene(root):
+def _tiny_scene(root, width=32, height=18):
     import importlib.util
     from pathlib import Path
 
@@ -184,7 +184,7 @@ def _tiny_scene(root):
     spec = importlib.util.spec_from_file_location("wt_tests_scene_fixture_loo", path)
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
-    return mod.write_tiny_scene(root, width=32, height=18, frames=5)
+    return mod.write_tiny_scene(root, width=width, height=height, frames=5)
 
 
 def test_set_keys_and_ranges_are_checked_before_any_work(tmp_path):
@@ -230,7 +230,7 @@ def test_finished_results_are_keyed_by_their_whole_configuration(tmp_path, monke
     out = tmp_path / "out"
     calls = []
 
-    def fake_run_one(args, spec, cfg, scene, k, device, prior_dirs, out_):
+    def fake_run_one(args, spec, cfg, scene, k, device, prior_dirs, out_, score_scene=None):
         calls.append((spec.name, k, cfg.steps, cfg.lambda_dssim))
         return {"k": k, "method": spec.name, "psnr": 20.0 + len(calls), "train_s": 0.0,
                 "psnr_train_neighbours": {"prev": 1.0, "next": 1.0}}  # fmt: skip
@@ -265,7 +265,7 @@ def test_one_methods_settings(tmp_path, monkeypatch):
     scene = _tiny_scene(tmp_path / "scene")
     seen = {}
 
-    def fake_run_one(args, spec, cfg, scene, k, device, prior_dirs, out_):
+    def fake_run_one(args, spec, cfg, scene, k, device, prior_dirs, out_, score_scene=None):
         seen[spec.name] = cfg
         return {"k": k, "method": spec.name, "psnr": 1.0, "train_s": 0.0,
                 "psnr_train_neighbours": {"prev": 1.0, "next": 1.0}}  # fmt: skip
@@ -434,3 +434,48 @@ def test_worldtree_render_between_uses_the_node_holding_both_frames(tmp_path):
         want = rasterize(m, q, ls, o, c, K, pose, W, H, backend=s.cfg.photometric.backend).rgb.clamp(0, 1)
         assert torch.equal(method.render_between(K, w2c, W, H, a + 0.5), want)
     assert method.node_at(2) == method.node_at(2.0)
+
+
+def test_score_size_full_renders_and_scores_at_the_scenes_own_size(tmp_path):
+    """``--score-size full``: a model trained at half size draws frame k at the scene's size and is scored
+    there (the NVIDIA protocol scores 480x270 whatever the training size); the PSNR is the one of the written
+    full-size image against the scene's frame, computed here with scikit-image; the key differs from the
+    training-size result's, so neither is reused for the other."""
+    import json
+
+    from skimage.metrics import peak_signal_noise_ratio
+
+    from benchmarks.evaluation import leave_one_out as loo
+    from worldtree.imageio import read_image
+
+    scene = _tiny_scene(tmp_path / "scene", width=48, height=24)  # half size still above the SSIM window
+    out = tmp_path / "out"
+    argv = [str(scene), "--frames", "2", "--methods", "static", "-o", str(out), "--steps", "5",
+            "--downscale", "2"]  # fmt: skip
+    loo.main(argv)
+    loo.main(argv + ["--score-size", "full"])
+    rows = json.loads((out / "loo.json").read_text())["runs"]
+    assert [r["scored_size"] for r in rows] == [[24, 12], [48, 24]]
+    assert rows[0]["config_key"] != rows[1]["config_key"]
+    pred = read_image(out / "k02_static.png")
+    assert pred.shape[:2] == (24, 48)
+    gt = read_image(sorted((scene / "images").iterdir())[2])
+    assert abs(rows[1]["psnr"] - peak_signal_noise_ratio(gt, pred, data_range=255)) < 1e-3
+
+
+def test_the_quick_preset_trains_a_short_video_at_full_size(tmp_path, monkeypatch):
+    """Without --downscale the quick preset trains at full size when the video without frame k holds at most
+    ``full_size_pixels`` pixels (a 5-frame 32x18 scene: 4 x 32 x 18 = 2304), at half size above it; a given
+    --downscale wins."""
+    from benchmarks.evaluation import leave_one_out as loo
+
+    scene = _tiny_scene(tmp_path / "scene")
+    seen = []
+    monkeypatch.setattr(loo, "run_one", lambda *a: seen.append(a[2].downscale) or {
+        "k": a[4], "method": a[1].name, "psnr": 1.0, "train_s": 0.0,
+        "psnr_train_neighbours": {"prev": 1.0, "next": 1.0}})  # fmt: skip
+    base = [str(scene), "--frames", "2", "--methods", "static", "--preset", "quick"]
+    loo.main(base + ["-o", str(tmp_path / "a"), "--set", "full_size_pixels=2304"])
+    loo.main(base + ["-o", str(tmp_path / "b"), "--set", "full_size_pixels=2303"])
+    loo.main(base + ["-o", str(tmp_path / "c"), "--set", "full_size_pixels=2304", "--downscale", "2"])
+    assert seen == [1, 2, 2]

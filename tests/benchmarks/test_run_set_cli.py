@@ -182,3 +182,28 @@ def test_run_and_sweep_share_one_declaration_of_their_common_options():
         "wtbench", "run", "--method", "worldtree", "--scene", "scenes/S", "-o", "runs", "--preset", "quick",
         "--device", "auto", "--seed", "1", "--ablate", "ba", "--sequential", "--set", "steps=3",
     ]  # fmt: skip
+
+
+def test_quick_presets_train_a_short_video_at_full_size(scene):
+    """The quick presets train at full size when frames x width x height is at most ``full_size_pixels``
+    (2,000,000: the 12-frame 480x270 protocol yes; the demo's 40 frames at 320x180 and the 160-frame NVIDIA-LS
+    video no); ``--downscale`` or ``--set downscale`` wins; 0 turns it off."""
+    from benchmarks.runner.runs import training_size
+
+    for name in ("static", "base", "worldtree"):
+        quick = get_method(name).presets["quick"]()
+        assert quick.downscale == 2
+        assert quick.downscale_for(12, 480, 270) == 1
+        assert quick.downscale_for(40, 320, 180) == 2
+        assert quick.downscale_for(160, 480, 270) == 2
+        assert dataclasses.replace(quick, full_size_pixels=0).downscale_for(1, 2, 2) == 2
+    spec = get_method("base")
+    req = RunRequest(scene=scene, method="base", preset="quick")
+    cfg, _ = resolve_config(spec, req)
+    assert training_size(cfg, scene, req).downscale == 1  # 6 frames of 64x36
+    for given in (dataclasses.replace(req, overrides={"downscale": 2}), dataclasses.replace(req, sets=["downscale=2"])):
+        cfg, _ = resolve_config(spec, given)
+        assert training_size(cfg, scene, given).downscale == 2
+    off = dataclasses.replace(req, sets=["full_size_pixels=0"])
+    cfg, _ = resolve_config(spec, off)
+    assert training_size(cfg, scene, off).downscale == 2
