@@ -131,6 +131,14 @@ class BaseConfig(CommonConfig):
         """Names accepted by ``--ablate``, in display order."""
         return ("ba", "sw")
 
+    def root_budget_on(self) -> bool:
+        """Whether these stages (the Base model, a tree's root) fit under the Gaussian budget and prune."""
+        return self.budget_on()
+
+    def root_early_stop_on(self) -> bool:
+        """Whether the photometric fit of these stages stops at a loss plateau."""
+        return self.early_stop_on()
+
     def ignored_settings(self) -> dict[str, str]:
         """:meth:`CommonConfig.ignored_settings` plus the Base method's: ``photometric.steps`` (filled in from
         ``steps``), ``sw.steps`` under ``ablate sw``, the density caps the Gaussian budget sets, the motion
@@ -141,7 +149,7 @@ class BaseConfig(CommonConfig):
         out["photometric.steps"] = "this method sets it from steps; --steps N or --set steps=N"
         if "sw" in self.ablate:
             out["sw.steps"] = "the static warm-up is ablated (0 steps); drop --ablate sw"
-        if self.budget_on():
+        if self.root_budget_on():
             why = "the Gaussian budget sets it; --set budget.enabled=false to cap by hand"
             for part in ("static_strategy", "dynamic_strategy"):
                 out[f"photometric.{part}.max_gaussians"] = why
@@ -601,13 +609,13 @@ def _adaptive_setup(s: BaseState, fit: PhotometricFit) -> PlateauDetector | None
     """Budget (growth caps from the image size and the starting error) and the early-stop detector of the
     photometric fit, when on; recorded in ``info["adaptive"]``."""
     c = s.cfg
-    rec: dict[str, Any] = {"budget_on": c.budget_on(), "early_stop_on": c.early_stop_on()}
-    if c.budget_on():
+    rec: dict[str, Any] = {"budget_on": c.root_budget_on(), "early_stop_on": c.root_early_stop_on()}
+    if c.root_budget_on():
         H, W = fit.images.shape[1:3]
         err = fit.mean_error()
         rec["budget"] = {"error_start": err, **fit.set_budget(node_budget(W, H, err, c.budget))}
     s.info["adaptive"] = rec
-    if not c.early_stop_on():
+    if not c.root_early_stop_on():
         return None
     # Never before density control and camera optimisation have had their turn.
     pc = fit.cfg
@@ -712,7 +720,7 @@ class BaseMethod:
     def stages(self) -> list[Stage]:
         """The stages this config runs, in order (ablations applied; ``prune`` only with the budget on)."""
         out = with_ablations(self.STAGES, self.ABLATIONS, self.cfg.ablate)
-        return [st for st in out if st.name != "prune" or self.cfg.budget_on()]
+        return [st for st in out if st.name != "prune" or self.cfg.root_budget_on()]
 
     def fit(self, ctx: TrainContext) -> TrainSummary:
         """Run every stage in order, each timed by :attr:`clock` (resumable: each stage picks up its own

@@ -101,7 +101,7 @@ class WorldTreeConfig(BaseConfig):
     depth: int | Literal["auto"] = TreeConfig.depth
     """Deepest tree layer (0: the root only; the paper: 2), or auto: split a trained node only where the
     measured criterion of auto_split says its frames need it (also turns on the Gaussian budget, early stop
-    and node_steps_per_frame unless they are set)."""
+    and node_steps_per_frame of the children unless they are set; the root keeps them off unless set)."""
     auto_depth: bool = field(init=False, default=False, metadata={"derived_from": "depth"})
     """Whether ``depth`` is ``"auto"`` (derived, not a setting: set ``depth``; kept as a field so that the
     recorded config of a run, and its folder's check on resuming, stay as they were)."""
@@ -183,6 +183,16 @@ class WorldTreeConfig(BaseConfig):
     def steps_at(self, depth: int) -> int:
         """Photometric steps of a node at ``depth`` (>= 1)."""
         return self.layer_steps[min(depth, len(self.layer_steps)) - 1]
+
+    def root_budget_on(self) -> bool:
+        """The root keeps the budget only when ``budget.enabled`` is set: ``--depth auto`` alone applies it to the
+        children. The root's background is what every node and every test view draws; capped by the budget it
+        stays below what the scene needs (docs/worldtree_method.md, the family at full size)."""
+        return bool(self.budget.enabled)
+
+    def root_early_stop_on(self) -> bool:
+        """The root stops at a plateau only when ``early_stop.enabled`` is set (as :meth:`root_budget_on`)."""
+        return bool(self.early_stop.enabled)
 
     def holdout_on(self) -> bool:
         """Whether children are validated on held-out frames (``holdout.enabled``). Never under ``ablate
@@ -483,10 +493,13 @@ def _node_fit(state: NodeState, pcfg: PhotometricConfig, data: dict, cfg: NodeTr
 
 
 def _prune_inherited(state: NodeState, pcfg: PhotometricConfig, data: dict, cfg: NodeTrainConfig, seed: int):
-    """Budget on: keep what this node's frames see (contributions with the parent's opacities), then reset the
-    inherited opacities to ``inherit_opacity`` as without the budget. Returns the pruning counts."""
+    """Budget on: keep the dynamic Gaussians this node's frames see (contributions with the parent's
+    opacities), then reset the inherited opacities to ``inherit_opacity`` as without the budget. The static
+    background is never pruned in a child: the test cameras see parts of it that none of a child's few frames
+    do. Returns the pruning counts."""
     pre = _node_fit(state, pcfg, data, cfg, seed, with_tracks=False)
-    counts = pre.prune_negligible(cfg.budget.prune_contribution, total_frac=cfg.budget.prune_total_frac)
+    counts = pre.prune_negligible(cfg.budget.prune_contribution, total_frac=cfg.budget.prune_total_frac,
+                                  static=False)
     state.static, state.dynamic = pre.static, pre.dynamic
     cap = inverse_sigmoid(torch.tensor(cfg.inherit_opacity)).item()
     with torch.no_grad():
@@ -583,7 +596,8 @@ def train_node(payload: dict, ctx: NodeContext) -> dict:
         # Inherited dynamic Gaussians (opacity reset) are pruned only once they had steps to recover.
         due = inherited_prune_due(summary.end_step, fit.T, cfg.budget)
         b = cfg.budget
-        pruned = fit.prune_negligible(b.prune_contribution, dynamic=due, total_frac=b.prune_total_frac)
+        pruned = fit.prune_negligible(b.prune_contribution, dynamic=due, total_frac=b.prune_total_frac,
+                                      static=False)
         adaptive["prune"] = {**pruned, "dynamic_due": due}
         adaptive["prune_ancestors"] = fit.prune_chain(b.prune_contribution, b.prune_total_frac)
     state.static, state.dynamic, state.scaffold = fit.static, fit.dynamic, fit.scaffold

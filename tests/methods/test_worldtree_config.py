@@ -131,3 +131,22 @@ def test_node_steps_follow_the_roots_steps_per_frame_under_depth_auto():
     assert not dataclasses.replace(quick, depth="auto", node_steps_per_frame=False).node_steps_per_frame_on()
     assert dataclasses.replace(quick, node_steps_per_frame=True).node_steps_per_frame_on()
     assert "node_steps_per_frame" in dataclasses.replace(quick, depth=0).ignored_settings()
+
+
+def test_depth_auto_budgets_the_children_and_not_the_root():
+    """``--depth auto`` turns the Gaussian budget and early stop on for the children only; the root trains as for
+    a fixed depth unless ``budget.enabled`` / ``early_stop.enabled`` say otherwise; Base follows its settings."""
+    from methods.base import BaseConfig
+    from worldtree.budget import BudgetConfig
+    from worldtree.plateau import PlateauRule
+
+    auto = WorldTreeConfig(depth="auto")
+    assert auto.budget_on() and auto.early_stop_on()
+    assert not auto.root_budget_on() and not auto.root_early_stop_on()
+    on = dataclasses.replace(auto, budget=BudgetConfig(enabled=True), early_stop=PlateauRule(enabled=True))
+    assert on.root_budget_on() and on.root_early_stop_on()
+    fixed = WorldTreeConfig(depth=2)
+    assert not fixed.budget_on() and not fixed.root_budget_on()
+    base = BaseConfig(budget=BudgetConfig(enabled=True), early_stop=PlateauRule(enabled=True))
+    assert base.root_budget_on() and base.root_early_stop_on()
+    assert not BaseConfig().root_budget_on()

@@ -490,24 +490,27 @@ class PhotometricFit:
             return self.camera(i).detach()
 
     def prune_negligible(
-        self, threshold: float, dynamic: bool = True, total_frac: float | None = None
+        self, threshold: float, dynamic: bool = True, total_frac: float | None = None, static: bool = True
     ) -> dict[str, int]:
-        """Remove the static and (with ``dynamic``) dynamic Gaussians whose contribution over this fit's frames
-        is below ``threshold`` (pixels; :mod:`worldtree.budget`), with ``total_frac`` only the smallest whose
-        contributions add up to at most that fraction of a frame's pixels; their Adam moments and density
-        statistics go with them. Returns the counts before and after."""
+        """Remove the (with ``static``) static and (with ``dynamic``) dynamic Gaussians whose contribution over
+        this fit's frames is below ``threshold`` (pixels; :mod:`worldtree.budget`), with ``total_frac`` only the
+        smallest whose contributions add up to at most that fraction of a frame's pixels; their Adam moments and
+        density statistics go with them. Returns the counts before and after."""
         H, W = self.images.shape[1:3]
         total = None if total_frac is None else float(total_frac) * H * W
-        return self._prune_with(self.contributions(), threshold, dynamic, total)
+        return self._prune_with(self.contributions(), threshold, dynamic, total, static)
 
     def _prune_with(
-        self, contrib: torch.Tensor, thr: float, dynamic: bool = True, total: float | None = None
+        self, contrib: torch.Tensor, thr: float, dynamic: bool = True, total: float | None = None,
+        static: bool = True,
     ) -> dict[str, int]:
         n_s, n_d = len(self.static), len(self.dynamic)
         report = {"static_before": n_s, "dynamic_before": n_d}
         own = contrib[: n_s + n_d].clone()
         if not dynamic:
             own[n_s:] = float("inf")  # deferred: never selected
+        if not static:
+            own[:n_s] = float("inf")
         drop = negligible(own, thr, total)  # one shared total for both sets
         drop_s, drop_d = drop[:n_s], drop[n_s:]
         if bool(drop_s.any()):

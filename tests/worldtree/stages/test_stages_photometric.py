@@ -340,6 +340,12 @@ def test_deferred_dynamic_prune_keeps_the_dynamic_set():
                          None, None, extent=1.0)  # fmt: skip
     n_s, n_d = len(fit.static), len(fit.dynamic)
     assert n_s > 0 and n_d > 0
+    # The background kept whole (a tree child's): only the dynamic set goes.
+    rep = fit._prune_with(fit.contributions(), 1e12, dynamic=True, static=False)
+    assert rep == {"static_before": n_s, "dynamic_before": n_d, "static_after": n_s, "dynamic_after": 0}
+    imgs, depth, Ks, w2cs, static, dyn, scf = scene()  # the sets are pruned in place: fresh ones
+    fit = PhotometricFit(PhotometricConfig(steps=10, track_every=0), imgs, depth, Ks, w2cs, static, dyn, scf,
+                         None, None, extent=1.0)  # fmt: skip
     # A threshold above every contribution: the static set goes, the deferred dynamic set stays whole.
     rep = fit._prune_with(fit.contributions(), 1e12, dynamic=False)
     assert rep == {"static_before": n_s, "dynamic_before": n_d, "static_after": 0, "dynamic_after": n_d}
