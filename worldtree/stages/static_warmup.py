@@ -17,12 +17,14 @@ Training runs in :class:`worldtree.trainer.Trainer` (checkpoints, resume, progre
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import torch
 import torch.nn.functional as F
 
 from worldtree.gaussians import GaussianSet
+from worldtree.infra.config_ranges import in_range
 from worldtree.infra.errors import UserError
 from worldtree.losses import SsimTargets, ssim_map
 from worldtree.optim import GroupedAdam, gaussian_schedules
@@ -47,6 +49,9 @@ class StaticWarmupConfig:
     """Initial points: the depth prior is lifted at static pixels on a grid of this stride in every frame."""
     init_max_points: int = 20_000
     """At most this many initial points (a seeded random subset)."""
+    init_points_per_pixel: float = field(default=0.0, metadata=in_range(0, None, "points per pixel; 0 turns it off"))
+    """Raise that bound to this many points per pixel of one training image (0: ``init_max_points`` alone), so
+    a larger training image starts with proportionally more of its background."""
     init_opacity: float = 0.1
     """Opacity of the initial Gaussians."""
     lambda_dssim: float = 0.2
@@ -72,14 +77,22 @@ class StaticWarmupConfig:
 
 
 def quick_static_warmup_config() -> StaticWarmupConfig:
-    """CPU-friendly: 300 steps, densification every 100 steps between 100 and 250, no opacity reset."""
+    """CPU-friendly: 300 steps, densification every 100 steps between 100 and 250, no opacity reset; 4,000
+    initial points, or 0.12 per pixel of a training image where that is more (15,552 at 480x270)."""
     return StaticWarmupConfig(
         steps=300,
         init_max_points=4000,
+        init_points_per_pixel=0.12,
         strategy=DensifyStrategy(
             refine_start=100, refine_stop=250, refine_every=100, reset_every=0, max_gaussians=20_000
         ),
     )
+
+
+def initial_points(cfg: StaticWarmupConfig, height: int, width: int) -> int:
+    """Most initial points for training images of ``height x width``: ``init_max_points``, raised to
+    ``ceil(init_points_per_pixel * height * width)`` where that is larger."""
+    return max(int(cfg.init_max_points), math.ceil(cfg.init_points_per_pixel * int(height) * int(width)))
 
 
 def static_weights(dynamic: torch.Tensor, dilate_px: int) -> torch.Tensor:
@@ -187,7 +200,7 @@ class StaticWarmup(DensifiedGaussianTrainable):
         self.queue: list[int] = []
         if gaussians is None:
             pts, cols = lift_static_points(
-                images, depth, self.static, Ks, w2cs, cfg.init_stride_px, cfg.init_max_points,
+                images, depth, self.static, Ks, w2cs, cfg.init_stride_px, initial_points(cfg, *images.shape[1:3]),
                 torch.Generator().manual_seed(seed),
             )  # fmt: skip
             gaussians = GaussianSet.from_points(pts, cols, init_opacity=cfg.init_opacity)

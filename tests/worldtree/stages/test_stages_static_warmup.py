@@ -123,3 +123,21 @@ def test_warmup_decreases_the_masked_loss():
 def test_quick_preset_is_smaller_than_paper():
     q, p = quick_static_warmup_config(), StaticWarmupConfig()
     assert q.steps < p.steps == 6000
+
+
+def test_initial_points_grow_with_the_training_image():
+    """The bound on initial points is ``init_max_points``, raised to ``init_points_per_pixel`` per pixel of a
+    training image: the quick preset's 4,000 stay at 160x90 and 240x135 and become 15,552 at 480x270; a warm-up
+    starts with exactly that many of its candidates (static grid pixels of every frame) when it has more."""
+    from worldtree.stages.static_warmup import initial_points
+
+    q = quick_static_warmup_config()
+    assert initial_points(q, 90, 160) == initial_points(q, 135, 240) == 4000
+    assert initial_points(q, 270, 480) == 15_552
+    assert initial_points(StaticWarmupConfig(), 270, 480) == 20_000  # paper: no per-pixel rule
+    video = tiny_video(2)
+    static_grid = int(static_weights(video[1], 3)[:, ::1, ::1].gt(0.5).sum())  # stride 1: every static pixel
+    for per_px, expected in ((0.0, 50), (0.25, W * H // 4)):
+        cfg = StaticWarmupConfig(steps=1, init_stride_px=1, init_max_points=50, init_points_per_pixel=per_px)
+        assert expected < static_grid
+        assert len(make_warmup(cfg, video).gaussians) == expected
