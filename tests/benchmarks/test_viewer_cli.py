@@ -106,7 +106,7 @@ def test_serves_the_page_and_stops_on_ctrl_c(static_run):
     finally:
         proc.send_signal(signal.SIGINT)
         try:
-            out, err = proc.communicate(timeout=30)
+            out, err = proc.communicate(timeout=90)  # a guard against a hang, generous for loaded machines
         except subprocess.TimeoutExpired:
             proc.kill()
             raise
