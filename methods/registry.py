@@ -16,7 +16,7 @@ from __future__ import annotations
 import importlib
 import math
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any, Protocol
 
@@ -92,6 +92,19 @@ class CommonConfig:
         if not self.early_stop_on():
             out.update(settings_of("early_stop", self.early_stop, "early stop is off; --set early_stop.enabled=true"))
         return out
+
+
+def at_training_size(cfg, root: str | Path, dropped_frames: int = 0):
+    """``cfg`` with the shrink its ``downscale_for`` gives the training video of scene ``root`` less
+    ``dropped_frames`` frames (``wtbench run``: none; leave-one-out: the held-out one); ``cfg`` itself for a
+    config without ``downscale_for``. A caller whose user gave a downscale keeps it and does not call this."""
+    if not hasattr(cfg, "downscale_for"):
+        return cfg
+    from worldtree.scene_schema import read_cameras
+
+    doc = read_cameras(root)
+    d = cfg.downscale_for(len(doc.frames) - int(dropped_frames), doc.width, doc.height)
+    return cfg if d == cfg.downscale else replace(cfg, downscale=d)
 
 
 def settings_of(prefix: str, obj: Any, why: str, skip: tuple[str, ...] = ("enabled",)) -> dict[str, str]:

@@ -99,8 +99,8 @@ def paper_config() -> StaticConfig:
 
 
 def quick_config() -> StaticConfig:
-    """CPU-friendly: 1500 steps at half resolution (full resolution for a video of at most 2,000,000 pixels), densify every 100 steps from 200 to 1000, no opacity reset,
-    view-independent colour."""
+    """CPU-friendly: 1500 steps at half resolution (full resolution for a video of at most 2,000,000 pixels),
+    densify every 100 steps from 200 to 1000, no opacity reset, view-independent colour."""
     return StaticConfig(
         steps=1500,
         downscale=2,

@@ -3,9 +3,9 @@
 For each held-out training frame k: train a method on the other frames (re-indexed 0..T-2, times kept in
 order), render frame k's camera at frame k's time -- a view and a time the model never saw -- and score it
 against frame k at the method's working size (``--score-size full``: rendered and scored at the scene's own
-size, as the NVIDIA protocol scores at 480x270 whatever the training size): PSNR on the uint8 images, and masked PSNR (the `worldtree`
-protocol's: PSNR of the masked pixels' values) when the scene has a mask for frame k (``--masks DIR``, one
-per frame); both from :mod:`benchmarks.evaluation.metrics`.
+size, as the NVIDIA protocol scores at 480x270 whatever the training size): PSNR on the uint8 images, and
+masked PSNR (the `worldtree` protocol's: PSNR of the masked pixels' values) when the scene has a mask for
+frame k (``--masks DIR``, one per frame); both from :mod:`benchmarks.evaluation.metrics`.
 
 A protocol of the harness, through :class:`methods.registry.Method` alone: frame k's time is ``k - 0.5`` of
 the kept frames (between k-1 and k+1, re-indexed k-1 and k), drawn by the method's ``render_between`` (a
@@ -263,7 +263,9 @@ def main(argv: list[str] | None = None) -> None:
         for k in frames:
             if not 1 <= k <= n - 2:
                 raise UserError(f"--frames: {k} needs a frame on each side (1..{n - 2})")
-    score_scene = load_scene(args.scene, downscale=1, load_masks=False) if args.score_size == "full" else None
+    score_scene = None
+    if args.score_size == "full":  # the full-size scene, unless a method already trains on it
+        score_scene = scenes[1] if 1 in scenes else load_scene(args.scene, downscale=1, load_masks=False)
     device = pick_device(args.device)
     out.mkdir(parents=True, exist_ok=True)
     # One writer of OUT (loo.json and the temporary prior folders): every temporary folder found while
@@ -392,7 +394,7 @@ def _config_key(method: str, cfg, args, prior_dirs: dict[str, Path]) -> str:
         "scene": str(args.scene.resolve()),
         "priors": {n: _folder_fingerprint(p) for n, p in sorted(prior_dirs.items())},
     }
-    if getattr(args, "score_size", "train") != "train":  # keys of training-size results stay as they were
+    if args.score_size != "train":  # keys of training-size results stay as they were
         record["score_size"] = args.score_size
     text = json.dumps(record, sort_keys=True, default=str)
     return hashlib.sha256(text.encode("utf-8")).hexdigest()[:16]
@@ -468,15 +470,11 @@ def _training_size(cfg, args):
     """``cfg`` with the shrink it trains at on the scene without one frame (its ``downscale_for`` that video,
     as ``wtbench run``), unless ``--downscale`` or a ``--set downscale`` gave one."""
     from methods.config_overrides import split_assignment
-    from worldtree.scene_schema import read_cameras
+    from methods.registry import at_training_size
 
     given = args.downscale is not None or any(split_assignment(split_scope(i)[1])[0] == "downscale"
                                               for i in args.sets)  # fmt: skip
-    if given or not hasattr(cfg, "downscale_for"):
-        return cfg
-    doc = read_cameras(args.scene)
-    d = cfg.downscale_for(len(doc.frames) - 1, doc.width, doc.height)
-    return cfg if d == cfg.downscale else dataclasses.replace(cfg, downscale=d)
+    return cfg if given else at_training_size(cfg, args.scene, dropped_frames=1)
 
 
 def _has_field(cfg, dotted: str) -> bool:

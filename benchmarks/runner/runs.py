@@ -331,14 +331,10 @@ def training_size(cfg, root: Path, req: RunRequest):
     """``cfg`` with the shrink it trains at on scene ``root``: its ``downscale_for`` the scene's training video
     (the quick presets train a short video at full size), unless ``--downscale`` or ``--set downscale`` gave
     one."""
-    given = "downscale" in req.overrides or any(split_assignment(i)[0] == "downscale" for i in req.sets)
-    if given or not hasattr(cfg, "downscale_for"):
-        return cfg
-    from worldtree.scene_schema import read_cameras
+    from methods.registry import at_training_size
 
-    doc = read_cameras(root)
-    d = cfg.downscale_for(len(doc.frames), doc.width, doc.height)
-    return cfg if d == cfg.downscale else dataclasses.replace(cfg, downscale=d)
+    given = "downscale" in req.overrides or any(split_assignment(i)[0] == "downscale" for i in req.sets)
+    return cfg if given else at_training_size(cfg, root)
 
 
 def _check_downscale(downscale: int, view: TestView, root: Path, req: RunRequest) -> None:
