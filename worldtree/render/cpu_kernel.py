@@ -31,7 +31,8 @@ def _describe(e: Exception) -> str:
 
 
 def _load():
-    """The loaded extension module, or None when no target builds (reason in :func:`build_error`)."""
+    """The loaded build's ops (:class:`kernel_build.Ops`: forward, backward, project_forward, project_backward), or
+    None when no target builds (reason in :func:`build_error`)."""
     global _module, _target, _seconds, _error
     with _lock:
         if _module is not None or _error is not None:

@@ -20,7 +20,14 @@ carries a hash of everything that changes the built library: the source, the com
 torch version and install path, the Python version, the compiler (its ``--version``) and, for ``native``, the
 CPU's model and instruction-set flags. The source is copied into the build folder, so checkouts in different
 places share one build. A file lock around the build makes concurrent processes wait for one build instead of
-compiling the same library twice; the first build takes about a minute, later loads a second.
+compiling the same library twice.
+
+The kernel includes only the ATen headers it uses (not ``<torch/extension.h>``, which alone took about 22 s to
+compile) and registers its functions as torch custom ops in the namespace ``torch.ops.<name>`` (the build's name,
+so every target's build has its own), not as a pybind11 module. A first build (``cpu_kernel.prepare()`` in a fresh
+process, Python start and torch import included) took 10.1-10.4 s on the idle 2-core development machine, against
+25.4-25.8 s with ``<torch/extension.h>`` (2026-11-26, docs/rendering.md); loading a finished build takes a few
+milliseconds once torch is imported.
 """
 
 from __future__ import annotations
@@ -32,6 +39,7 @@ import platform
 import shutil
 import subprocess
 import sys
+import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -151,41 +159,86 @@ def cache_root() -> Path:
 
 
 def module_name(target: str) -> str:
-    """Python module name of ``target``'s build (unique per build key)."""
-    return f"worldtree_raster_{target}_{build_key(target)}"
+    """Name of ``target``'s build (unique per build key): its folder, its library's file name and the namespace of
+    its ops (``torch.ops.<name>``), hence a valid identifier."""
+    name = f"worldtree_raster_{target}_{build_key(target)}"
+    if not name.isidentifier():
+        raise ValueError(f"rasterizer build name {name!r} is not a valid identifier")
+    return name
+
+
+class Ops:
+    """The custom ops a loaded build registered, as attributes: ``ops.forward`` is
+    ``torch.ops.<namespace>.forward`` (called like the function it wraps; a ``std::vector<Tensor>`` comes back as a
+    list)."""
+
+    def __init__(self, namespace: str, path: Path):
+        self.namespace = namespace
+        self.path = path
+
+    def __getattr__(self, fn: str):
+        if fn.startswith("_") or fn in ("namespace", "path"):
+            raise AttributeError(fn)
+        op = getattr(getattr(torch.ops, self.namespace), fn)  # AttributeError when the library has no such op
+        setattr(self, fn, op)
+        return op
+
+    def __repr__(self) -> str:
+        return f"Ops({self.namespace!r}, {str(self.path)!r})"
+
+
+# The libraries loaded in this process, by namespace. A namespace can be registered only once per process (a
+# second library of the same name, from another folder, would fail to load) and the build name covers everything
+# that changes the library, so a name loaded once is reused.
+_loaded: dict[str, Ops] = {}
+_loaded_lock = threading.Lock()
+
+
+def _load_library(path: Path) -> Ops:
+    """The ops of the library at ``path`` (``<namespace>.so``), loaded with ``torch.ops.load_library`` unless its
+    namespace is loaded already (or torch's ``load()`` has just loaded it); raises OSError when it does not
+    load."""
+    namespace = path.name.split(".", 1)[0]
+    if not namespace.isidentifier():
+        raise ValueError(f"{path}: {namespace!r} is not a valid op namespace")
+    with _loaded_lock:
+        if namespace not in _loaded:
+            if os.path.realpath(path) not in torch.ops.loaded_libraries:
+                torch.ops.load_library(str(path))
+            _loaded[namespace] = Ops(namespace, path)
+        return _loaded[namespace]
 
 
 @dataclass
 class Built:
     """A loaded build."""
 
-    module: object
-    """The extension module (project_forward, project_backward, forward, backward)."""
+    module: Ops
+    """The build's ops as attributes (project_forward, project_backward, forward, backward): torch.ops.<name>."""
     target: str
     """One of :data:`TARGETS`."""
     name: str
-    """Module name, also the name of its build folder."""
+    """Build name: its folder and the namespace of its ops."""
     seconds: float
     """Time spent building or loading it in this process."""
 
 
-def _import_finished(name: str, folder: Path):
-    """The extension module of a finished build in ``folder`` (None when there is none or it does not
-    import, e.g. a build killed while linking: then it is rebuilt)."""
-    import importlib.util
+def _libraries(name: str, folder: Path) -> list[Path]:
+    """The built libraries of ``name`` in ``folder`` (``<name>.so``; torch names a rebuild in the same process
+    ``<name>_v<N>.so``)."""
+    return sorted(folder.glob(f"{name}*.so")) + sorted(folder.glob(f"{name}*.pyd"))
 
-    import torch  # noqa: F401  (the extension links against libtorch)
 
-    for path in sorted(folder.glob(f"{name}*.so")) + sorted(folder.glob(f"{name}*.pyd")):
+def _load_finished(name: str, folder: Path) -> Ops | None:
+    """The ops of a finished build in ``folder``, loaded directly (no ninja run); None when there is none or it
+    does not load, e.g. a build killed while linking or a damaged file: that file is removed, so that the build
+    that follows links it again instead of trusting ninja's log."""
+    for path in _libraries(name, folder):
         try:
-            spec = importlib.util.spec_from_file_location(name, path)
-            if spec is None or spec.loader is None:
-                continue
-            module = importlib.util.module_from_spec(spec)
-            spec.loader.exec_module(module)
-            return module
-        except ImportError as e:
-            log.info("cached rasterizer build %s does not import (%s); rebuilding", path, e)
+            return _load_library(path)
+        except OSError as e:
+            log.info("cached rasterizer build %s does not load (%s); rebuilding", path, e.__cause__ or e)
+            path.unlink(missing_ok=True)
     return None
 
 
@@ -206,15 +259,17 @@ def build(target: str, *, verbose: bool = False) -> Built:
         )
     t0 = time.perf_counter()
     name = module_name(target)
+    if name in _loaded:  # loaded before in this process (from this cache or another one)
+        return Built(_loaded[name], target, name, time.perf_counter() - t0)
     folder = cache_root() / name
     folder.mkdir(parents=True, exist_ok=True)
     with FileLock(str(folder.parent / f"{name}.lock")):
-        # The build key names the source and flags, so a finished build is imported directly: torch's load()
+        # The build key names the source and flags, so a finished build is loaded directly: torch's load()
         # would run whichever ninja is first on PATH, and pip's and Debian's ninja each read the other's log
         # as stale and rebuild (a venv started with and without its bin on PATH).
-        module = _import_finished(name, folder)
-        if module is not None:
-            return Built(module, target, name, time.perf_counter() - t0)
+        ops = _loaded.get(name) or _load_finished(name, folder)
+        if ops is not None:
+            return Built(ops, target, name, time.perf_counter() - t0)
         verify_ninja_availability()
         # torch's own lock file inside the folder is left behind by a build that was killed; under our lock
         # nobody else is building, so one found now is stale and would make torch wait for ever.
@@ -224,18 +279,20 @@ def build(target: str, *, verbose: bool = False) -> Built:
             tmp = folder / (SOURCE.name + ".tmp")
             shutil.copyfile(SOURCE, tmp)
             os.replace(tmp, src)
-        cached = any(folder.glob(f"{name}*.so")) or any(folder.glob(f"{name}*.pyd"))
-        if not cached:
-            log.info("compiling the C++ rasterizer (%s target) into %s; about a minute, once", target, folder)
-        module = load(
+        log.info("compiling the C++ rasterizer (%s target) into %s; about 10 s, once", target, folder)
+        # is_python_module=False: torch loads the library with torch.ops.load_library (registering its ops) and
+        # returns its path; _load_library then only records it.
+        path = load(
             name=name,
             sources=[str(src)],
             extra_cflags=list(COMMON_CFLAGS + target_cflags(target)),
             extra_ldflags=list(LDFLAGS),
             build_directory=str(folder),
             verbose=verbose,
+            is_python_module=False,
         )
-    return Built(module, target, name, time.perf_counter() - t0)
+        ops = _load_library(Path(path))
+    return Built(ops, target, name, time.perf_counter() - t0)
 
 
 def requested_target() -> str:

@@ -1,4 +1,5 @@
-"""The C++ rasterizer's build cache: what its key covers, and one shared build for concurrent processes."""
+"""The C++ rasterizer's build cache: what its key covers, one shared build for concurrent processes, and the
+loading of its library (torch custom ops, one namespace per build)."""
 
 from __future__ import annotations
 
@@ -100,6 +101,17 @@ def test_build_refuses_a_target_this_cpu_cannot_run(monkeypatch, tmp_path):
     assert not (tmp_path / "ext").exists()  # nothing was compiled or even prepared
 
 
+def _tiny_source(path: Path, value: str) -> Path:
+    """A tiny library built like the kernel: one op ``value() -> int`` in the namespace of the build's name."""
+    path.write_text(
+        "#include <torch/library.h>\n"
+        f"int64_t value() {{\n  return\n{value}\n;\n}}\n"
+        "#define TINY_LIBRARY(ns, m) TORCH_LIBRARY(ns, m)\n"
+        'TINY_LIBRARY(TORCH_EXTENSION_NAME, m) { m.def("value", &value); }\n'
+    )
+    return path
+
+
 _BUILD_ONE = textwrap.dedent(
     """
     import json, sys
@@ -115,11 +127,7 @@ _BUILD_ONE = textwrap.dedent(
 def test_concurrent_processes_share_one_build(tmp_path):
     """Two processes asking for the same build at once: one compiles, the other waits and loads it."""
     pytest.importorskip("ninja")
-    src = tmp_path / "tiny.cpp"
-    src.write_text(
-        "#include <pybind11/pybind11.h>\n"
-        'PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) { m.def("value", [] { return 42; }); }\n'
-    )
+    src = _tiny_source(tmp_path / "tiny.cpp", "42")
     env = {**os.environ, "TORCH_EXTENSIONS_DIR": str(tmp_path / "ext"), "PYTHONPATH": str(REPO)}
     procs = [
         subprocess.Popen(
@@ -147,11 +155,7 @@ def test_a_finished_build_is_loaded_whatever_ninja_is_on_path(tmp_path):
     """A process started with another PATH (the venv's bin first or not: pip's ninja or Debian's, or none at
     all) loads the finished build as it is: nothing is compiled again, ninja is not even run."""
     pytest.importorskip("ninja")
-    src = tmp_path / "tiny.cpp"
-    src.write_text(
-        "#include <pybind11/pybind11.h>\n"
-        'PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) { m.def("value", [] { return 7; }); }\n'
-    )
+    src = _tiny_source(tmp_path / "tiny.cpp", "7")
     env = {**os.environ, "TORCH_EXTENSIONS_DIR": str(tmp_path / "ext"), "PYTHONPATH": str(REPO)}
 
     def run(path: str) -> dict:
@@ -180,3 +184,61 @@ def test_a_finished_build_is_loaded_whatever_ninja_is_on_path(tmp_path):
     assert second == first and second["value"] == 7
     assert (folder / ".ninja_log").read_text() == log_before
     assert [p.stat().st_mtime_ns for p in so] == stamps
+
+
+def test_a_damaged_finished_build_is_rebuilt(tmp_path):
+    """A library that does not load (a damaged file, newer than its object file, so ninja alone would call it up to
+    date) is removed and linked again, and the new one is loaded."""
+    pytest.importorskip("ninja")
+    src = _tiny_source(tmp_path / "tiny.cpp", "5")
+    env = {**os.environ, "TORCH_EXTENSIONS_DIR": str(tmp_path / "ext"), "PYTHONPATH": str(REPO)}
+
+    def run() -> dict:
+        p = subprocess.run([sys.executable, "-c", _BUILD_ONE, str(src)], env=env, capture_output=True, text=True,
+                           timeout=600)  # fmt: skip
+        if p.returncode != 0 and "compiler" in p.stderr.lower():
+            pytest.skip("no C++ compiler here")
+        assert p.returncode == 0, p.stderr
+        return json.loads(p.stdout.strip().splitlines()[-1])
+
+    first = run()
+    so = tmp_path / "ext" / "worldtree" / first["name"] / f"{first['name']}.so"
+    so.write_bytes(b"not a shared library")
+    assert run() == first and first["value"] == 5
+    assert so.read_bytes()[:4] == b"\x7fELF"  # linked again
+
+
+def test_two_targets_in_one_process_have_their_own_ops(monkeypatch, tmp_path):
+    """Each build registers its ops in its own namespace (its name), so several targets load side by side in one
+    process; asking for a build again returns the ops already loaded, without loading the library again."""
+    pytest.importorskip("ninja")
+    import torch
+
+    value = "#if defined(__AVX2__)\n2\n#else\n1\n#endif\n"  # what the target's flags compiled
+    monkeypatch.setattr(kernel_build, "SOURCE", _tiny_source(tmp_path / "tiny.cpp", value))
+    monkeypatch.setenv("TORCH_EXTENSIONS_DIR", str(tmp_path / "ext"))
+    try:
+        native, portable = kernel_build.build("native"), kernel_build.build("portable")
+    except Exception as e:
+        if "compiler" in str(e).lower() or "ninja" in str(e).lower():
+            pytest.skip(f"no build here: {e}")
+        raise
+    assert native.name != portable.name
+    assert native.module.namespace == native.name and portable.module.namespace == portable.name
+    assert native.module.value is getattr(torch.ops, native.name).value
+    assert portable.module.value is getattr(torch.ops, portable.name).value
+    if kernel_build.platform.machine().lower() in ("x86_64", "amd64"):
+        assert portable.module.value() == 1  # SSE2 only
+        assert native.module.value() == (2 if "avx2" in kernel_build.cpu_flags() else 1)
+    loaded = {str(native.module.path.resolve()), str(portable.module.path.resolve())}
+    assert loaded <= torch.ops.loaded_libraries
+
+    def no_second_load(path):
+        raise AssertionError(f"{path} loaded again")
+
+    monkeypatch.setattr(torch.ops, "load_library", no_second_load)
+    again = kernel_build.build("portable")
+    assert again.module is portable.module and again.module.value() == portable.module.value()
+    # Even from another cache folder: the name (the build key) is what identifies the library.
+    monkeypatch.setenv("TORCH_EXTENSIONS_DIR", str(tmp_path / "other-ext"))
+    assert kernel_build.build("native").module is native.module

@@ -18,7 +18,14 @@
 // the sum weighted by dL/d(out) is kept (backward_impl). Each (tile, Gaussian) pair owns a gradient slot, so
 // tiles run in parallel without atomics, and the slots are summed per Gaussian in tile order: deterministic.
 
-#include <torch/extension.h>
+// Light ATen headers instead of <torch/extension.h> (which takes about 20 s of a cold build just to parse); the
+// functions are registered as torch custom ops (torch.ops.<TORCH_EXTENSION_NAME>.<name>), not as a pybind11 module.
+#define TORCH_ASSERT_ONLY_METHOD_OPERATORS
+#include <ATen/Dispatch.h>
+#include <ATen/core/Tensor.h>
+#include <ATen/ops/empty.h>
+#include <ATen/ops/zeros.h>
+#include <torch/library.h>
 
 #include <algorithm>
 #include <cmath>
@@ -126,10 +133,10 @@ template <typename T>
 struct Bins {
   std::vector<int64_t> start;  // [n_tiles]
   std::vector<int64_t> count;  // [n_tiles]
-  torch::Tensor ids;           // [M] int32 Gaussian index per (tile, Gaussian) pair, front to back within a tile
-  torch::Tensor refs;          // [M] int64: the pairs (Ref) in the same order
-  torch::Tensor recs;          // [visible * sizeof(Gauss<T>)] uint8: the records, front to back
-  torch::Tensor gpos;          // [M] int32: the pairs (their place in the tile lists) grouped by Gaussian
+  at::Tensor ids;              // [M] int32 Gaussian index per (tile, Gaussian) pair, front to back within a tile
+  at::Tensor refs;             // [M] int64: the pairs (Ref) in the same order
+  at::Tensor recs;             // [visible * sizeof(Gauss<T>)] uint8: the records, front to back
+  at::Tensor gpos;             // [M] int32: the pairs (their place in the tile lists) grouped by Gaussian
 };
 
 // The Gaussians with radius > 0 front to back, ties by index (what a stable sort by depth gives): an LSD radix
@@ -214,7 +221,7 @@ Bins<T> bin_gaussians(const T* means2d, const T* conics, const T* opac, const T*
   const std::vector<int32_t> order = depth_order<T>(depths, radii, n);
   const int64_t nv = static_cast<int64_t>(order.size());
   Bins<T> bins;
-  bins.recs = torch::empty({nv * int64_t(sizeof(Gauss<T>))}, torch::dtype(torch::kUInt8));
+  bins.recs = at::empty({nv * int64_t(sizeof(Gauss<T>))}, at::dtype(at::kByte));
   Gauss<T>* rec = reinterpret_cast<Gauss<T>*>(bins.recs.template data_ptr<uint8_t>());
   std::vector<Span> span(nv);
 #pragma omp parallel for schedule(static) num_threads(threads)
@@ -266,9 +273,9 @@ Bins<T> bin_gaussians(const T* means2d, const T* conics, const T* opac, const T*
     }
     bins.count[t] = total - bins.start[t];
   }
-  bins.ids = torch::empty({total}, torch::dtype(torch::kInt32));
-  bins.refs = torch::empty({total}, torch::dtype(torch::kInt64));
-  bins.gpos = torch::empty({total}, torch::dtype(torch::kInt32));
+  bins.ids = at::empty({total}, at::dtype(at::kInt));
+  bins.refs = at::empty({total}, at::dtype(at::kLong));
+  bins.gpos = at::empty({total}, at::dtype(at::kInt));
   int32_t* ids = bins.ids.template data_ptr<int32_t>();
   int32_t* gpos = bins.gpos.template data_ptr<int32_t>();
   Ref* refs = reinterpret_cast<Ref*>(bins.refs.template data_ptr<int64_t>());
@@ -738,10 +745,10 @@ struct Camera {
   double near, eps2d;
 };
 
-Camera make_camera(const torch::Tensor& K, const torch::Tensor& w2c, int64_t width, int64_t height, double near,
+Camera make_camera(const at::Tensor& K, const at::Tensor& w2c, int64_t width, int64_t height, double near,
                    double eps2d) {
-  auto k = K.to(torch::kDouble).contiguous();
-  auto v = w2c.to(torch::kDouble).contiguous();
+  auto k = K.to(at::kDouble).contiguous();
+  auto v = w2c.to(at::kDouble).contiguous();
   const double* kp = k.data_ptr<double>();
   const double* vp = v.data_ptr<double>();
   Camera c;
@@ -1028,7 +1035,7 @@ void project_backward_impl(const Camera& cam, const T* means, const T* quats, co
   }
 }
 
-void check(const torch::Tensor& t, const char* name, int64_t n, int64_t cols) {
+void check(const at::Tensor& t, const char* name, int64_t n, int64_t cols) {
   TORCH_CHECK(t.device().is_cpu(), name, " must be a CPU tensor");
   TORCH_CHECK(t.is_contiguous(), name, " must be contiguous");
   TORCH_CHECK(t.size(0) == n, name, " has the wrong length");
@@ -1041,9 +1048,9 @@ void check(const torch::Tensor& t, const char* name, int64_t n, int64_t cols) {
 // tile_start [n_tiles] int64, tile_count [n_tiles] int64, and what the backward reads besides: recs
 // [visible * record size] uint8 (the Gaussian records, depth order), refs [M] int64 (the packed pairs) and
 // gpos [M] int32 (the pairs grouped by Gaussian).
-std::vector<torch::Tensor> rasterize_forward(torch::Tensor means2d, torch::Tensor conics, torch::Tensor opac,
-                                             torch::Tensor colors, torch::Tensor depths, torch::Tensor radii,
-                                             torch::Tensor bg, int64_t width, int64_t height, int64_t threads) {
+std::vector<at::Tensor> rasterize_forward(at::Tensor means2d, at::Tensor conics, at::Tensor opac, at::Tensor colors,
+                                          at::Tensor depths, at::Tensor radii, at::Tensor bg, int64_t width,
+                                          int64_t height, int64_t threads) {
   const int64_t n = means2d.size(0);
   check(means2d, "means2d", n, 2);
   check(conics, "conics", n, 3);
@@ -1051,15 +1058,15 @@ std::vector<torch::Tensor> rasterize_forward(torch::Tensor means2d, torch::Tenso
   check(colors, "colors", n, 3);
   check(depths, "depths", n, 0);
   check(radii, "radii", n, 0);
-  TORCH_CHECK(radii.scalar_type() == torch::kInt32, "radii must be int32");
+  TORCH_CHECK(radii.scalar_type() == at::kInt, "radii must be int32");
   TORCH_CHECK(bg.is_contiguous() && bg.numel() == 3, "background must be 3 contiguous values");
   auto opts = means2d.options();
-  auto rgb = torch::empty({height, width, 3}, opts);
-  auto alpha = torch::empty({height, width}, opts);
-  auto depth = torch::empty({height, width}, opts);
-  auto final_T = torch::empty({height, width}, opts);
-  auto last = torch::empty({height, width}, opts.dtype(torch::kInt32));
-  torch::Tensor ids, tstart, tcount, recs, refs, gpos;
+  auto rgb = at::empty({height, width, 3}, opts);
+  auto alpha = at::empty({height, width}, opts);
+  auto depth = at::empty({height, width}, opts);
+  auto final_T = at::empty({height, width}, opts);
+  auto last = at::empty({height, width}, opts.dtype(at::kInt));
+  at::Tensor ids, tstart, tcount, recs, refs, gpos;
   AT_DISPATCH_FLOATING_TYPES(means2d.scalar_type(), "rasterize_forward", [&] {
     Bins<scalar_t> bins = bin_gaussians<scalar_t>(
         means2d.data_ptr<scalar_t>(), conics.data_ptr<scalar_t>(), opac.data_ptr<scalar_t>(),
@@ -1068,8 +1075,8 @@ std::vector<torch::Tensor> rasterize_forward(torch::Tensor means2d, torch::Tenso
     for (int64_t c : bins.count)
       TORCH_CHECK(c < (int64_t(1) << 24), "more than 2^24 Gaussians in one tile; use the reference backend");
     const int64_t nt = static_cast<int64_t>(bins.start.size());
-    tstart = torch::empty({nt}, opts.dtype(torch::kInt64));
-    tcount = torch::empty({nt}, opts.dtype(torch::kInt64));
+    tstart = at::empty({nt}, opts.dtype(at::kLong));
+    tcount = at::empty({nt}, opts.dtype(at::kLong));
     std::copy(bins.start.begin(), bins.start.end(), tstart.data_ptr<int64_t>());
     std::copy(bins.count.begin(), bins.count.end(), tcount.data_ptr<int64_t>());
     ids = bins.ids, recs = bins.recs, refs = bins.refs, gpos = bins.gpos;
@@ -1085,11 +1092,10 @@ std::vector<torch::Tensor> rasterize_forward(torch::Tensor means2d, torch::Tenso
 // Returns gradients: means2d [N,2], conics [N,3], opacities [N], colors [N,3], depths [N]; n = N, and the other
 // tensors as the forward returned them (recs, refs, gpos, tile_start, tile_count, final_T, last) or was passed
 // them (bg).
-std::vector<torch::Tensor> rasterize_backward(torch::Tensor recs, torch::Tensor refs, torch::Tensor gpos,
-                                              torch::Tensor tstart, torch::Tensor tcount, torch::Tensor bg,
-                                              torch::Tensor final_T, torch::Tensor last, torch::Tensor g_rgb,
-                                              torch::Tensor g_alpha, torch::Tensor g_depth, int64_t n, int64_t width,
-                                              int64_t height, int64_t threads) {
+std::vector<at::Tensor> rasterize_backward(at::Tensor recs, at::Tensor refs, at::Tensor gpos, at::Tensor tstart,
+                                           at::Tensor tcount, at::Tensor bg, at::Tensor final_T, at::Tensor last,
+                                           at::Tensor g_rgb, at::Tensor g_alpha, at::Tensor g_depth, int64_t n,
+                                           int64_t width, int64_t height, int64_t threads) {
   const int64_t tw = (width + TILE - 1) / TILE, th = (height + TILE - 1) / TILE, nt = tw * th;
   TORCH_CHECK(g_rgb.is_contiguous() && g_alpha.is_contiguous() && g_depth.is_contiguous(),
               "output gradients must be contiguous");
@@ -1097,19 +1103,19 @@ std::vector<torch::Tensor> rasterize_backward(torch::Tensor recs, torch::Tensor 
                   g_depth.numel() == width * height,
               "output gradients have the wrong size");
   TORCH_CHECK(final_T.is_contiguous() && final_T.numel() == width * height, "final_T has the wrong size");
-  TORCH_CHECK(last.is_contiguous() && last.scalar_type() == torch::kInt32 && last.numel() == width * height,
+  TORCH_CHECK(last.is_contiguous() && last.scalar_type() == at::kInt && last.numel() == width * height,
               "last must be the [H, W] int32 tensor the forward returned");
   TORCH_CHECK(bg.is_contiguous() && bg.numel() == 3, "background must be 3 contiguous values");
-  TORCH_CHECK(tstart.is_contiguous() && tcount.is_contiguous() && tstart.scalar_type() == torch::kInt64 &&
-                  tcount.scalar_type() == torch::kInt64 && tstart.numel() == nt && tcount.numel() == nt,
+  TORCH_CHECK(tstart.is_contiguous() && tcount.is_contiguous() && tstart.scalar_type() == at::kLong &&
+                  tcount.scalar_type() == at::kLong && tstart.numel() == nt && tcount.numel() == nt,
               "tile_start / tile_count must be the int64 tensors the forward returned");
-  TORCH_CHECK(recs.is_contiguous() && recs.scalar_type() == torch::kUInt8, "recs must be the forward's uint8 tensor");
-  TORCH_CHECK(refs.is_contiguous() && refs.scalar_type() == torch::kInt64, "refs must be the forward's int64 tensor");
+  TORCH_CHECK(recs.is_contiguous() && recs.scalar_type() == at::kByte, "recs must be the forward's uint8 tensor");
+  TORCH_CHECK(refs.is_contiguous() && refs.scalar_type() == at::kLong, "refs must be the forward's int64 tensor");
   const int64_t m = refs.numel();
-  TORCH_CHECK(gpos.is_contiguous() && gpos.scalar_type() == torch::kInt32 && gpos.numel() == m,
+  TORCH_CHECK(gpos.is_contiguous() && gpos.scalar_type() == at::kInt && gpos.numel() == m,
               "gpos must be the forward's int32 tensor, one per pair");
   auto opts = final_T.options();
-  auto grad = torch::zeros({n, NGRAD}, opts);
+  auto grad = at::zeros({n, NGRAD}, opts);
   AT_DISPATCH_FLOATING_TYPES(final_T.scalar_type(), "rasterize_backward", [&] {
     using G = Gauss<scalar_t>;
     TORCH_CHECK(recs.numel() % int64_t(sizeof(G)) == 0, "recs does not hold whole records of this dtype");
@@ -1133,32 +1139,30 @@ std::vector<torch::Tensor> rasterize_backward(torch::Tensor recs, torch::Tensor 
     }
     TORCH_CHECK(slots == m, "records and pairs do not match");
     // Every slot of a listed pair is written (zeros where no pixel composites it).
-    auto pair_grad = torch::empty({m, NGRAD}, opts);
+    auto pair_grad = at::empty({m, NGRAD}, opts);
     scalar_t* pg = pair_grad.data_ptr<scalar_t>();
     backward_impl<scalar_t>(rec, ref, st, ct, bg.data_ptr<scalar_t>(), final_T.data_ptr<scalar_t>(),
                             last.data_ptr<int32_t>(), g_rgb.data_ptr<scalar_t>(), g_alpha.data_ptr<scalar_t>(),
                             g_depth.data_ptr<scalar_t>(), int(width), int(height), int(threads), pg);
     sum_pairs<scalar_t>(pg, rec, pos, nv, int(threads), grad.data_ptr<scalar_t>());
   });
-  using torch::indexing::Slice;
-  return {grad.index({Slice(), Slice(0, 2)}), grad.index({Slice(), Slice(2, 5)}), grad.index({Slice(), 5}),
-          grad.index({Slice(), Slice(6, 9)}), grad.index({Slice(), 9})};
+  return {grad.narrow(1, 0, 2), grad.narrow(1, 2, 3), grad.select(1, 5), grad.narrow(1, 6, 3), grad.select(1, 9)};
 }
 
 // Returns means2d [N,2], conics [N,3], depths [N], radii [N] int32 (zeros where culled).
-std::vector<torch::Tensor> project_forward(torch::Tensor means, torch::Tensor quats, torch::Tensor log_scales,
-                                           torch::Tensor K, torch::Tensor w2c, torch::Tensor keep, int64_t width,
-                                           int64_t height, double near, double eps2d, int64_t threads) {
+std::vector<at::Tensor> project_forward(at::Tensor means, at::Tensor quats, at::Tensor log_scales, at::Tensor K,
+                                        at::Tensor w2c, at::Tensor keep, int64_t width, int64_t height, double near,
+                                        double eps2d, int64_t threads) {
   const int64_t n = means.size(0);
   check(means, "means", n, 3);
   check(quats, "quats", n, 4);
   check(log_scales, "log_scales", n, 3);
   check(keep, "keep", n, 0);
-  TORCH_CHECK(keep.scalar_type() == torch::kBool, "keep must be bool");
+  TORCH_CHECK(keep.scalar_type() == at::kBool, "keep must be bool");
   const Camera cam = make_camera(K, w2c, width, height, near, eps2d);
   auto opts = means.options();
-  auto means2d = torch::empty({n, 2}, opts), conics = torch::empty({n, 3}, opts), depths = torch::empty({n}, opts);
-  auto radii = torch::empty({n}, opts.dtype(torch::kInt32));
+  auto means2d = at::empty({n, 2}, opts), conics = at::empty({n, 3}, opts), depths = at::empty({n}, opts);
+  auto radii = at::empty({n}, opts.dtype(at::kInt));
   AT_DISPATCH_FLOATING_TYPES(means.scalar_type(), "project_forward", [&] {
     project_forward_impl<scalar_t>(cam, means.data_ptr<scalar_t>(), quats.data_ptr<scalar_t>(),
                                    log_scales.data_ptr<scalar_t>(), keep.data_ptr<bool>(), n, int(threads),
@@ -1169,21 +1173,21 @@ std::vector<torch::Tensor> project_forward(torch::Tensor means, torch::Tensor qu
 }
 
 // Returns gradients: means [N,3], quats [N,4], log_scales [N,3], w2c [4,4] (rotation and translation rows).
-std::vector<torch::Tensor> project_backward(torch::Tensor means, torch::Tensor quats, torch::Tensor log_scales,
-                                            torch::Tensor K, torch::Tensor w2c, torch::Tensor radii,
-                                            torch::Tensor g_m2d, torch::Tensor g_con, torch::Tensor g_z, int64_t width,
-                                            int64_t height, double near, double eps2d, int64_t threads) {
+std::vector<at::Tensor> project_backward(at::Tensor means, at::Tensor quats, at::Tensor log_scales, at::Tensor K,
+                                         at::Tensor w2c, at::Tensor radii, at::Tensor g_m2d, at::Tensor g_con,
+                                         at::Tensor g_z, int64_t width, int64_t height, double near, double eps2d,
+                                         int64_t threads) {
   const int64_t n = means.size(0);
   check(g_m2d, "grad means2d", n, 2);
   check(g_con, "grad conics", n, 3);
   check(g_z, "grad depths", n, 0);
   const Camera cam = make_camera(K, w2c, width, height, near, eps2d);
   auto opts = means.options();
-  auto d_means = torch::empty({n, 3}, opts), d_quats = torch::empty({n, 4}, opts);
-  auto d_ls = torch::empty({n, 3}, opts);
+  auto d_means = at::empty({n, 3}, opts), d_quats = at::empty({n, 4}, opts);
+  auto d_ls = at::empty({n, 3}, opts);
   const int nt = std::max<int>(1, int(threads));
   // Per-Gaussian pose contributions, summed serially below so the result does not depend on the threads.
-  auto d_Rt = torch::zeros({n, 12}, opts.dtype(torch::kDouble));
+  auto d_Rt = at::zeros({n, 12}, opts.dtype(at::kDouble));
   AT_DISPATCH_FLOATING_TYPES(means.scalar_type(), "project_backward", [&] {
     project_backward_impl<scalar_t>(cam, means.data_ptr<scalar_t>(), quats.data_ptr<scalar_t>(),
                                     log_scales.data_ptr<scalar_t>(), radii.data_ptr<int32_t>(), n,
@@ -1191,23 +1195,28 @@ std::vector<torch::Tensor> project_backward(torch::Tensor means, torch::Tensor q
                                     nt, d_means.data_ptr<scalar_t>(), d_quats.data_ptr<scalar_t>(),
                                     d_ls.data_ptr<scalar_t>(), d_Rt.data_ptr<double>());
   });
-  auto rt = torch::zeros({12}, opts.dtype(torch::kDouble));
+  auto rt = at::zeros({12}, opts.dtype(at::kDouble));
   {
     const double* src = d_Rt.data_ptr<double>();
     double* dst = rt.data_ptr<double>();
     for (int64_t i = 0; i < n; ++i)
       for (int k = 0; k < 12; ++k) dst[k] += src[12 * i + k];
   }
-  auto d_w2c = torch::zeros({4, 4}, opts.dtype(torch::kDouble));
-  using torch::indexing::Slice;
-  d_w2c.index_put_({Slice(0, 3), Slice(0, 3)}, rt.index({Slice(0, 9)}).reshape({3, 3}));
-  d_w2c.index_put_({Slice(0, 3), 3}, rt.index({Slice(9, 12)}));
+  auto d_w2c = at::zeros({4, 4}, opts.dtype(at::kDouble));
+  d_w2c.narrow(0, 0, 3).narrow(1, 0, 3).copy_(rt.narrow(0, 0, 9).reshape({3, 3}));
+  d_w2c.narrow(0, 0, 3).select(1, 3).copy_(rt.narrow(0, 9, 3));
   return {d_means, d_quats, d_ls, d_w2c.to(w2c.scalar_type())};
 }
 
-PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
-  m.def("project_forward", &project_forward, "EWA projection forward (CPU)");
-  m.def("project_backward", &project_backward, "EWA projection backward (CPU)");
-  m.def("forward", &rasterize_forward, "Gaussian tile rasterizer forward (CPU)");
-  m.def("backward", &rasterize_backward, "Gaussian tile rasterizer backward (CPU)");
+// The op namespace is the build's name (torch passes -DTORCH_EXTENSION_NAME=<name>), unique per build, so that
+// several targets can be loaded in one process. The extra macro level expands TORCH_EXTENSION_NAME before
+// TORCH_LIBRARY pastes it into identifiers. Schemas are inferred from the signatures (int64_t -> int, double ->
+// float, std::vector<Tensor> -> Tensor[]); the kernels are registered for every backend, as the pybind11 functions
+// were, and check themselves that their tensors are on the CPU.
+#define WORLDTREE_LIBRARY(ns, m) TORCH_LIBRARY(ns, m)
+WORLDTREE_LIBRARY(TORCH_EXTENSION_NAME, m) {
+  m.def("project_forward", &project_forward);    // EWA projection forward (CPU)
+  m.def("project_backward", &project_backward);  // EWA projection backward (CPU)
+  m.def("forward", &rasterize_forward);          // Gaussian tile rasterizer forward (CPU)
+  m.def("backward", &rasterize_backward);        // Gaussian tile rasterizer backward (CPU)
 }
