@@ -115,9 +115,10 @@ def arap_loss(
     each neighbourhood; the length term ignores the rotations. Norms use a guarded square root (gradient 0 at
     0), so coincident or static nodes are harmless.
 
-    Computed by :class:`_ArapTerms`, one autograd node with a hand-written backward over the
-    ``[T, M, K]`` edges (the per-edge autograd graph of :func:`arap_loss_autograd`, the same formula, cost
-    several times more on a CPU); the rotation matrices are differentiated by autograd.
+    Computed by one autograd node with a hand-written backward over the ``[T, M, K]`` edges (the per-edge
+    autograd graph of :func:`arap_loss_autograd`, the same formula, cost several times more on a CPU): on a
+    CPU, float32, the compiled kernel (:class:`_ArapCompiled`, ``worldtree/render/csrc/arap_cpu.cpp``)
+    when it builds, else :class:`_ArapTerms`; the rotation matrices are differentiated by autograd.
     """
     if len(shifts) != len(shift_weights):
         raise ValueError("arap_loss: shifts and shift_weights need equal lengths")
@@ -127,9 +128,9 @@ def arap_loss(
     w = graph.valid.to(pos.dtype)
     w = w / w.sum(dim=-1, keepdim=True).clamp(min=1e-12)  # rows with no valid edge contribute 0
     R = Q.to_matrix(quat)
-    terms = _ArapTerms.apply(
-        pos, R, graph.idx, w, tuple(shifts), tuple(float(x) for x in shift_weights), graph.detach_neighbours
-    )
+    args = (pos, R, graph.idx, w, tuple(shifts), tuple(float(x) for x in shift_weights), graph.detach_neighbours)
+    ops = _compiled_ops(pos)
+    terms = _ArapCompiled.apply(*args, ops) if ops is not None else _ArapTerms.apply(*args)
     # Keep both inputs in the graph even when every shift is skipped (T <= s), as the autograd version does.
     zero = pos.sum() * 0.0 + quat.sum() * 0.0
     return terms[0] + zero, terms[1] + zero
@@ -260,6 +261,46 @@ class _ArapTerms(torch.autograd.Function):
                 g_R = torch.zeros((M, 9, T), dtype=c.dtype, device=c.device)
                 g_R = g_R.index_add(0, flat, g_nb_R.view(M * K, 9, T)).view(M, 3, 3, T).permute(3, 0, 1, 2)
         return g_P.permute(2, 0, 1), g_R, None, None, None, None, None
+
+
+def _compiled_ops(pos: torch.Tensor):
+    """The compiled kernel's ops when ``pos`` can use them (float32 on the CPU, kernel built), else None."""
+    if pos.device.type != "cpu" or pos.dtype != torch.float32:
+        return None
+    from worldtree.render import cpu_kernel  # the rasterizer's extension also holds the ARAP kernel
+
+    return cpu_kernel.ops()
+
+
+class _ArapCompiled(torch.autograd.Function):
+    """:class:`_ArapTerms` computed by the compiled kernel (``arap_forward`` / ``arap_backward``): each edge's
+    trajectory is read once, every sum in double and in a fixed order (the same values for any thread count),
+    nothing kept for the backward but the inputs. Takes ``R`` [T, M, 3, 3] as :class:`_ArapTerms` does."""
+
+    @staticmethod
+    def forward(ctx, pos, R, idx, w, shifts, shift_weights, detach_neighbours, ops):
+        T, M = pos.shape[:2]
+        p = pos.detach().contiguous()
+        r = R.detach().reshape(T, M, 9).contiguous()
+        i = idx.to(torch.int64).contiguous()
+        wc = w.detach().to(torch.float32).contiguous()
+        threads = torch.get_num_threads()
+        coord, length = ops.arap_forward(p, r, i, wc, list(shifts), list(shift_weights), threads)
+        ctx.save_for_backward(p, r, i, wc)
+        ctx.args = (list(shifts), list(shift_weights), bool(detach_neighbours), threads, ops)
+        return coord, length
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, g_coord, g_len):
+        p, r, i, wc = ctx.saved_tensors
+        shifts, shift_weights, detach, threads, ops = ctx.args
+        g_pos, g_R = ops.arap_backward(
+            p, r, i, wc, shifts, shift_weights, float(g_coord), float(g_len), detach, threads
+        )
+        T, M = p.shape[:2]
+        g_R = None if detach or not ctx.needs_input_grad[1] else g_R.view(T, M, 3, 3)
+        return g_pos, g_R, None, None, None, None, None, None
 
 
 def velocity_losses(pos: torch.Tensor, quat: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

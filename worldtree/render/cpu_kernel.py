@@ -61,6 +61,12 @@ def available() -> bool:
     return _load() is not None
 
 
+def ops():
+    """The loaded build's ops (``ops.forward``, ``ops.arap_forward``, ...), building it if needed; None when no
+    target builds."""
+    return _load()
+
+
 def build_error() -> str:
     """Why the build failed ('' when it did not)."""
     _load()

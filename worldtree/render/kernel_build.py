@@ -49,6 +49,9 @@ import torch
 log = logging.getLogger("worldtree.render")
 
 SOURCE = Path(__file__).parent / "csrc" / "rasterize_cpu.cpp"
+#: Further translation units linked into the same library (their ops join the namespace as fragments): the ARAP
+#: regulariser of the motion scaffold (worldtree.motion.regularizers). Compiled in parallel with SOURCE.
+EXTRA_SOURCES: tuple[Path, ...] = (Path(__file__).parent / "csrc" / "arap_cpu.cpp",)
 TARGETS = ("native", "avx2", "portable")
 ENV_TARGET = "WORLDTREE_RASTER_TARGET"
 
@@ -134,7 +137,7 @@ def build_key(target: str) -> str:
     """Hash (hex, 16 digits) of everything that changes the library built for ``target``."""
     h = hashlib.sha256()
     parts = [
-        SOURCE.read_bytes(),
+        *(src.read_bytes() for src in (SOURCE, *EXTRA_SOURCES)),
         " ".join(COMMON_CFLAGS + target_cflags(target) + LDFLAGS).encode(),
         target.encode(),
         torch.__version__.encode(),
@@ -274,17 +277,20 @@ def build(target: str, *, verbose: bool = False) -> Built:
         # torch's own lock file inside the folder is left behind by a build that was killed; under our lock
         # nobody else is building, so one found now is stale and would make torch wait for ever.
         (folder / "lock").unlink(missing_ok=True)
-        src = folder / SOURCE.name
-        if not src.is_file() or src.read_bytes() != SOURCE.read_bytes():
-            tmp = folder / (SOURCE.name + ".tmp")
-            shutil.copyfile(SOURCE, tmp)
-            os.replace(tmp, src)
+        copies = []
+        for source in (SOURCE, *EXTRA_SOURCES):
+            src = folder / source.name
+            if not src.is_file() or src.read_bytes() != source.read_bytes():
+                tmp = folder / (source.name + ".tmp")
+                shutil.copyfile(source, tmp)
+                os.replace(tmp, src)
+            copies.append(str(src))
         log.info("compiling the C++ rasterizer (%s target) into %s; about 10 s, once", target, folder)
         # is_python_module=False: torch loads the library with torch.ops.load_library (registering its ops) and
         # returns its path; _load_library then only records it.
         path = load(
             name=name,
-            sources=[str(src)],
+            sources=copies,
             extra_cflags=list(COMMON_CFLAGS + target_cflags(target)),
             extra_ldflags=list(LDFLAGS),
             build_directory=str(folder),

@@ -213,3 +213,85 @@ def test_fused_arap_float32_matches_float64():
         outs.append([coord.double(), length.double(), p.grad.double(), q.grad.double()])
     for a, b in zip(*outs, strict=True):
         torch.testing.assert_close(b, a, rtol=1e-4, atol=1e-5)
+
+
+def _random_graph_case(T: int, detach: bool, seed: int):
+    """A KNN-like graph with repeated neighbours, invalid edges, a row with none valid and two coincident nodes,
+    as in the fused test above, with float64 positions and rotations."""
+    M, K = 11, 5
+    g = torch.Generator().manual_seed(seed)
+    pos = torch.randn(T, M, 3, generator=g, dtype=f64)
+    pos[:, 5] = pos[:, 4]
+    quat = torch.randn(T, M, 4, generator=g, dtype=f64)
+    idx = torch.randint(0, M, (M, K), generator=g)
+    idx[4, 0] = 5
+    valid = torch.rand(M, K, generator=g) > 0.3
+    valid[2] = False
+    valid[4, 0] = True
+    return pos, quat, ArapGraph(idx, valid, 0.4, detach)
+
+
+def _arap_values(fn, pos, quat, graph, dtype):
+    p = pos.to(dtype).detach().clone().requires_grad_(True)
+    q = quat.to(dtype).detach().clone().requires_grad_(True)
+    coord, length = fn(p, q, graph, shifts=(1, 2, 4), shift_weights=(0.2, 0.5, 0.3))
+    (0.7 * coord + 1.3 * length).backward()
+    q_grad = q.grad if q.grad is not None else torch.zeros_like(q)
+    return [coord.detach(), length.detach(), p.grad, q_grad]
+
+
+def _compiled_kernel():
+    from worldtree.render import cpu_kernel
+
+    if not cpu_kernel.available():
+        pytest.skip(f"the compiled kernel does not build here: {cpu_kernel.build_error()}")
+    return cpu_kernel
+
+
+@pytest.mark.parametrize("detach", [False, True])
+@pytest.mark.parametrize("T", [1, 3, 9])
+def test_compiled_arap_matches_the_float64_autograd_reference(detach, T):
+    # float32 on the CPU takes the compiled kernel; the reference is the edge-by-edge autograd version in float64.
+    from worldtree.motion import regularizers
+
+    _compiled_kernel()
+    pos, quat, graph = _random_graph_case(T, detach, seed=17 + T)
+    assert regularizers._compiled_ops(pos.float()) is not None  # the path under test is the compiled one
+    got = _arap_values(arap_loss, pos, quat, graph, torch.float32)
+    want = _arap_values(arap_loss_autograd, pos, quat, graph, f64)
+    for a, b in zip(got, want, strict=True):
+        assert a.dtype == torch.float32 and torch.isfinite(a).all()
+        torch.testing.assert_close(a.double(), b, rtol=2e-5, atol=2e-6)
+    if T > 1:
+        assert want[0] > 0 and want[2].abs().sum() > 0
+        if not detach:
+            assert want[3].abs().sum() > 0  # the rotations' gradient was compared too
+
+
+def test_compiled_arap_gives_the_same_bits_for_any_thread_count():
+    _compiled_kernel()
+    pos, quat, graph = _random_graph_case(12, False, seed=5)
+    before = torch.get_num_threads()
+    try:
+        runs = []
+        for n in (1, 2, 3):
+            torch.set_num_threads(n)
+            runs.append(_arap_values(arap_loss, pos, quat, graph, torch.float32))
+    finally:
+        torch.set_num_threads(before)
+    for other in runs[1:]:
+        for a, b in zip(runs[0], other, strict=True):
+            assert torch.equal(a, b)
+
+
+def test_arap_falls_back_to_the_tensor_version_without_the_kernel(monkeypatch):
+    from worldtree.motion import regularizers
+    from worldtree.render import cpu_kernel
+
+    pos, quat, graph = _random_graph_case(6, False, seed=8)
+    monkeypatch.setattr(cpu_kernel, "ops", lambda: None)
+    assert regularizers._compiled_ops(pos.float()) is None
+    got = _arap_values(arap_loss, pos, quat, graph, torch.float32)
+    want = _arap_values(arap_loss_autograd, pos, quat, graph, f64)
+    for a, b in zip(got, want, strict=True):
+        torch.testing.assert_close(a.double(), b, rtol=1e-4, atol=1e-5)

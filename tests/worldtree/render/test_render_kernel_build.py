@@ -21,7 +21,10 @@ REPO = Path(__file__).resolve().parents[3]
 def test_key_covers_source_flags_target_and_cpu(monkeypatch, tmp_path):
     src = tmp_path / "k.cpp"
     src.write_text("int a;\n")
+    extra = tmp_path / "e.cpp"
+    extra.write_text("int e;\n")
     monkeypatch.setattr(kernel_build, "SOURCE", src)
+    monkeypatch.setattr(kernel_build, "EXTRA_SOURCES", (extra,))
     monkeypatch.setattr(kernel_build.platform, "machine", lambda: "x86_64")  # every target has flags there
     base = {t: kernel_build.build_key(t) for t in kernel_build.TARGETS}
     assert len(set(base.values())) == len(kernel_build.TARGETS)  # different targets never share a build
@@ -30,11 +33,15 @@ def test_key_covers_source_flags_target_and_cpu(monkeypatch, tmp_path):
     assert all(kernel_build.build_key(t) != base[t] for t in kernel_build.TARGETS)  # any source edit
     src.write_text("int a;\n")
     assert {t: kernel_build.build_key(t) for t in kernel_build.TARGETS} == base  # and back: same key
+    extra.write_text("int f;\n")
+    assert all(kernel_build.build_key(t) != base[t] for t in kernel_build.TARGETS)  # an edit of a further unit
+    extra.write_text("int e;\n")
 
     monkeypatch.setattr(kernel_build, "COMMON_CFLAGS", (*kernel_build.COMMON_CFLAGS, "-g"))
     assert all(kernel_build.build_key(t) != base[t] for t in kernel_build.TARGETS)  # any flag
     monkeypatch.undo()
     monkeypatch.setattr(kernel_build, "SOURCE", src)
+    monkeypatch.setattr(kernel_build, "EXTRA_SOURCES", (extra,))
     monkeypatch.setattr(kernel_build.platform, "machine", lambda: "x86_64")
 
     # -march=native compiles for this CPU: another CPU needs another native build, not another portable one.
@@ -118,6 +125,7 @@ _BUILD_ONE = textwrap.dedent(
     from pathlib import Path
     from worldtree.render import kernel_build
     kernel_build.SOURCE = Path(sys.argv[1])
+    kernel_build.EXTRA_SOURCES = ()
     built = kernel_build.build("portable")
     print(json.dumps({"name": built.name, "value": built.module.value()}))
     """
@@ -216,6 +224,7 @@ def test_two_targets_in_one_process_have_their_own_ops(monkeypatch, tmp_path):
 
     value = "#if defined(__AVX2__)\n2\n#else\n1\n#endif\n"  # what the target's flags compiled
     monkeypatch.setattr(kernel_build, "SOURCE", _tiny_source(tmp_path / "tiny.cpp", value))
+    monkeypatch.setattr(kernel_build, "EXTRA_SOURCES", ())
     monkeypatch.setenv("TORCH_EXTENSIONS_DIR", str(tmp_path / "ext"))
     try:
         native, portable = kernel_build.build("native"), kernel_build.build("portable")
