@@ -51,7 +51,7 @@ def main(argv: list[str] | None = None) -> None:
         quat = scf.quat.detach().clone().requires_grad_(True)
         graphs = scf.arap_graphs()
 
-        def call():
+        def call(pos=pos, quat=quat, graphs=graphs):
             total = pos.sum() * 0.0
             for graph in graphs:
                 coord, length = arap_loss(pos, quat, graph)
