@@ -70,7 +70,7 @@ from worldtree.trainer import TrainContext, Trainer, TrainerConfig, TrainSummary
 from worldtree.tree.adaptive import AutoSplitConfig, assess_fit
 from worldtree.tree.build import TreeConfig, TreeResult, grow_tree, node_output, read_node_input
 from worldtree.tree.inherit import InheritConfig
-from worldtree.tree.node import NodeState
+from worldtree.tree.node import NodeState, distinct_gaussians, same_gaussians, share_static_model
 from worldtree.tree.parallel import LayerRunner, NodeContext, ParallelConfig
 from worldtree.tree.sac import (
     AncestorCopy,
@@ -209,9 +209,13 @@ class WorldTreeConfig(BaseConfig):
         then inherit everything their frames see)."""
         out = super().ignored_settings()
         if not self.auto_depth:
-            out.update(settings_of("auto_split", self.auto_split, "the tree's depth is fixed; --depth auto", ()))
+            out.update(
+                settings_of("auto_split", self.auto_split, "the tree's depth is fixed; --depth auto", ())
+            )
         if not self.holdout_on():
-            out.update(settings_of("holdout", self.holdout, "held-out validation is off; --set holdout.enabled=true"))
+            out.update(
+                settings_of("holdout", self.holdout, "held-out validation is off; --set holdout.enabled=true")
+            )
         if self.budget_on():
             out["inherit_caps"] = "the Gaussian budget replaces the caps; --set budget.enabled=false"
         if self.tree_depth == 0:
@@ -498,8 +502,9 @@ def _prune_inherited(state: NodeState, pcfg: PhotometricConfig, data: dict, cfg:
     background is never pruned in a child: the test cameras see parts of it that none of a child's few frames
     do. Returns the pruning counts."""
     pre = _node_fit(state, pcfg, data, cfg, seed, with_tracks=False)
-    counts = pre.prune_negligible(cfg.budget.prune_contribution, total_frac=cfg.budget.prune_total_frac,
-                                  static=False)
+    counts = pre.prune_negligible(
+        cfg.budget.prune_contribution, total_frac=cfg.budget.prune_total_frac, static=False
+    )
     state.static, state.dynamic = pre.static, pre.dynamic
     cap = inverse_sigmoid(torch.tensor(cfg.inherit_opacity)).item()
     with torch.no_grad():
@@ -536,7 +541,9 @@ def _validate(fit: NodeFit, parent_at, hold: list[int], hcfg: HoldoutConfig, rec
         child, parent = [], []
         for i in hold:
             mid = fit.gaussians_at(i)
-            child.append(fit.render_frame(i, halfway(fit.gaussians_at(i - 1), fit.gaussians_at(i + 1), mid[3])))
+            child.append(
+                fit.render_frame(i, halfway(fit.gaussians_at(i - 1), fit.gaussians_at(i + 1), mid[3]))
+            )
             g = fit.t0 + i
             pmid = parent_at(g)
             parent.append(fit.render_frame(i, halfway(parent_at(g - 1), parent_at(g + 1), pmid[3])))
@@ -596,8 +603,9 @@ def train_node(payload: dict, ctx: NodeContext) -> dict:
         # Inherited dynamic Gaussians (opacity reset) are pruned only once they had steps to recover.
         due = inherited_prune_due(summary.end_step, fit.T, cfg.budget)
         b = cfg.budget
-        pruned = fit.prune_negligible(b.prune_contribution, dynamic=due, total_frac=b.prune_total_frac,
-                                      static=False)
+        pruned = fit.prune_negligible(
+            b.prune_contribution, dynamic=due, total_frac=b.prune_total_frac, static=False
+        )
         adaptive["prune"] = {**pruned, "dynamic_due": due}
         adaptive["prune_ancestors"] = fit.prune_chain(b.prune_contribution, b.prune_total_frac)
     state.static, state.dynamic, state.scaffold = fit.static, fit.dynamic, fit.scaffold
@@ -769,6 +777,7 @@ def _grow(s: WorldTreeState, no_ancestors: bool) -> None:
     for j, st in res.states.items():
         if j != 1:
             s.states[j] = _frozen(NodeState.from_payload(st.to_payload(), s.device))
+    share_static_model(s.states)
     s.info["tree"] = _tree_info(s, res)
     if tcfg.auto is not None:
         s.info["tree"]["auto"] = {str(j): d for j, d in res.decisions.items()}
@@ -780,7 +789,9 @@ def _tree_info(s: WorldTreeState, res: TreeResult) -> dict[str, Any]:
     return {
         "nodes": sorted(s.states),
         "intervals": {str(j): [tree.interval(j).start, tree.interval(j).end] for j in s.states},
-        "renders": {str(j): [[iv.start, iv.end] for iv in tree.own_frames(j)] for j in tree.rendering_nodes()},
+        "renders": {
+            str(j): [[iv.start, iv.end] for iv in tree.own_frames(j)] for j in tree.rendering_nodes()
+        },
         "splits": {str(j): {"point": ch.point, "fallback": ch.fallback} for j, ch in res.splits.items()},
         "rejected": res.rejected,
         "layers": [
@@ -952,9 +963,12 @@ class WorldTreeMethod(BaseMethod):
         nodes = sorted((folder / "tree").glob("node*.pt"))
         if not nodes:
             raise UserError(f"{folder / 'tree'}: no node states; finish the run with `wtbench run` first")
-        s.states = {int(p.stem[4:]): _frozen(NodeState.load(p, self.device)) for p in nodes}
-        if 1 not in s.states:
+        if not (folder / "tree" / "node1.pt").is_file():
             raise UserError(f"{folder / 'tree' / 'node1.pt'}: missing; re-run with `wtbench run --force`")
+        root = NodeState.load(folder / "tree" / "node1.pt", self.device)
+        s.states = {int(p.stem[4:]): _frozen(NodeState.load(p, self.device, root.static)) for p in nodes}
+        s.states[1] = _frozen(root)
+        share_static_model(s.states)
         s.caches = {}
         s.renderer = _tree_renderer(s)
 
@@ -962,8 +976,10 @@ class WorldTreeMethod(BaseMethod):
         folder = Path(folder)
         s = self.state
         super().save_model(folder)  # the root (node 1) in the Base method's files
+        root = s.states.get(1)
         for j, st in s.states.items():
-            st.save(folder / "tree" / f"node{j}.pt")
+            shared = 1 if j != 1 and root is not None and same_gaussians(st.static, root.static) else None
+            st.save(folder / "tree" / f"node{j}.pt", static_shared_with=shared)
         atomic_write_json(
             folder / "model.json",
             {
@@ -986,13 +1002,9 @@ class WorldTreeMethod(BaseMethod):
         out = super().stats()
         rendering = s.tree.rendering_nodes() if s.tree is not None else [1]
         rendering = [j for j in rendering if j in s.states] or [1]
-        # Model size: what the rendering nodes hold (each its static copy, own dynamic Gaussians and ancestors):
-        # the leaves, and the parent of a one-sided split, which renders the frames of the child left out.
-        n_g = 0
-        for j in rendering:
-            st = s.states.get(j)
-            if st is not None:
-                n_g += len(st.static) + len(st.dynamic) + sum(len(a.dynamic) for a in st.chain)
+        # Model size: the distinct Gaussians the rendering nodes draw (the leaves, and the parent of a one-sided
+        # split, which renders the frames of the child left out): the shared background once.
+        n_g = distinct_gaussians(s.states, rendering)
         root = s.states.get(1)
         out.update(
             {

@@ -3,6 +3,7 @@ the default tree, ``--ablate sac`` and ``--ablate tpt`` (against the Base method
 
 from __future__ import annotations
 
+import hashlib
 import json
 import math
 import shutil
@@ -15,6 +16,7 @@ from typer.testing import CliRunner
 
 from benchmarks.cli import app
 from methods.worldtree import NodeTrainConfig
+from worldtree.gaussians import CORE_KEYS
 from worldtree.imageio import read_image
 from worldtree.infra.config_json import read_config, write_config
 from worldtree.render import rasterize
@@ -82,12 +84,25 @@ def test_default_tree_has_seven_nodes_with_binary_intervals_and_timings(runs):
         assert [node.interval.start, node.interval.end] == INTERVALS[j]
         assert [a.node for a in node.chain] == [k for k in (j // 2, j // 4) if k >= 1]
         assert node.scaffold.M == st["num_scaffold_nodes"]
-    # Model size: each leaf's static copy + own dynamic + its ancestor copies.
-    size = 0
+    # Model size: the distinct Gaussians the leaves draw, counted by hashing the bytes of every set they render
+    # (their static models, own dynamic Gaussians and ancestor copies): a set held by several leaves counts once.
+    root = NodeState.load(runs["default"] / "model" / "tree" / "node1.pt")
+    sizes, held = {}, 0
     for j in (4, 5, 6, 7):
-        node = NodeState.load(runs["default"] / "model" / "tree" / f"node{j}.pt")
-        size += len(node.static) + len(node.dynamic) + sum(len(a.dynamic) for a in node.chain)
-    assert st["num_gaussians"] == size
+        path = runs["default"] / "model" / "tree" / f"node{j}.pt"
+        payload = load_payload(path)
+        # The leaf renders the root's background unchanged (node_static_lr 0): its file refers to node1.pt's.
+        assert payload["static"] is None and payload["static_shared_with"] == 1
+        node = NodeState.load(path)
+        for k, v in root.static.params.items():
+            assert torch.equal(node.static.params[k], v)
+        for g in [node.static, node.dynamic, *(a.dynamic for a in node.chain)]:
+            digest = hashlib.sha256(b"".join(g.params[k].detach().numpy().tobytes() for k in CORE_KEYS))
+            sizes[digest.hexdigest()] = len(g)
+            held += len(g)
+    distinct = sum(sizes.values())
+    assert st["num_gaussians"] == distinct
+    assert distinct < held - 3 * len(root.static)  # the background once, not four times
 
 
 @pytest.mark.parametrize("t", [3, 20])
@@ -265,7 +280,9 @@ def test_depth_auto_grows_the_tree_its_decisions_say(runs):
     # Steps follow the frames: the smoke root's 20 steps over 26 frames, capped by layer_steps (10).
     for ns in st["tree"].get("node_stats", {}).values():
         n = ns["frames"][1] - ns["frames"][0] + 1
-        assert ns["steps_max"] == min(10, math.ceil(20 * n / FRAMES)) and ns["steps"] <= ns["steps_max"] + ns.get("steps_refit", 0)
+        assert ns["steps_max"] == min(10, math.ceil(20 * n / FRAMES)) and ns["steps"] <= ns[
+            "steps_max"
+        ] + ns.get("steps_refit", 0)
     # Budget and early stop come with --depth auto for the children; the root (the Base stages) trains as for a
     # fixed depth: every step, no budget, no pruning stage.
     ad = st["adaptive"]

@@ -22,7 +22,14 @@ from worldtree.motion.scaffold import Scaffold, SkinCache
 from worldtree.tree.sac import AncestorCopy, _cpu, chain_gaussians_at
 from worldtree.tree.tpt import Interval, depth_of
 
-__all__ = ["NodeState", "load_payload", "save_payload"]
+__all__ = [
+    "NodeState",
+    "distinct_gaussians",
+    "load_payload",
+    "same_gaussians",
+    "save_payload",
+    "share_static_model",
+]
 
 FORMAT = "worldtree-node-v1"
 
@@ -79,8 +86,19 @@ class NodeState:
         anc = chain_gaussians_at(self.chain, t_global, chain_length)
         return gaussians_at(self.static, self.dynamic, self.scaffold, self.local_time(t_global), cache, anc)
 
-    def to_payload(self) -> dict:
-        """Plain dict of CPU tensors/numbers (see the module docstring)."""
+    def to_payload(self, static_shared_with: int | None = None) -> dict:
+        """Plain dict of CPU tensors/numbers (see the module docstring).
+
+        ``static_shared_with``: index of a node whose static model this node's is (the same Gaussians, e.g. the
+        root's background that a child renders unchanged); the payload then names that node instead of
+        holding a copy, and :meth:`from_payload` needs the model handed back (:meth:`load` reads it from the
+        named node's file beside this one).
+        """
+        static = (
+            None
+            if static_shared_with is not None
+            else {k: v.detach().cpu().clone() for k, v in self.static.params.items()}
+        )
         return {
             "format": FORMAT,
             "version": worldtree.__version__,
@@ -88,32 +106,108 @@ class NodeState:
             "interval": [self.interval.start, self.interval.end],
             "scaffold": _cpu(self.scaffold.to_state()),
             "dynamic": {k: v.detach().cpu().clone() for k, v in self.dynamic.params.items()},
-            "static": {k: v.detach().cpu().clone() for k, v in self.static.params.items()},
+            "static": static,
+            "static_shared_with": static_shared_with,
+            "static_count": len(self.static),
             "w2cs": self.w2cs.detach().cpu().clone(),
             "chain": [a.to_payload() for a in self.chain],
         }
 
     @classmethod
-    def from_payload(cls, d: dict, device: torch.device | str = "cpu") -> NodeState:
+    def from_payload(
+        cls, d: dict, device: torch.device | str = "cpu", static: GaussianSet | None = None
+    ) -> NodeState:
+        """The state of a :meth:`to_payload` dict; ``static``: the shared static model a payload written with
+        ``static_shared_with`` names (used as is, not copied)."""
         if d.get("format") != FORMAT:
             raise ValueError(f"not a tree node state (format {d.get('format')!r}, expected {FORMAT!r})")
+        shared = d.get("static_shared_with")
+        if shared is None:
+            static = GaussianSet({k: v.to(device) for k, v in d["static"].items()})
+        elif static is None:
+            raise ValueError(f"node {d['index']}: its static model is node {shared}'s; hand that model over")
+        elif len(static) != int(d["static_count"]):
+            raise ValueError(
+                f"node {d['index']}: node {shared}'s static model has {len(static)} Gaussians, the node was "
+                f"saved with {d['static_count']}; the files are from different runs"
+            )
         return cls(
             int(d["index"]),
             Interval(*[int(x) for x in d["interval"]]),
             Scaffold.from_state(d["scaffold"], device),
             DynamicGaussians({k: v.to(device) for k, v in d["dynamic"].items()}),
-            GaussianSet({k: v.to(device) for k, v in d["static"].items()}),
+            static,
             d["w2cs"].to(device),
             [AncestorCopy.from_payload(a, device) for a in d["chain"]],
         )
 
-    def save(self, path: str | Path) -> None:
-        """Write the state to ``path`` atomically."""
-        save_payload(path, self.to_payload())
+    def save(self, path: str | Path, static_shared_with: int | None = None) -> None:
+        """Write the state to ``path`` atomically (``static_shared_with``: see :meth:`to_payload`)."""
+        save_payload(path, self.to_payload(static_shared_with))
 
     @classmethod
-    def load(cls, path: str | Path, device: torch.device | str = "cpu") -> NodeState:
-        return cls.from_payload(load_payload(path), device)
+    def load(
+        cls, path: str | Path, device: torch.device | str = "cpu", static: GaussianSet | None = None
+    ) -> NodeState:
+        """The state saved at ``path``; a node saved with a shared static model gets ``static`` or, when None,
+        that of ``node<k>.pt`` in the same folder (k the node it names)."""
+        d = load_payload(path)
+        shared = d.get("static_shared_with") if isinstance(d, dict) else None
+        if shared is not None and static is None:
+            static = cls.load(Path(path).with_name(f"node{int(shared)}.pt"), device).static
+        return cls.from_payload(d, device, static)
+
+
+def same_gaussians(a, b) -> bool:
+    """Whether two Gaussian sets hold the same parameters, bit for bit."""
+    if a is b:
+        return True
+    pa, pb = a.params, b.params
+    return pa.keys() == pb.keys() and all(
+        pa[k].shape == pb[k].shape and torch.equal(pa[k].detach(), pb[k].detach().to(pa[k].device))
+        for k in pa
+    )
+
+
+def share_static_model(states: dict[int, NodeState]) -> None:
+    """The nodes whose static model is the root's, bit for bit (a child renders the root's background unchanged
+    while ``node_static_lr`` is 0), hold one model instead of a copy each: kept once in memory, saved once
+    (``NodeState.save(..., static_shared_with=1)`` writes a reference to the root's file) and counted
+    once (:func:`distinct_gaussians`). Not the root's own model object: during the run that is the trainable one."""
+    root = states.get(1)
+    if root is None:
+        return
+    shared = None
+    for j in sorted(states):
+        st = states[j]
+        if j == 1 or not same_gaussians(st.static, root.static):
+            continue
+        if shared is None:
+            shared = st.static
+        st.static = shared
+
+
+def distinct_gaussians(states: dict[int, NodeState], rendering: list[int]) -> int:
+    """Distinct Gaussians the ``rendering`` nodes draw: each one's static model, own dynamic Gaussians and
+    ancestor copies, a model shared by several nodes (the root's background) or an ancestor copy identical in
+    two nodes (a frozen parent's, in both of its children) counted once."""
+    seen_static: list = []
+    seen_copies: dict[int, list] = {}
+    n = 0
+    for j in rendering:
+        st = states.get(j)
+        if st is None:
+            continue
+        if not any(st.static is o or same_gaussians(st.static, o) for o in seen_static):
+            seen_static.append(st.static)
+            n += len(st.static)
+        n += len(st.dynamic)
+        for a in st.chain:
+            kept = seen_copies.setdefault(a.node, [])
+            if not any(same_gaussians(a.dynamic, o) for o in kept):
+                kept.append(a.dynamic)
+                n += len(a.dynamic)
+    return n
 
 
 def save_payload(path: str | Path, payload) -> None:

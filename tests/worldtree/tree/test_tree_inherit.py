@@ -144,3 +144,39 @@ def test_inherit_static_scene_without_dynamic_content(tmp_path):
     assert m.shape == (3, 3)  # the static Gaussians only
     right.save(tmp_path / "n3.pt")
     assert NodeState.load(tmp_path / "n3.pt").scaffold.T == 15
+
+
+def test_shared_static_model_is_saved_once_and_counted_once(root_state, tmp_path):
+    from worldtree.tree.node import distinct_gaussians, share_static_model
+
+    left, right = split_state(root_state, Interval(0, 29), Interval(30, 59), InheritConfig())
+    # A child that re-fitted its background (node_static_lr > 0) holds its own model.
+    with torch.no_grad():
+        right.static.params["means"][0] += 1.0
+    states = {1: root_state, 2: left, 3: right}
+    share_static_model(states)
+    assert left.static is not root_state.static  # never the root's own (trainable during a run) object
+    assert right.static is not left.static
+    n_static, n_root_dyn = len(root_state.static), len(root_state.dynamic)
+    # Leaves 2 and 3: one background shared with the root counted once, the changed one again; each child's
+    # dynamic Gaussians; the root's dynamic Gaussians as an ancestor copy held (identical) by both: once.
+    want = n_static + len(left.dynamic) + n_static + len(right.dynamic) + n_root_dyn
+    assert distinct_gaussians(states, [2, 3]) == want
+    assert distinct_gaussians({1: root_state, 2: left}, [2]) == n_static + len(left.dynamic) + n_root_dyn
+
+    # Saved with a reference: the file holds no static model and loads the named node's.
+    root_state.save(tmp_path / "node1.pt")
+    left.save(tmp_path / "node2.pt", static_shared_with=1)
+    right.save(tmp_path / "node3.pt")
+    assert (tmp_path / "node2.pt").stat().st_size < (tmp_path / "node3.pt").stat().st_size
+    back = NodeState.load(tmp_path / "node2.pt")
+    for k, v in root_state.static.params.items():
+        assert torch.equal(back.static.params[k], v)
+    assert torch.equal(NodeState.load(tmp_path / "node3.pt").static.means, right.static.means)
+    with pytest.raises(ValueError, match="hand that model over"):
+        NodeState.from_payload(left.to_payload(static_shared_with=1))
+    with pytest.raises(ValueError, match="different runs"):
+        NodeState.from_payload(
+            left.to_payload(static_shared_with=1),
+            static=right.static.__class__({k: v[:-1] for k, v in right.static.params.items()}),
+        )
