@@ -295,3 +295,19 @@ def test_arap_falls_back_to_the_tensor_version_without_the_kernel(monkeypatch):
     want = _arap_values(arap_loss_autograd, pos, quat, graph, f64)
     for a, b in zip(got, want, strict=True):
         torch.testing.assert_close(a.double(), b, rtol=1e-4, atol=1e-5)
+
+
+@pytest.mark.parametrize("compiled", [True, False])
+def test_arap_shows_a_nan_position_in_its_value(compiled, monkeypatch):
+    # A NaN must reach the loss (and so the trainers' finiteness checks), not vanish behind the norm's guard.
+    from worldtree.render import cpu_kernel
+
+    if compiled:
+        _compiled_kernel()
+    else:
+        monkeypatch.setattr(cpu_kernel, "ops", lambda: None)
+    pos, quat, graph = _random_graph_case(5, False, seed=2)
+    pos = pos.float()
+    pos[2, 3, 1] = float("nan")
+    coord, length = arap_loss(pos, quat.float(), graph)
+    assert math.isnan(float(coord)) and math.isnan(float(length))

@@ -45,6 +45,9 @@ struct ArapInputs {
   std::vector<double> scales;  // ws / max((T - s) M, 1) per shift, 0 for shifts with T <= s
 };
 
+// A squared norm clamped below at FLT_MIN (as torch.clamp: a NaN stays NaN, so a NaN position shows in the loss).
+inline double guarded(double sq) { return sq < double(FLT_MIN) ? double(FLT_MIN) : sq; }
+
 // d(t) = x_i(t) - x_j(t), c(t) = R_j(t)^T d(t), |c(t)| guarded.
 inline void edge_coordinates(const ArapInputs& in, int64_t i, int64_t j, ArapEdgeBuffers& b) {
   for (int64_t t = 0; t < in.T; ++t) {
@@ -60,7 +63,7 @@ inline void edge_coordinates(const ArapInputs& in, int64_t i, int64_t j, ArapEdg
     for (int q = 0; q < 3; ++q) c[q] = double(r[q]) * d0 + double(r[3 + q]) * d1 + double(r[6 + q]) * d2;
     double sq = c[0] * c[0] + c[1] * c[1] + c[2] * c[2];
     b.ok[t] = sq >= double(FLT_MIN);
-    b.len[t] = std::sqrt(sq >= double(FLT_MIN) ? sq : double(FLT_MIN));
+    b.len[t] = std::sqrt(guarded(sq));
   }
 }
 
@@ -75,7 +78,7 @@ inline void edge_losses(const ArapInputs& in, const ArapEdgeBuffers& b, double& 
       const double* z = &b.c[3 * (t + s)];
       double e0 = a[0] - z[0], e1 = a[1] - z[1], e2 = a[2] - z[2];
       double sq = e0 * e0 + e1 * e1 + e2 * e2;
-      sc += std::sqrt(sq >= double(FLT_MIN) ? sq : double(FLT_MIN));
+      sc += std::sqrt(guarded(sq));
       sl += std::fabs(b.len[t] - b.len[t + s]);
     }
     coord += in.scales[n] * sc;
