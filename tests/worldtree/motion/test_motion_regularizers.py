@@ -170,55 +170,10 @@ def test_detached_neighbours_get_no_gradient_through_the_edge():
     assert torch.all(pos.grad[:, 1] == 0) and torch.any(pos.grad[:, 0] != 0)
 
 
-@pytest.mark.parametrize("detach", [False, True])
-@pytest.mark.parametrize("T", [1, 3, 9])  # 1 and 3: every / some shifts skipped (T <= s)
-def test_fused_arap_equals_the_edge_by_edge_autograd_version(detach, T):
-    # Random KNN-like graph with repeated neighbours, invalid edges, a row with none valid, and two coincident
-    # nodes (zero-length edges, where the guarded norm's gradient must be 0 in both versions).
-    M, K = 7, 4
-    g = torch.Generator().manual_seed(3 + T)
-    pos = torch.randn(T, M, 3, generator=g, dtype=f64)
-    pos[:, 5] = pos[:, 4]
-    quat = torch.randn(T, M, 4, generator=g, dtype=f64)
-    idx = torch.randint(0, M, (M, K), generator=g)
-    idx[4, 0] = 5
-    valid = torch.rand(M, K, generator=g) > 0.3
-    valid[2] = False
-    valid[4, 0] = True
-    graph = ArapGraph(idx, valid, 0.4, detach)
-    got, want = [], []
-    for fn, out in ((arap_loss, got), (arap_loss_autograd, want)):
-        p, q = pos.clone().requires_grad_(True), quat.clone().requires_grad_(True)
-        coord, length = fn(p, q, graph, shifts=(1, 2, 4), shift_weights=(0.2, 0.5, 0.3))
-        (0.7 * coord + 1.3 * length).backward()
-        out += [coord.detach(), length.detach(), p.grad, q.grad]
-    for a, b in zip(got, want, strict=True):
-        torch.testing.assert_close(a, b, rtol=1e-12, atol=1e-14)
-    if T > 1:
-        assert want[0] > 0 and want[2].abs().sum() > 0  # the comparison saw non-trivial values
-
-
-def test_fused_arap_float32_matches_float64():
-    # The fused backward keeps float32 near the float64 reference (no cancellation it adds itself).
-    g = torch.Generator().manual_seed(11)
-    pos = torch.randn(6, 9, 3, generator=g, dtype=f64)
-    quat = torch.randn(6, 9, 4, generator=g, dtype=f64)
-    graph = full_graph(9)
-    outs = []
-    for dt in (f64, torch.float32):
-        p = pos.to(dt).detach().clone().requires_grad_(True)
-        q = quat.to(dt).detach().clone().requires_grad_(True)
-        coord, length = arap_loss(p, q, graph)
-        (coord + length).backward()
-        outs.append([coord.double(), length.double(), p.grad.double(), q.grad.double()])
-    for a, b in zip(*outs, strict=True):
-        torch.testing.assert_close(b, a, rtol=1e-4, atol=1e-5)
-
-
-def _random_graph_case(T: int, detach: bool, seed: int):
-    """A KNN-like graph with repeated neighbours, invalid edges, a row with none valid and two coincident nodes,
-    as in the fused test above, with float64 positions and rotations."""
-    M, K = 11, 5
+def _random_graph_case(T: int, detach: bool, seed: int, M: int = 11, K: int = 5):
+    """A KNN-like graph (M nodes, K neighbours) with repeated neighbours, invalid edges, a row with none valid and
+    two coincident nodes (zero-length edges, where the guarded norm's gradient must be 0),
+    with float64 positions and rotations."""
     g = torch.Generator().manual_seed(seed)
     pos = torch.randn(T, M, 3, generator=g, dtype=f64)
     pos[:, 5] = pos[:, 4]
@@ -238,6 +193,34 @@ def _arap_values(fn, pos, quat, graph, dtype):
     (0.7 * coord + 1.3 * length).backward()
     q_grad = q.grad if q.grad is not None else torch.zeros_like(q)
     return [coord.detach(), length.detach(), p.grad, q_grad]
+
+
+@pytest.mark.parametrize("detach", [False, True])
+@pytest.mark.parametrize("T", [1, 3, 9])  # 1 and 3: every / some shifts skipped (T <= s)
+def test_fused_arap_equals_the_edge_by_edge_autograd_version(detach, T):
+    pos, quat, graph = _random_graph_case(T, detach, seed=3 + T, M=7, K=4)
+    got = _arap_values(arap_loss, pos, quat, graph, f64)
+    want = _arap_values(arap_loss_autograd, pos, quat, graph, f64)
+    for a, b in zip(got, want, strict=True):
+        torch.testing.assert_close(a, b, rtol=1e-12, atol=1e-14)
+    if T > 1:
+        assert want[0] > 0 and want[2].abs().sum() > 0  # the comparison saw non-trivial values
+
+def test_fused_arap_float32_matches_float64():
+    # The fused backward keeps float32 near the float64 reference (no cancellation it adds itself).
+    g = torch.Generator().manual_seed(11)
+    pos = torch.randn(6, 9, 3, generator=g, dtype=f64)
+    quat = torch.randn(6, 9, 4, generator=g, dtype=f64)
+    graph = full_graph(9)
+    outs = []
+    for dt in (f64, torch.float32):
+        p = pos.to(dt).detach().clone().requires_grad_(True)
+        q = quat.to(dt).detach().clone().requires_grad_(True)
+        coord, length = arap_loss(p, q, graph)
+        (coord + length).backward()
+        outs.append([coord.double(), length.double(), p.grad.double(), q.grad.double()])
+    for a, b in zip(*outs, strict=True):
+        torch.testing.assert_close(b, a, rtol=1e-4, atol=1e-5)
 
 
 def _compiled_kernel():
