@@ -965,10 +965,12 @@ class WorldTreeMethod(BaseMethod):
             raise UserError(f"{folder / 'tree'}: no node states; finish the run with `wtbench run` first")
         if not (folder / "tree" / "node1.pt").is_file():
             raise UserError(f"{folder / 'tree' / 'node1.pt'}: missing; re-run with `wtbench run --force`")
-        root = NodeState.load(folder / "tree" / "node1.pt", self.device)
-        s.states = {int(p.stem[4:]): _frozen(NodeState.load(p, self.device, root.static)) for p in nodes}
-        s.states[1] = _frozen(root)
-        share_static_model(s.states)
+        root = _frozen(NodeState.load(folder / "tree" / "node1.pt", self.device))
+        s.states = {1: root}
+        for p in nodes:
+            if p.stem != "node1":  # a child saved with the shared background gets the root's, loaded once above
+                s.states[int(p.stem[4:])] = _frozen(NodeState.load(p, self.device, root.static))
+        share_static_model(s.states)  # files written before the sharing hold copies: one model again
         s.caches = {}
         s.renderer = _tree_renderer(s)
 

@@ -198,7 +198,7 @@ def distinct_gaussians(states: dict[int, NodeState], rendering: list[int]) -> in
         st = states.get(j)
         if st is None:
             continue
-        if not any(st.static is o or same_gaussians(st.static, o) for o in seen_static):
+        if not any(same_gaussians(st.static, o) for o in seen_static):
             seen_static.append(st.static)
             n += len(st.static)
         n += len(st.dynamic)
