@@ -55,17 +55,18 @@ def register(app: typer.Typer) -> None:
         from benchmarks.viewer.server import Viewer
 
         viewer = Viewer(source, host=host, port=port, max_size=max_size, fps=fps)
+        # Ctrl-C (SIGINT) and SIGTERM end the wait, even where SIGINT was ignored (a shell's background job).
+        # Installed before the address is printed: whoever reads it may signal at once.
+        stop = threading.Event()
+        old = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
+        for sig in old:
+            signal.signal(sig, lambda *_: stop.set())
         print(f"viewer of {source.title} at {viewer.url} (rendering on {source.device}); Ctrl-C to stop")
         if host not in ("127.0.0.1", "localhost", "::1"):
             print(
                 f"note: --host {host} serves to other machines too; the viewer has no password",
                 file=sys.stderr,
             )
-        # Ctrl-C (SIGINT) and SIGTERM end the wait, even where SIGINT was ignored (a shell's background job).
-        stop = threading.Event()
-        old = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
-        for sig in old:
-            signal.signal(sig, lambda *_: stop.set())
         try:
             while not stop.wait(1.0):  # the server and render threads do the work
                 pass
