@@ -52,6 +52,10 @@ class StaticWarmupConfig:
     init_points_per_pixel: float = field(default=0.0, metadata=in_range(0, None, "points per pixel; 0 turns it off"))
     """Raise that bound to this many points per pixel of one training image (0: ``init_max_points`` alone), so
     a larger training image starts with proportionally more of its background."""
+    init_balance_views: bool = True
+    """Draw the initial subset with each candidate weighted by 1 / (training cameras whose image it falls in), so
+    the background starts equally dense wherever it is, instead of dense where every camera sees it and sparse
+    at a rig's edges, which one or two cameras see (and a test camera at that end renders). False: uniform."""
     init_opacity: float = 0.1
     """Opacity of the initial Gaussians."""
     lambda_dssim: float = 0.2
@@ -120,10 +124,12 @@ def lift_pixels(
     stride: int,
     max_points: int,
     generator: torch.Generator,
+    balance_views: bool = False,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """``(points [P, 3], colours [P, 3], frames [P] long)``: the depth prior ``depth [T, H, W]`` at the pixels
     of a ``stride`` grid where ``mask [T, H, W]`` is > 0.5 and the depth is valid, lifted with each frame's
-    ``Ks``/``w2cs``; at most ``max_points`` (a random subset drawn from ``generator``). May be empty."""
+    ``Ks``/``w2cs``; at most ``max_points`` (a random subset drawn from ``generator``; with ``balance_views``
+    each candidate drawn with weight 1 / :func:`view_counts`). May be empty."""
     T, H, W = depth.shape
     pts, cols, frames = [], [], []
     v, u = torch.meshgrid(
@@ -149,14 +155,48 @@ def lift_pixels(
         return z3, z3.clone(), torch.zeros(0, dtype=torch.long, device=depth.device)
     P, C, F_ = torch.cat(pts), torch.cat(cols), torch.cat(frames)
     if P.shape[0] > max_points:
-        keep = torch.randperm(P.shape[0], generator=generator)[:max_points].to(P.device)
+        if balance_views:
+            weights = 1.0 / view_counts(P, Ks, w2cs, W, H).clamp_min(1).double().cpu()
+            keep = torch.multinomial(weights, max_points, replacement=False, generator=generator).to(P.device)
+        else:
+            keep = torch.randperm(P.shape[0], generator=generator)[:max_points].to(P.device)
         P, C, F_ = P[keep], C[keep], F_[keep]
     return P, C, F_
 
 
-def lift_static_points(images, depth, static, Ks, w2cs, stride, max_points, generator):
+#: Most cameras :func:`view_counts` projects into (evenly spaced over the frames): bounds its cost on long videos.
+VIEW_COUNT_CAMERAS = 32
+
+
+@torch.no_grad()
+def view_counts(points: torch.Tensor, Ks: torch.Tensor, w2cs: torch.Tensor, width: int, height: int) -> torch.Tensor:
+    """``[P]`` long: of the training cameras ``Ks [T, 3, 3]`` / ``w2cs [T, 4, 4]`` (at most
+    :data:`VIEW_COUNT_CAMERAS` of them, evenly spaced, the count then scaled back to T), how many have
+    ``points [P, 3]`` in front of them and inside their ``width x height`` image. Occlusion is not tested: this
+    says how much of the rig looks towards a point, which is what decides how densely frames sample it."""
+    T = Ks.shape[0]
+    pick = torch.linspace(0, T - 1, min(T, VIEW_COUNT_CAMERAS)).round().long().unique()
+    count = torch.zeros(points.shape[0], dtype=torch.long, device=points.device)
+    for t in pick.tolist():
+        R, tr = w2cs[t, :3, :3].to(points.dtype), w2cs[t, :3, 3].to(points.dtype)
+        cam = points @ R.T + tr
+        z = cam[:, 2]
+        front = z > 1e-6
+        zs = torch.where(front, z, torch.ones_like(z))  # no division by a zero or negative depth
+        K = Ks[t].to(points.dtype)
+        u = K[0, 0] * cam[:, 0] / zs + K[0, 2]
+        v = K[1, 1] * cam[:, 1] / zs + K[1, 2]
+        # Pixel centres at integers: the image spans [-0.5, size - 0.5).
+        inside = front & (u >= -0.5) & (u < width - 0.5) & (v >= -0.5) & (v < height - 0.5)
+        count += inside.long()
+    if pick.numel() < T:  # a subset of the cameras: scaled to all of them, rounded, at least 1 where seen
+        count = torch.where(count > 0, (count * T + pick.numel() - 1) // pick.numel(), count)
+    return count
+
+
+def lift_static_points(images, depth, static, Ks, w2cs, stride, max_points, generator, balance_views=False):
     """:func:`lift_pixels` on the static pixels; a :class:`UserError` when there is none."""
-    P, C, _ = lift_pixels(images, depth, static, Ks, w2cs, stride, max_points, generator)
+    P, C, _ = lift_pixels(images, depth, static, Ks, w2cs, stride, max_points, generator, balance_views)
     if P.shape[0] == 0:
         raise UserError(
             "static warm-up: no static pixel with a valid depth; the dynamic mask covers every frame "
@@ -201,7 +241,7 @@ class StaticWarmup(DensifiedGaussianTrainable):
         if gaussians is None:
             pts, cols = lift_static_points(
                 images, depth, self.static, Ks, w2cs, cfg.init_stride_px, initial_points(cfg, *images.shape[1:3]),
-                torch.Generator().manual_seed(seed),
+                torch.Generator().manual_seed(seed), cfg.init_balance_views,
             )  # fmt: skip
             gaussians = GaussianSet.from_points(pts, cols, init_opacity=cfg.init_opacity)
         self.gaussians = gaussians

@@ -141,3 +141,73 @@ def test_initial_points_grow_with_the_training_image():
         cfg = StaticWarmupConfig(steps=1, init_stride_px=1, init_max_points=50, init_points_per_pixel=per_px)
         assert expected < static_grid
         assert len(make_warmup(cfg, video).gaussians) == expected
+
+
+def _brute_view_count(p, Ks, w2cs, width, height):
+    """How many cameras have point ``p`` in front and inside the image, one camera at a time in float64."""
+    n = 0
+    for K, w2c in zip(Ks.double(), w2cs.double(), strict=True):
+        c = w2c[:3, :3] @ p.double() + w2c[:3, 3]
+        if c[2] <= 1e-6:
+            continue
+        u, v = (K[0, 0] * c[0] / c[2] + K[0, 2]).item(), (K[1, 1] * c[1] / c[2] + K[1, 2]).item()
+        n += int(-0.5 <= u < width - 0.5 and -0.5 <= v < height - 0.5)
+    return n
+
+
+def test_view_counts_match_a_camera_by_camera_count():
+    """Random points (some behind every camera, some outside every image) against a per-point, per-camera
+    count; a point behind a camera is never counted, whatever it projects to."""
+    from worldtree.stages.static_warmup import view_counts
+
+    g = torch.Generator().manual_seed(3)
+    _, _, _, Ks, w2cs = tiny_video(0)
+    pts = (torch.rand(300, 3, generator=g) - 0.5) * torch.tensor([12.0, 8.0, 16.0]) + torch.tensor([0, 0, 2.0])
+    got = view_counts(pts, Ks, w2cs, W, H)
+    want = torch.tensor([_brute_view_count(p, Ks, w2cs, W, H) for p in pts])
+    assert torch.equal(got, want)
+    assert (want == 0).any() and (want == T).any() and ((want > 0) & (want < T)).any()  # every case occurs
+    behind = torch.tensor([[0.1, 0.0, -4.0]])  # mirrors a visible point through the camera centre
+    assert int(view_counts(behind, Ks, w2cs, W, H)[0]) == 0
+
+
+def test_view_counts_scale_a_camera_subset_back_to_all_frames(monkeypatch):
+    """With more frames than the counted subset, a point every camera sees counts T and an unseen one 0."""
+    import worldtree.stages.static_warmup as sw
+
+    monkeypatch.setattr(sw, "VIEW_COUNT_CAMERAS", 3)
+    _, _, _, Ks, w2cs = tiny_video(0)
+    Ks, w2cs = Ks.repeat(5, 1, 1), w2cs.repeat(5, 1, 1)  # 20 frames
+    pts = torch.tensor([[0.0, 0.0, 4.0], [0.0, 0.0, -4.0]])
+    assert sw.view_counts(pts, Ks, w2cs, W, H).tolist() == [20, 0]
+
+
+def test_balanced_initial_points_fill_what_one_camera_sees():
+    """A wall seen by a row of cameras, each sliding further right: the strip that only the first camera sees
+    gets 1 / T of the uniform draw's candidates but, drawn with weight 1 / views, about the density of the
+    rest of the wall (points per unit area within a factor 2), where the uniform draw leaves it several times
+    sparser."""
+    from worldtree.stages.static_warmup import lift_pixels, view_counts
+
+    T_, Hh, Ww = 8, 40, 60
+    K = torch.tensor([[50.0, 0, (Ww - 1) / 2], [0, 50.0, (Hh - 1) / 2], [0, 0, 1]])
+    Ks = K[None].repeat(T_, 1, 1)
+    w2cs = torch.eye(4)[None].repeat(T_, 1, 1)
+    w2cs[:, 0, 3] = -torch.arange(T_, dtype=torch.float32) * 0.5  # camera t centred at x = 0.5 t
+    depth = torch.full((T_, Hh, Ww), 5.0)
+    images = torch.rand(T_, Hh, Ww, 3, generator=torch.Generator().manual_seed(0))
+    mask = torch.ones(T_, Hh, Ww)
+    half_width = 5.0 * (Ww / 2) / 50.0  # the wall's half extent one camera sees at depth 5
+    strip = (-half_width, -half_width + 0.5)  # seen by camera 0 alone
+    densities = {}
+    for balance in (False, True):
+        P, _, _ = lift_pixels(images, depth, mask, Ks, w2cs, 1, 3000, torch.Generator().manual_seed(1), balance)
+        counts = view_counts(P, Ks, w2cs, Ww, Hh)
+        in_strip = (P[:, 0] >= strip[0]) & (P[:, 0] < strip[1])
+        assert (counts[in_strip] == 1).all()
+        middle = (P[:, 0] >= 1.0) & (P[:, 0] < 2.0)  # 1 unit wide, seen by many cameras
+        assert (counts[middle] > 2).all()
+        densities[balance] = (in_strip.sum().item() / 0.5, middle.sum().item() / 1.0)
+    uniform, balanced = densities[False], densities[True]
+    assert uniform[0] * 3 < uniform[1]  # the uniform draw: the edge several times sparser
+    assert 0.5 < balanced[0] / balanced[1] < 2.0  # balanced: about even
