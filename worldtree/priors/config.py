@@ -86,6 +86,11 @@ class DepthConfig:
     """Smoothness weight of the edge-aware fill (cv2.ximgproc fast global smoother)."""
     fill_sigma: float = 8.0
     """Colour sensitivity of the edge-aware fill (intensity units of 0..255)."""
+    fill_support: float = 0.01
+    """Where the edge-aware fill's support (its smoothed confidence) is weak, it gives way to a plane fitted to
+    the frame's confident inverse depth (:func:`worldtree.priors.depth.edge_aware_fill`): the two are blended
+    with weights ``support`` and ``fill_support``. A region no other camera sees (a rig's end strip) then
+    continues the wall beside it instead of taking the frame's mean depth. 0: the mean, the old fallback."""
     near: float | None = None
     """Nearest depth hypothesis in scene units; None uses the scene's near bound."""
     far: float | None = None

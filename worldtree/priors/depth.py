@@ -133,12 +133,19 @@ def winner_take_all(volume: np.ndarray, inv_depths: np.ndarray) -> tuple[np.ndar
 
 
 def edge_aware_fill(
-    inv_depth: np.ndarray, weight: np.ndarray, guide_rgb: np.ndarray, lam: float, sigma: float
+    inv_depth: np.ndarray,
+    weight: np.ndarray,
+    guide_rgb: np.ndarray,
+    lam: float,
+    sigma: float,
+    support: float = 0.0,
 ) -> np.ndarray:
     """Confidence-weighted fast global smoothing of ``inv_depth`` [H,W] guided by ``guide_rgb`` [H,W,3].
 
-    Returns the normalised smoothed map ``FGS(w * x) / FGS(w)``; where no confident pixel reaches, the
-    weighted mean of the frame.
+    Returns the normalised smoothed map ``(FGS(w * x) + s * P) / (FGS(w) + s)``, where ``s = support`` and
+    ``P`` is :func:`plane_fit` of the weighted pixels: the smoothed map wherever confident pixels reach (their
+    smoothed weight ``FGS(w)`` much above ``s``), the plane where none does. With ``support = 0`` the
+    plain ``FGS(w * x) / FGS(w)``, and where no confident pixel reaches, the weighted mean of the frame.
     """
     guide = np.asarray(guide_rgb)
     if guide.dtype != np.uint8:
@@ -146,8 +153,50 @@ def edge_aware_fill(
     w = weight.astype(np.float32)
     num = cv2.ximgproc.fastGlobalSmootherFilter(guide, (inv_depth * w).astype(np.float32), lam, sigma)
     den = cv2.ximgproc.fastGlobalSmootherFilter(guide, w, lam, sigma)
+    if support > 0:
+        plane = plane_fit(inv_depth, w)
+        # The smoother can ring slightly negative far from its support: clamp before blending.
+        num, den = np.maximum(num, 0.0), np.maximum(den, 0.0)
+        return ((num + support * plane) / (den + support)).astype(np.float32)
     mean = float((inv_depth * w).sum() / max(w.sum(), 1e-12))
     return np.where(den > 1e-4, num / np.maximum(den, 1e-4), mean).astype(np.float32)
+
+
+def plane_fit(inv_depth: np.ndarray, weight: np.ndarray, rounds: int = 10, keep: float = 0.8) -> np.ndarray:
+    """``[H, W]``: the affine function ``a u + b v + c`` of the pixel coordinates fitted to ``inv_depth``
+    [H, W] by weighted least squares (``weight`` [H, W] >= 0), refitted on the ``keep`` share of the weighted
+    pixels it fits best until that share stops changing (at most ``rounds`` fits). The inverse depth of a plane seen by a pinhole camera is exactly
+    affine in the pixel coordinates, so a wall's fit continues the wall. The weighted mean (a constant) where
+    fewer than three pixels have weight or the system is singular."""
+    H, W = inv_depth.shape
+    w = np.where(np.isfinite(inv_depth), weight, 0.0).astype(np.float64)
+    x = np.where(w > 0, inv_depth, 0.0).astype(np.float64)
+    total = w.sum()
+    mean = float((x * w).sum() / total) if total > 0 else 0.0
+    v, u = np.nonzero(w > 0)
+    if u.size < 3:
+        return np.full((H, W), mean, np.float32)
+    # Coordinates centred and scaled to about [-1, 1] for a well-conditioned system.
+    su, sv = (u - W / 2) / max(W, 1), (v - H / 2) / max(H, 1)
+    A = np.stack([su, sv, np.ones_like(su)], 1)
+    b, wi = x[v, u], w[v, u]
+    sel = np.ones(u.size, bool)
+    coef = None
+    for _ in range(max(rounds, 1)):
+        Aw = A[sel] * wi[sel, None]
+        M = A[sel].T @ Aw
+        if np.linalg.cond(M) > 1e12:
+            break
+        coef = np.linalg.solve(M, Aw.T @ b[sel])
+        res = np.abs(A @ coef - b)
+        new = res <= np.quantile(res, keep)
+        if np.array_equal(new, sel):
+            break
+        sel = new
+    if coef is None:
+        return np.full((H, W), mean, np.float32)
+    vv, uu = np.mgrid[0:H, 0:W]
+    return (coef[0] * (uu - W / 2) / max(W, 1) + coef[1] * (vv - H / 2) / max(H, 1) + coef[2]).astype(np.float32)
 
 
 def frame_depth(
@@ -181,7 +230,7 @@ def frame_depth(
     good = conf >= cfg.min_conf
     if good.any():
         filled = edge_aware_fill(
-            inv, good.astype(np.float32) * conf, images[ref], cfg.fill_lambda, cfg.fill_sigma
+            inv, good.astype(np.float32) * conf, images[ref], cfg.fill_lambda, cfg.fill_sigma, cfg.fill_support
         )
         inv = np.where(good, inv, filled)
     else:

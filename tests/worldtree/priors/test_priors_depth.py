@@ -9,6 +9,7 @@ from worldtree.priors.depth import (
     abs_rel,
     edge_aware_fill,
     frame_depth,
+    plane_fit,
     select_sources,
     winner_take_all,
 )
@@ -78,3 +79,52 @@ def test_edge_aware_fill_keeps_edges():
     out = edge_aware_fill(val.astype(np.float32), w, guide, 200.0, 8.0)
     assert np.abs(out[:, :20] - 1.0).max() < 0.05
     assert np.abs(out[:, 20:] - 3.0).max() < 0.05
+
+
+def _plane_inverse_depth(H, W, f=50.0, n=(0.3, -0.1, -1.0), d=-4.0):
+    """Closed form: inverse depth of the plane ``n . X = d`` seen by a pinhole camera at the origin (focal
+    ``f``, principal point at the centre): ``1 / z = (n . ((u - cx) / f, (v - cy) / f, 1)) / d``."""
+    v, u = np.mgrid[0:H, 0:W].astype(np.float64)
+    ray = np.stack([(u - (W - 1) / 2) / f, (v - (H - 1) / 2) / f, np.ones_like(u)], -1)
+    return (ray @ np.asarray(n)) / d
+
+
+def test_plane_fit_recovers_a_planes_inverse_depth_despite_outliers():
+    """A tilted wall's inverse depth is affine in the pixels: fitted on a tenth of the pixels, a tenth of them
+    gross outliers (a foreground object), the fit matches the closed form everywhere to 1e-5 relative."""
+    H, W = 40, 60
+    truth = _plane_inverse_depth(H, W)
+    rng = np.random.default_rng(0)
+    weight = (rng.random((H, W)) < 0.1).astype(np.float32)
+    obs = truth.copy()
+    outliers = (rng.random((H, W)) < 0.1) & (weight > 0)
+    obs[outliers] *= 2.0  # twice nearer
+    fit = plane_fit(obs.astype(np.float32), weight)
+    assert np.abs(fit / truth - 1).max() < 1e-5
+
+
+def test_plane_fit_without_enough_pixels_is_the_weighted_mean():
+    inv = np.full((8, 8), 2.0, np.float32)
+    w = np.zeros((8, 8), np.float32)
+    w[3, 3] = 1.0
+    assert np.allclose(plane_fit(inv, w), 2.0)
+    assert np.allclose(plane_fit(inv, np.zeros_like(w)), 0.0)  # nothing to fit: 0, no NaN
+
+
+def test_edge_aware_fill_continues_the_plane_where_no_confident_pixel_reaches():
+    """A tilted wall confident on its right two thirds and cut from its left third by a strong colour edge:
+    with ``support`` the left third continues the wall (within 2 % of the closed form), where the old
+    fallback gives the frame's mean; where confident pixels reach, the two agree (within 1 %)."""
+    H, W = 40, 90
+    truth = _plane_inverse_depth(H, W, n=(0.6, 0.0, -1.0)).astype(np.float32)
+    guide = np.full((H, W, 3), 40, np.uint8)
+    guide[:, 30:] = 220  # the edge the smoother does not cross
+    w = np.zeros((H, W), np.float32)
+    w[:, 34:] = 1.0
+    with_plane = edge_aware_fill(truth, w, guide, 200.0, 8.0, support=0.01)
+    old = edge_aware_fill(truth, w, guide, 200.0, 8.0)
+    left = slice(0, 25)
+    assert np.abs(with_plane[:, left] / truth[:, left] - 1).max() < 0.02
+    assert np.abs(old[:, left] / truth[:, left] - 1).max() > 0.1  # the mean is far off there
+    assert np.abs(with_plane[:, 40:] / old[:, 40:] - 1).max() < 0.01
+    assert np.isfinite(with_plane).all()
