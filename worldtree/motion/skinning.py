@@ -14,6 +14,7 @@ the neighbour indices are integers and carry no gradient.
 from __future__ import annotations
 
 import torch
+from torch.autograd.function import once_differentiable
 
 from worldtree.motion import dualquat, se3
 
@@ -158,9 +159,111 @@ def deform_dual_planes(
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """:func:`deform_dual_neighbours` with the neighbour inputs component-major: ``nb_pos_ref`` [3, N, K],
     ``nb_real, nb_dual`` [4, N, K] (:func:`gather_planes`); ``points`` [N, 3], ``quats`` [N, 4], ``nb_sigma``,
-    ``valid``, ``correction`` [N, K] as there. Same formulas, guards and results (the per-neighbour products
-    and sums round as there): every per-(Gaussian, neighbour) operation is then between contiguous ``[N, K]``
-    planes, which a CPU runs several times faster than the ``[N, K, 4]`` broadcasts of the other layout."""
+    ``valid``, ``correction`` [N, K] as there. Same formulas, guards and results.
+
+    Float32 on the CPU (every tensor; K >= 1) takes the compiled kernel (:class:`_DeformCompiled`,
+    ``worldtree/render/csrc/skinning_cpu.cpp``) when it builds: one pass per Gaussian, forward and a hand-written
+    backward, results within float32 rounding of :func:`_deform_dual_planes_tensor` (the weights and the discrete
+    choices in float32 as there, the blend in double). Anything else (CUDA, float64, no build) takes the tensor
+    version. Both show a NaN that reaches the blend in the outputs.
+    """
+    ops = _compiled_ops(points, quats, nb_pos_ref, nb_sigma, nb_real, nb_dual, valid, correction)
+    if ops is not None:
+        return _DeformCompiled.apply(
+            points,
+            quats,
+            nb_pos_ref,
+            nb_sigma,
+            nb_real,
+            nb_dual,
+            correction,
+            valid,
+            bool(mix_identity),
+            float(eps),
+            float(degenerate_tol),
+            ops,
+        )
+    return _deform_dual_planes_tensor(
+        points, quats, nb_pos_ref, nb_sigma, nb_real, nb_dual, valid, correction, mix_identity, eps, degenerate_tol
+    )
+
+
+def _compiled_ops(points, quats, nb_pos_ref, nb_sigma, nb_real, nb_dual, valid, correction):
+    """The compiled kernel's ops when these inputs can use them (float32 CPU tensors of the documented shapes,
+    K >= 1, kernel built), else None."""
+    floats = [points, quats, nb_pos_ref, nb_sigma, nb_real, nb_dual]
+    if correction is not None:
+        floats.append(correction)
+    if any(t.device.type != "cpu" or t.dtype != torch.float32 for t in floats):
+        return None
+    if points.dim() != 2 or points.shape[1] != 3 or nb_sigma.dim() != 2:
+        return None
+    n, k = points.shape[0], nb_sigma.shape[1]
+    if k == 0 or nb_sigma.shape[0] != n or quats.shape != (n, 4):
+        return None  # K = 0: the tensor version's error (argmax over no neighbour)
+    if nb_pos_ref.shape != (3, n, k) or nb_real.shape != (4, n, k) or nb_dual.shape != (4, n, k):
+        return None
+    for mask in (valid, correction):
+        if mask is not None and mask.shape != (n, k):
+            return None
+    if valid is not None and (valid.dtype != torch.bool or valid.device.type != "cpu"):
+        return None
+    from worldtree.render import cpu_kernel  # the rasterizer's extension also holds the skinning kernel
+
+    return cpu_kernel.ops()
+
+
+class _DeformCompiled(torch.autograd.Function):
+    """:func:`_deform_dual_planes_tensor` computed by the compiled kernel (``dqb_forward`` / ``dqb_backward``):
+    each Gaussian and its K neighbours in one pass, nothing saved for the backward but the inputs (it recomputes
+    the blend). Every value is per Gaussian, so the results are the same for any thread count."""
+
+    @staticmethod
+    def forward(
+        ctx, points, quats, nb_pos_ref, nb_sigma, nb_real, nb_dual, correction, valid, mix, eps, tol, ops
+    ):
+        empty = points.new_empty(0)
+        ins = [x.detach().contiguous() for x in (points, quats, nb_pos_ref, nb_sigma, nb_real, nb_dual)]
+        corr = empty if correction is None else correction.detach().contiguous()
+        mask = empty.bool() if valid is None else valid.contiguous()
+        flags = (valid is not None, correction is not None, mix, eps, tol)
+        threads = torch.get_num_threads()
+        points_t, quats_t = ops.dqb_forward(*ins, mask, corr, *flags, threads)
+        ctx.save_for_backward(*ins, mask, corr)
+        ctx.args = (flags, threads, ops)
+        return points_t, quats_t
+
+    @staticmethod
+    @once_differentiable  # first derivatives only (nothing here needs second ones): an error, not a wrong value
+    def backward(ctx, g_points, g_quats):
+        *ins, mask, corr = ctx.saved_tensors
+        flags, threads, ops = ctx.args
+        # Bit i: the gradient of the i-th input (points, quats, nb_pos_ref, nb_sigma, nb_real, nb_dual, correction).
+        needs = sum(1 << i for i, need in enumerate(ctx.needs_input_grad[:7]) if need)
+        grads = ops.dqb_backward(
+            *ins, mask, corr, *flags, g_points.contiguous(), g_quats.contiguous(), needs, threads
+        )
+        out = [g if (needs >> i) & 1 else None for i, g in enumerate(grads)]
+        return (*out, None, None, None, None, None)
+
+
+def _deform_dual_planes_tensor(
+    points: torch.Tensor,
+    quats: torch.Tensor,
+    nb_pos_ref: torch.Tensor,
+    nb_sigma: torch.Tensor,
+    nb_real: torch.Tensor,
+    nb_dual: torch.Tensor,
+    valid: torch.Tensor | None = None,
+    correction: torch.Tensor | None = None,
+    mix_identity: bool = True,
+    eps: float = 1e-12,
+    degenerate_tol: float = 1e-6,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """:func:`deform_dual_planes` written with tensors (any device and dtype; the compiled kernel's reference).
+    Same formulas, guards and results as :func:`deform_dual_neighbours` (the per-neighbour products and sums
+    round as there): every per-(Gaussian, neighbour) operation is then between contiguous ``[N, K]`` planes, which
+    a CPU runs several times faster than the ``[N, K, 4]`` broadcasts of the other layout."""
     # Skinning weights (:func:`skinning_weights`).
     diff = points.t()[:, :, None] - nb_pos_ref  # [3, N, K]
     d2 = diff[0] * diff[0] + diff[1] * diff[1] + diff[2] * diff[2]
@@ -194,6 +297,10 @@ def deform_dual_planes(
     b_real = torch.where(degenerate, piv_real.t(), b_real)
     b_dual = torch.where(degenerate, piv_dual.t(), b_dual)
     q_b, t_b = dualquat.to_quat_trans(b_real, b_dual, eps)
+    # The normalisation's guard (|b_real|^2 > eps^2) is false for a NaN and would put the identity in its place,
+    # hiding a NaN node or weight: 0 * |b_real|^2 (NaN there, exactly 0 elsewhere, gradient 0) makes it show.
+    nan = (b_real * b_real).sum(-1, keepdim=True) * 0.0
+    q_b, t_b = q_b + nan, t_b + nan
     return dualquat.apply_points(q_b, t_b, points), dualquat.apply_rotations(q_b, quats)
 
 

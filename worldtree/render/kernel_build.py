@@ -50,15 +50,22 @@ log = logging.getLogger("worldtree.render")
 
 SOURCE = Path(__file__).parent / "csrc" / "rasterize_cpu.cpp"
 #: Further translation units linked into the same library (their ops join the namespace as fragments): the ARAP
-#: regulariser of the motion scaffold (worldtree.motion.regularizers). Compiled in parallel with SOURCE.
-EXTRA_SOURCES: tuple[Path, ...] = (Path(__file__).parent / "csrc" / "arap_cpu.cpp",)
+#: regulariser of the motion scaffold (worldtree.motion.regularizers) and the DQB skinning of Gaussians
+#: (worldtree.motion.skinning). Compiled in parallel with SOURCE.
+EXTRA_SOURCES: tuple[Path, ...] = (
+    Path(__file__).parent / "csrc" / "arap_cpu.cpp",
+    Path(__file__).parent / "csrc" / "skinning_cpu.cpp",
+)
 TARGETS = ("native", "avx2", "portable")
 ENV_TARGET = "WORLDTREE_RASTER_TARGET"
 
 # -ffp-contract=off: no fused multiply-adds the source does not ask for (the forward's compositing is unfused and
 # rounds like the PyTorch reference; the exp and the backward's sums ask for FMA explicitly).
 # No -ffast-math: the kernel's NaN guards (comparisons that are false for NaN) must keep their meaning.
-COMMON_CFLAGS = ("-O3", "-fopenmp", "-ffp-contract=off", "-std=c++17")
+# -fno-math-errno, -fno-trapping-math: sqrt need not set errno and floating-point exceptions are not observed
+# (nothing reads either), so loops with a square root or a select can vectorise (the skinning kernel's loops);
+# every operation still rounds as IEEE says, NaN and infinities included.
+COMMON_CFLAGS = ("-O3", "-fopenmp", "-ffp-contract=off", "-fno-math-errno", "-fno-trapping-math", "-std=c++17")
 LDFLAGS = ("-fopenmp",)
 
 

@@ -363,3 +363,187 @@ def test_gather_planes_is_gather_frames_component_major():
     frame = torch.randint(0, 5, (6,), generator=g)
     idx = torch.randint(0, 7, (6, 3), generator=g)
     assert torch.equal(skinning.gather_planes(traj, frame, idx), traj[frame[:, None], idx].permute(2, 0, 1))
+
+
+# ----------------------------------------------------------------------------- compiled DQB kernel (CPU, float32)
+def _compiled_kernel():
+    from worldtree.render import cpu_kernel
+
+    if not cpu_kernel.available():
+        pytest.skip(f"the compiled kernel does not build here: {cpu_kernel.build_error()}")
+    return cpu_kernel
+
+
+def _planes_case(N: int, K: int, seed: int) -> tuple[list[torch.Tensor], torch.Tensor]:
+    """Inputs of deform_dual_planes, float64 values that float32 holds exactly (both paths see the same numbers):
+    ``[points, quats, nb_pos, sigma, real, dual, correction]`` and ``valid``. Random rows plus the guarded cases:
+    transforms of both signs (row 0: every neighbour the antipode of the one before), a row with no valid
+    neighbour (1), corrections clamping some weights (2) or every weight (3) to 0, sigma 0 (4: ties of 1e-6 but
+    one neighbour on the point), a node on the point (5)."""
+    g = torch.Generator().manual_seed(seed)
+    pts = torch.randn(N, 3, generator=g, dtype=f64)
+    quats = torch.randn(N, 4, generator=g, dtype=f64)
+    nb_pos = pts[:, None] + 0.5 * torch.randn(N, K, 3, generator=g, dtype=f64)
+    sigma = 0.3 + torch.rand(N, K, generator=g, dtype=f64)
+    real, dual = dualquat.from_quat_trans(
+        torch.randn(N, K, 4, generator=g, dtype=f64), torch.randn(N, K, 3, generator=g, dtype=f64)
+    )
+    flip = torch.rand(N, K, 1, generator=g) < 0.5
+    real, dual = torch.where(flip, -real, real), torch.where(flip, -dual, dual)
+    real[0, 1::2], dual[0, 1::2] = -real[0, 0::2][: K // 2], -dual[0, 0::2][: K // 2]
+    valid = torch.rand(N, K, generator=g) > 0.25
+    valid[1] = False
+    corr = 0.3 * torch.randn(N, K, generator=g, dtype=f64)
+    corr[2, : K // 2] = -5.0
+    corr[3] = -5.0
+    sigma[4] = 0.0
+    nb_pos[4, K - 1] = pts[4]
+    nb_pos[5, 0] = pts[5]
+    xs = [pts, quats, nb_pos.permute(2, 0, 1), sigma, real.permute(2, 0, 1), dual.permute(2, 0, 1), corr]
+    return [x.float().double().contiguous() for x in xs], valid
+
+
+def _planes_values(fn, xs, valid, dtype, mix_identity=True, use_valid=True, use_corr=True, seed=1):
+    """(points_t, quats_t, gradients of a random linear loss w.r.t. every input) of ``fn`` in ``dtype``."""
+    leaves = [x.to(dtype).detach().clone().requires_grad_(True) for x in (xs if use_corr else xs[:6])]
+    corr = leaves[6] if use_corr else None
+    p_t, q_t = fn(*leaves[:6], valid if use_valid else None, corr, mix_identity)
+    g = torch.Generator().manual_seed(seed)
+    wp = torch.randn(p_t.shape, generator=g, dtype=f64).to(dtype)
+    wq = torch.randn(q_t.shape, generator=g, dtype=f64).to(dtype)
+    grads = torch.autograd.grad((p_t * wp).sum() + (q_t * wq).sum(), leaves)
+    return [p_t.detach(), q_t.detach(), *grads]
+
+
+def _assert_close_f32(got, want):
+    # float32 rounding with margin: the kernel rounds its inputs' products and sums in double and its outputs
+    # once (about 1e-7 relative); 1e-5 of each tensor's largest value leaves room for the float32 weights.
+    for a, b in zip(got, want, strict=True):
+        assert a.dtype == torch.float32 and torch.isfinite(a).all()
+        scale = max(1.0, float(b.abs().max()))
+        torch.testing.assert_close(a.double(), b, rtol=1e-4, atol=1e-5 * scale)
+
+
+@pytest.mark.parametrize("K", [8, 16, 5])  # 8 and 16: the kernel's fixed-length loops; 5: any K
+@pytest.mark.parametrize("mix_identity", [True, False])
+@pytest.mark.parametrize("masks", [(True, True), (False, False), (True, False)])
+def test_compiled_deform_matches_the_float64_tensor_version(K, mix_identity, masks):
+    _compiled_kernel()
+    xs, valid = _planes_case(37, K, seed=K)  # 37: a partial block of Gaussians at the end
+    use_valid, use_corr = masks
+    assert skinning._compiled_ops(*(x.float() for x in xs[:6]), valid, xs[6].float()) is not None
+    got = _planes_values(skinning.deform_dual_planes, xs, valid, torch.float32, mix_identity, *masks)
+    want = _planes_values(skinning._deform_dual_planes_tensor, xs, valid, f64, mix_identity, *masks)
+    _assert_close_f32(got, want)
+    assert all(torch.isfinite(w).all() for w in want)
+    if not mix_identity:
+        # Row 1 (no valid neighbour) and row 3 (every weight clamped to 0): all weights 0, a degenerate blend,
+        # so the pivot's transform (the first neighbour, taken with w >= 0).
+        for n in [1] * use_valid + [3] * use_corr:
+            q_piv = xs[4][:, n, 0]
+            q_piv = q_piv if q_piv[0] >= 0 else -q_piv
+            torch.testing.assert_close(got[1][n].double(), Q.multiply(q_piv, xs[1][n]), rtol=1e-5, atol=1e-6)
+    assert want[2].abs().sum() > 0 and want[5].abs().sum() > 0  # the weights' gradients were compared too
+
+
+def test_compiled_deform_gives_the_same_bits_for_any_thread_count():
+    _compiled_kernel()
+    before = torch.get_num_threads()
+    try:
+        for K in (8, 6):
+            xs, valid = _planes_case(53, K, seed=3)
+            runs = []
+            for n in (1, 2, 3):
+                torch.set_num_threads(n)
+                runs.append(_planes_values(skinning.deform_dual_planes, xs, valid, torch.float32))
+            for other in runs[1:]:
+                for a, b in zip(runs[0], other, strict=True):
+                    assert torch.equal(a, b)
+    finally:
+        torch.set_num_threads(before)
+
+
+def test_deform_planes_uses_the_tensor_version_for_float64_and_without_the_kernel(monkeypatch):
+    from worldtree.render import cpu_kernel
+
+    xs, valid = _planes_case(20, 8, seed=4)
+    assert skinning._compiled_ops(*xs[:6], valid, xs[6]) is None  # float64: the tensor version
+    got = _planes_values(skinning.deform_dual_planes, xs, valid, f64)
+    want = _planes_values(skinning._deform_dual_planes_tensor, xs, valid, f64)
+    for a, b in zip(got, want, strict=True):
+        assert torch.equal(a, b)
+    monkeypatch.setattr(cpu_kernel, "ops", lambda: None)
+    assert skinning._compiled_ops(*(x.float() for x in xs[:6]), valid, xs[6].float()) is None
+    got = _planes_values(skinning.deform_dual_planes, xs, valid, torch.float32)
+    want = _planes_values(skinning._deform_dual_planes_tensor, xs, valid, torch.float32)
+    for a, b in zip(got, want, strict=True):
+        assert torch.equal(a, b)
+    # No neighbour at all: both paths leave it to the tensor version (which has no pivot to take and raises).
+    empty = [torch.zeros(3, 4, 0), torch.zeros(4, 0), torch.zeros(4, 4, 0), torch.zeros(4, 4, 0)]
+    assert skinning._compiled_ops(torch.zeros(4, 3), torch.zeros(4, 4), *empty, None, None) is None
+
+
+@pytest.mark.parametrize("compiled", [True, False])
+@pytest.mark.parametrize("which", [0, 2, 3, 4, 5, 6])  # points, nb_pos, sigma, real, dual, correction
+def test_deform_planes_shows_a_nan_input_in_its_outputs(compiled, which, monkeypatch):
+    # A NaN must reach the outputs (and so the loss and the trainers' finiteness checks), not vanish behind the
+    # normalisation's guard (|b_real| > eps is false for a NaN) as an identity transform.
+    from worldtree.render import cpu_kernel
+
+    if compiled:
+        _compiled_kernel()
+    else:
+        monkeypatch.setattr(cpu_kernel, "ops", lambda: None)
+    xs, valid = _planes_case(20, 8, seed=6)
+    xs = [x.float() for x in xs]
+    valid[9] = True
+    n = 9  # a Gaussian with every neighbour valid
+    if which == 0:
+        xs[0][n, 1] = float("nan")
+    elif which in (2, 4, 5):
+        xs[which][1, n, 3] = float("nan")
+    else:
+        xs[which][n, 3] = float("nan")
+    p_t, q_t = skinning.deform_dual_planes(*xs[:6], valid, xs[6])
+    assert bool(torch.isnan(p_t[n]).any())
+    others = torch.arange(20) != n
+    assert torch.isfinite(p_t[others]).all() and torch.isfinite(q_t[others]).all()
+
+
+def test_compiled_scaffold_deform_equals_the_tensor_version(monkeypatch):
+    # MotionScaffold.deform to one frame takes deform_dual_planes with gathered node tables; the compiled and the
+    # tensor path give the same points, rotations and gradients (node poses, radii, Gaussians, correction).
+    from worldtree.motion.scaffold import ScaffoldConfig, build_scaffold
+
+    _compiled_kernel()
+    T, P = 6, 90
+    g = torch.Generator().manual_seed(7)
+    traj = torch.cumsum(0.01 * torch.randn(T, P, 3, generator=g), 0) + 0.1 * torch.randn(1, P, 3, generator=g)
+    scf = build_scaffold(traj, torch.ones(T, P, dtype=torch.bool), 1.0, ScaffoldConfig(node_spacing_units=1.0))
+    scf = scf.float()
+    N = 400
+    t_ref = torch.randint(0, T, (N,), generator=g)
+    pts = traj[t_ref, torch.randint(0, P, (N,), generator=g)] + 0.01 * torch.randn(N, 3, generator=g)
+    rot = torch.randn(N, 4, generator=g)
+    cache = scf.attach(pts, t_ref)
+    corr = 0.05 * torch.randn(cache.idx.shape, generator=g)
+    assert scf.T * scf.M < cache.idx.numel()  # the one-frame table path (deform_dual_planes)
+
+    def run():
+        scf.zero_grad()
+        leaves = [x.detach().clone().requires_grad_(True) for x in (pts, rot, corr)]
+        p_t, q_t = scf.deform(leaves[0], leaves[1], t_ref, 4, cache, leaves[2])
+        gw = torch.Generator().manual_seed(8)
+        wp, wq = torch.randn(p_t.shape, generator=gw), torch.randn(q_t.shape, generator=gw)
+        ((p_t * wp).sum() + (q_t * wq).sum()).backward()
+        nodes = (scf.pos.grad, scf.quat.grad, scf.sigma_logit.grad)
+        return [p_t.detach(), q_t.detach(), *(x.grad for x in leaves), *nodes]
+
+    got = run()
+    monkeypatch.setattr(skinning, "_compiled_ops", lambda *args: None)
+    want = run()
+    for a, b in zip(got, want, strict=True):
+        assert torch.isfinite(a).all()
+        scale = max(1.0, float(b.abs().max()))
+        torch.testing.assert_close(a, b, rtol=1e-4, atol=1e-5 * scale)
+    assert want[5].abs().sum() > 0 and want[7].abs().sum() > 0  # node positions and radii were compared too
