@@ -8,7 +8,8 @@ Nodes carry a pose per frame (position [T, M, 3], rotation [T, M, 4] (w, x, y, z
     x(t)  = T(t) x,   rot(t) = q_T(t) rot
 
 Everything is differentiable in PyTorch with respect to the points, node poses, ``sigma`` and the correction;
-the neighbour indices are integers and carry no gradient.
+the neighbour indices are integers and carry no gradient. On a CPU in float32, :func:`deform_dual_planes` (the
+scaffold's one-frame path) runs a compiled kernel with a hand-written backward instead of the autograd graph.
 """
 
 from __future__ import annotations
@@ -298,7 +299,7 @@ def _deform_dual_planes_tensor(
     b_dual = torch.where(degenerate, piv_dual.t(), b_dual)
     q_b, t_b = dualquat.to_quat_trans(b_real, b_dual, eps)
     # The normalisation's guard (|b_real|^2 > eps^2) is false for a NaN and would put the identity in its place,
-    # hiding a NaN node or weight: 0 * |b_real|^2 (NaN there, exactly 0 elsewhere, gradient 0) makes it show.
+    # hiding a NaN node or weight: 0 * |b_real|^2 (NaN there, exactly 0 where it is finite, gradient 0) shows it.
     nan = (b_real * b_real).sum(-1, keepdim=True) * 0.0
     q_b, t_b = q_b + nan, t_b + nan
     return dualquat.apply_points(q_b, t_b, points), dualquat.apply_rotations(q_b, quats)
