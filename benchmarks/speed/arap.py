@@ -16,7 +16,8 @@ import argparse
 import time
 
 
-def _parse_sizes(text: str) -> list[tuple[int, int]]:
+def parse_size_pairs(text: str) -> list[tuple[int, int]]:
+    """``"AxB,CxD"`` -> ``[(A, B), (C, D)]`` (the kernel speed scripts' ``--sizes``)."""
     out = []
     for item in text.split(","):
         t, m = item.lower().split("x")
@@ -43,7 +44,7 @@ def main(argv: list[str] | None = None) -> None:
     print(f"threads {args.threads}, kernel target {cpu_kernel.loaded_target()}")
     print("| frames | nodes | tensor version ms | compiled ms | ratio |")
     print("| --: | --: | --: | --: | --: |")
-    for T, M in _parse_sizes(args.sizes):
+    for T, M in parse_size_pairs(args.sizes):
         g = torch.Generator().manual_seed(0)
         traj = torch.cumsum(torch.randn(T, M, 3, generator=g) * 0.01, 0) + torch.rand(1, M, 3, generator=g) * 2
         scf = build_scaffold(traj, torch.ones(T, M, dtype=torch.bool), 3.0)

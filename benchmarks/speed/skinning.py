@@ -16,13 +16,7 @@ from __future__ import annotations
 import argparse
 import time
 
-
-def _parse_sizes(text: str) -> list[tuple[int, int]]:
-    out = []
-    for item in text.split(","):
-        n, k = item.lower().split("x")
-        out.append((int(n), int(k)))
-    return out
+from benchmarks.speed.arap import parse_size_pairs
 
 
 def _inputs(n: int, k: int, seed: int = 0):
@@ -65,7 +59,7 @@ def main(argv: list[str] | None = None) -> None:
     print("| Gaussians | K | tensor version ms | compiled ms | ratio |")
     print("| --: | --: | --: | --: | --: |")
     versions = {"tensor": skinning._deform_dual_planes_tensor, "compiled": skinning.deform_dual_planes}
-    for n, k in _parse_sizes(args.sizes):
+    for n, k in parse_size_pairs(args.sizes):
         leaves, valid = _inputs(n, k)
         g = torch.Generator().manual_seed(1)
         wp, wq = torch.randn(n, 3, generator=g), torch.randn(n, 4, generator=g)

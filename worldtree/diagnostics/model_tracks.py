@@ -23,6 +23,7 @@ from worldtree.dynamic import TIME_STD, DynamicGaussians, gaussians_at
 from worldtree.gaussians import GaussianSet
 from worldtree.motion.scaffold import Scaffold
 from worldtree.render import rasterize
+from worldtree.stages.cameras import project_points
 
 
 @dataclass
@@ -82,11 +83,8 @@ def model_tracks(
         w2c = w2cs[t].to(dev, torch.float32)
         frame = gaussians_at(static, dynamic, scaffold, t, cache)
         means = frame[0][len(static) :]  # gaussians_at puts the static set first
-        cam = means[index] @ w2c[:3, :3].T + w2c[:3, 3]
-        z = cam[:, 2]
-        zs = z.clamp_min(1e-6)  # behind the camera: refused below, finite here
-        u = K[0, 0] * cam[:, 0] / zs + K[0, 2]
-        v = K[1, 1] * cam[:, 1] / zs + K[1, 2]
+        uv, z = project_points(means[index], K, w2c)  # behind the camera: refused below, finite here
+        u, v = uv[:, 0], uv[:, 1]
         xy[t, :, 0], xy[t, :, 1] = u, v
         iu, iv = u.round().long(), v.round().long()
         ok = (z > 1e-6) & (iu >= 0) & (iu < width) & (iv >= 0) & (iv < height)

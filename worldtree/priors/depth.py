@@ -165,9 +165,9 @@ def edge_aware_fill(
 def plane_fit(inv_depth: np.ndarray, weight: np.ndarray, rounds: int = 10, keep: float = 0.8) -> np.ndarray:
     """``[H, W]``: the affine function ``a u + b v + c`` of the pixel coordinates fitted to ``inv_depth``
     [H, W] by weighted least squares (``weight`` [H, W] >= 0), refitted on the ``keep`` share of the weighted
-    pixels it fits best until that share stops changing (at most ``rounds`` fits). The inverse depth of a plane seen by a pinhole camera is exactly
-    affine in the pixel coordinates, so a wall's fit continues the wall. The weighted mean (a constant) where
-    fewer than three pixels have weight or the system is singular."""
+    pixels it fits best until that share stops changing (at most ``rounds`` fits). The inverse depth of a plane
+    seen by a pinhole camera is exactly affine in the pixel coordinates, so a wall's fit continues the wall.
+    The weighted mean (a constant) where fewer than three pixels have weight or the system is singular."""
     H, W = inv_depth.shape
     w = np.where(np.isfinite(inv_depth), weight, 0.0).astype(np.float64)
     x = np.where(w > 0, inv_depth, 0.0).astype(np.float64)

@@ -41,7 +41,7 @@ from worldtree.motion.scaffold import Scaffold, SkinCache, densify
 from worldtree.optim import ConstantLR, GroupedAdam, gaussian_schedules
 from worldtree.render import rasterize
 from worldtree.stages import set_migration as mig
-from worldtree.stages.cameras import apply_delta
+from worldtree.stages.cameras import apply_delta, project_points
 from worldtree.stages.frame_coupling import carried_frame, neighbour
 from worldtree.strategy import DensifyStrategy, remove
 from worldtree.trainer import StepOutput
@@ -205,10 +205,9 @@ def ssi_depth_l1(depth: torch.Tensor, alpha: torch.Tensor, prior: torch.Tensor) 
 
 
 def project(points: torch.Tensor, K: torch.Tensor, w2c: torch.Tensor) -> torch.Tensor:
-    """Pixels ``[N, 2]`` of world points ``[N, 3]`` (depth clamped at 1e-6 to stay finite)."""
-    cam = points @ w2c[:3, :3].T + w2c[:3, 3]
-    z = cam[:, 2:].clamp_min(1e-6)
-    return torch.cat([K[0, 0] * cam[:, :1] / z + K[0, 2], K[1, 1] * cam[:, 1:2] / z + K[1, 2]], 1)
+    """Pixels ``[N, 2]`` of world points ``[N, 3]`` (depth clamped at 1e-6 to stay finite;
+    :func:`worldtree.stages.cameras.project_points`)."""
+    return project_points(points, K, w2c)[0]
 
 
 class PhotometricFit:

@@ -28,6 +28,7 @@ from torch import nn
 from worldtree.dynamic import TIME_STD, DynamicGaussians
 from worldtree.gaussians import GaussianSet
 from worldtree.optim import GroupedAdam
+from worldtree.stages.cameras import project_points
 from worldtree.strategy import STATE_KEYS, remove
 
 MIGRATED_TIME_STD = 1e3
@@ -86,11 +87,9 @@ def in_front(
     ``depth / alpha`` ([H, W]) at its pixel by more than ``tol`` (relative); a hidden Gaussian's pixel shows
     something else, so its residual says nothing about it."""
     H, W = depth.shape
-    cam = means @ w2c[:3, :3].T + w2c[:3, 3]
-    z = cam[:, 2]
-    zc = z.clamp_min(1e-6)
-    x = (K[0, 0] * cam[:, 0] / zc + K[0, 2]).round().long().clamp(0, W - 1)
-    y = (K[1, 1] * cam[:, 1] / zc + K[1, 2]).round().long().clamp(0, H - 1)
+    uv, z = project_points(means, K, w2c)
+    x = uv[:, 0].round().long().clamp(0, W - 1)
+    y = uv[:, 1].round().long().clamp(0, H - 1)
     surf = (depth / alpha.clamp_min(1e-6))[y, x]
     return (z > 0) & (z <= surf * (1.0 + tol))
 

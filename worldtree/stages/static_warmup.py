@@ -29,6 +29,7 @@ from worldtree.infra.errors import UserError
 from worldtree.losses import SsimTargets, ssim_map
 from worldtree.optim import GroupedAdam, gaussian_schedules
 from worldtree.render import rasterize
+from worldtree.stages.cameras import project_points
 from worldtree.strategy import DensifyStrategy
 from worldtree.trainer import DensifiedGaussianTrainable, StepOutput
 
@@ -178,16 +179,10 @@ def view_counts(points: torch.Tensor, Ks: torch.Tensor, w2cs: torch.Tensor, widt
     pick = torch.linspace(0, T - 1, min(T, VIEW_COUNT_CAMERAS)).round().long().unique()
     count = torch.zeros(points.shape[0], dtype=torch.long, device=points.device)
     for t in pick.tolist():
-        R, tr = w2cs[t, :3, :3].to(points.dtype), w2cs[t, :3, 3].to(points.dtype)
-        cam = points @ R.T + tr
-        z = cam[:, 2]
-        front = z > 1e-6
-        zs = torch.where(front, z, torch.ones_like(z))  # no division by a zero or negative depth
-        K = Ks[t].to(points.dtype)
-        u = K[0, 0] * cam[:, 0] / zs + K[0, 2]
-        v = K[1, 1] * cam[:, 1] / zs + K[1, 2]
+        uv, z = project_points(points, Ks[t].to(points.dtype), w2cs[t].to(points.dtype))
+        u, v = uv[:, 0], uv[:, 1]
         # Pixel centres at integers: the image spans [-0.5, size - 0.5).
-        inside = front & (u >= -0.5) & (u < width - 0.5) & (v >= -0.5) & (v < height - 0.5)
+        inside = (z > 1e-6) & (u >= -0.5) & (u < width - 0.5) & (v >= -0.5) & (v < height - 0.5)
         count += inside.long()
     if pick.numel() < T:  # a subset of the cameras: scaled to all of them, rounded, at least 1 where seen
         count = torch.where(count > 0, (count * T + pick.numel() - 1) // pick.numel(), count)
