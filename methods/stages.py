@@ -11,6 +11,8 @@ up there, the others are cheap to repeat or cache their result (priors, BA).
 
 from __future__ import annotations
 
+import sys
+import time
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -59,7 +61,11 @@ def with_ablations(
 
 
 def run_stages(stages: Sequence[Stage], state: Any, clock: StageClock) -> None:
-    """Call every stage on ``state`` in order, each inside ``clock.stage(name)``."""
+    """Call every stage on ``state`` in order, each inside ``clock.stage(name)``. A line on stderr marks each
+    stage's start and end (with its wall seconds), so the log of an interrupted run shows where its time went."""
     for st in stages:
+        print(f"stage {st.name} ...", file=sys.stderr, flush=True)
+        t0 = time.perf_counter()
         with clock.stage(st.name):
             st.run(state)
+        print(f"stage {st.name} done in {time.perf_counter() - t0:.1f} s", file=sys.stderr, flush=True)

@@ -402,6 +402,7 @@ class _Progress:
         self.total = total
         self.start = start
         self.log_every = max(log_every, 1)
+        self.description = description
         self.t0 = time.perf_counter()
         self.bar = None
         if not enabled:
@@ -434,7 +435,7 @@ class _Progress:
         if self.bar is not None:
             self.bar.update(self.task_id, completed=step, text=text)
         elif step % self.log_every == 0 or step == self.total:
-            print(text, file=sys.stderr, flush=True)
+            print(f"{self.description}: {text}", file=sys.stderr, flush=True)
 
     def close(self) -> None:
         if self.bar is not None:
