@@ -14,6 +14,7 @@ import worldtree
 from worldtree.infra.atomic import atomic_write_json
 from worldtree.infra.errors import UserError
 from worldtree.infra.hashing import sha256_file
+from worldtree.infra.parallel import ordered_map, resolve_threads
 from worldtree.priors import depth as depth_mod
 from worldtree.priors import (
     depth_scale,
@@ -132,22 +133,27 @@ def _flows(
     grays = [flow.to_gray_u8(im) for im in imgs]
     pairs = [(i, j) for i, j in flow.flow_pairs(T, cfg.flow.offsets) if i < j]
     out: dict[tuple[int, int], flow.FlowPair] = {}
-    for n, (i, j) in enumerate(pairs):
-        item = f"{i:05d}_{j:05d}"
-        got = entry.load(item) if entry is not None else None
-        if got is None:
-            init_ij = init_ji = None
-            if init is not None:
-                dep, Ks, w2cs, _ = init
-                init_ij = flow.rigid_flow(dep[i], Ks[i], w2cs[i], Ks[j], w2cs[j])
-                init_ji = flow.rigid_flow(dep[j], Ks[j], w2cs[j], Ks[i], w2cs[i])
-            fw, bw = flow.compute_pair(grays[i], grays[j], cfg.flow, init_ij, init_ji)
-            # Stored as float16 (half the cache; step < 0.02 px under 32 px, < 0.07 px under 128 px); the
-            # fresh result is rounded the same way so a cached rerun returns identical values.
-            got = {"fwd": fw.flow.astype(np.float16), "fwd_valid": fw.valid,
-                   "bwd": bw.flow.astype(np.float16), "bwd_valid": bw.valid}  # fmt: skip
-            if entry is not None:
-                entry.save(item, **got)
+
+    def compute(ij: tuple[int, int]) -> tuple[dict, bool]:
+        i, j = ij
+        got = entry.load(f"{i:05d}_{j:05d}") if entry is not None else None
+        if got is not None:
+            return got, False
+        init_ij = init_ji = None
+        if init is not None:
+            dep, Ks, w2cs, _ = init
+            init_ij = flow.rigid_flow(dep[i], Ks[i], w2cs[i], Ks[j], w2cs[j])
+            init_ji = flow.rigid_flow(dep[j], Ks[j], w2cs[j], Ks[i], w2cs[i])
+        fw, bw = flow.compute_pair(grays[i], grays[j], cfg.flow, init_ij, init_ji)
+        # Stored as float16 (half the cache; step < 0.02 px under 32 px, < 0.07 px under 128 px); the
+        # fresh result is rounded the same way so a cached rerun returns identical values.
+        return {"fwd": fw.flow.astype(np.float16), "fwd_valid": fw.valid,
+                "bwd": bw.flow.astype(np.float16), "bwd_valid": bw.valid}, True  # fmt: skip
+
+    results = ordered_map(compute, pairs, resolve_threads(cfg.threads))
+    for n, ((i, j), (got, fresh)) in enumerate(zip(pairs, results, strict=True)):
+        if fresh and entry is not None:
+            entry.save(f"{i:05d}_{j:05d}", **got)
         fw = flow.FlowPair(got["fwd"].astype(np.float32), got["fwd_valid"])
         bw = flow.FlowPair(got["bwd"].astype(np.float32), got["bwd_valid"])
         out[(i, j)], out[(j, i)] = fw, bw
@@ -168,15 +174,19 @@ def _classical_depth(imgs, Ks, w2cs, near, far, cfg: PriorsConfig, cache: PriorC
     T = len(imgs)
     depth = np.empty(imgs.shape[:3], np.float32)
     conf = np.empty(imgs.shape[:3], np.float32)
-    for t in range(T):
+
+    def compute(t: int) -> tuple[np.ndarray, np.ndarray, bool]:
         got = entry.load(f"{t:05d}") if entry is not None else None
-        if got is None:
-            r = depth_mod.frame_depth(t, imgs, Ks, w2cs, near, far, d)
-            if entry is not None:
-                entry.save(f"{t:05d}", depth=r.depth, conf=r.conf)
-            depth[t], conf[t] = r.depth, r.conf
-        else:
-            depth[t], conf[t] = got["depth"], got["conf"]
+        if got is not None:
+            return got["depth"], got["conf"], False
+        r = depth_mod.frame_depth(t, imgs, Ks, w2cs, near, far, d)
+        return r.depth, r.conf, True
+
+    # Saved from this thread in frame order, so an interrupted run leaves whole frames only.
+    for t, (dep, cf, fresh) in enumerate(ordered_map(compute, range(T), resolve_threads(cfg.threads))):
+        if fresh and entry is not None:
+            entry.save(f"{t:05d}", depth=dep, conf=cf)
+        depth[t], conf[t] = dep, cf
         _tick(progress, "depth", t + 1, T)
     if entry is not None:
         entry.mark_complete()
@@ -303,7 +313,7 @@ def _epi_errors(flows, Ks, w2cs, T, cfg: PriorsConfig, cache, flow_key: str, pro
     use = cfg.epi.use_poses
     err = epipolar.epipolar_error_maps(
         flows, T, Ks if use else None, w2cs if use else None, cfg.epi,
-        on_frame=lambda t: _tick(progress, "epipolar", t + 1, T),
+        on_frame=lambda t: _tick(progress, "epipolar", t + 1, T), threads=resolve_threads(cfg.threads),
     )  # fmt: skip
     # Stored as float16; the fresh result is rounded the same way so that a cached rerun is identical.
     err = err.astype(np.float16).astype(np.float32)
@@ -328,13 +338,19 @@ def _refill_dynamic(depth, conf, mask, imgs, cfg: PriorsConfig) -> tuple[np.ndar
     smooth guess from the surrounding static surfaces (confidence 0 says so).
     """
     depth, conf = depth.copy(), conf.copy()
-    for t in np.flatnonzero(mask.reshape(len(mask), -1).any(1)):
+
+    def fill(t: int) -> np.ndarray | None:
         w = np.where(mask[t], 0.0, conf[t]).astype(np.float32)
         if not (w > 0).any():
-            continue
-        inv = depth_mod.edge_aware_fill(
+            return None
+        return depth_mod.edge_aware_fill(
             1.0 / np.maximum(depth[t], 1e-9), w, imgs[t], cfg.depth.fill_lambda, cfg.depth.fill_sigma
         )
+
+    frames = np.flatnonzero(mask.reshape(len(mask), -1).any(1)).tolist()
+    for t, inv in zip(frames, ordered_map(fill, frames, resolve_threads(cfg.threads)), strict=True):
+        if inv is None:
+            continue
         depth[t] = np.where(mask[t], 1.0 / np.maximum(inv, 1e-9), depth[t])
         conf[t] = np.where(mask[t], 0.0, conf[t])
     return depth.astype(np.float32), conf.astype(np.float32)
@@ -355,7 +371,18 @@ def add_chained_tracks(
     ``mask`` from each object's template-matched displacement (:mod:`worldtree.priors.object_flow`); ``flows``
     itself is not changed."""
     if cfg.motion.object_flow and images is not None:
-        flows = object_flow.object_flows(flows, mask, images, cfg.motion, cfg.flow, depth, Ks, w2cs, stats)
+        flows = object_flow.object_flows(
+            flows,
+            mask,
+            images,
+            cfg.motion,
+            cfg.flow,
+            depth,
+            Ks,
+            w2cs,
+            stats,
+            threads=resolve_threads(cfg.threads),
+        )
     ch = dynamic_tracks.chain_dynamic_tracks(flows, mask, cfg.motion, images, depth, Ks, w2cs, stats)
     pieces = np.ones(vis.shape[1], np.int64)
     if ch.num_tracks == 0:
@@ -385,6 +412,18 @@ def compute_priors(
         :class:`Priors`. A ``priors.json`` record (sources, keys, settings, version, shapes) is written to the
         cache root when there is one.
     """
+    # OpenCV splits some filters (the fast global smoother) into stripes by its thread count, and the
+    # results depend on the split in the last bits: single-threaded OpenCV inside, with the frames spread
+    # over a pool instead (PriorsConfig.threads), gives the same priors on any machine.
+    old_threads = cv2.getNumThreads()
+    cv2.setNumThreads(1)
+    try:
+        return _compute_priors(scene, cfg, cache_dir, progress)
+    finally:
+        cv2.setNumThreads(old_threads)
+
+
+def _compute_priors(scene, cfg: PriorsConfig | None, cache_dir, progress: ProgressFn | None) -> Priors:
     cfg = cfg or PriorsConfig()
     imgs, Ks, w2cs = _scene_arrays(scene)
     T, H, W = imgs.shape[:3]
@@ -432,7 +471,9 @@ def compute_priors(
         # Motion discovery: epipolar and depth-consistency cues fused (the residual cue joins after the
         # static warm-up, in the methods). Depth is metric only when classical or fitted.
         metric = depth if depth_key is not None else None
-        evidence = dynamic_masks.prior_evidence(err, flows, metric, Ks, w2cs, cfg.motion, cfg.epi)
+        evidence = dynamic_masks.prior_evidence(
+            err, flows, metric, Ks, w2cs, cfg.motion, cfg.epi, threads=resolve_threads(cfg.threads)
+        )
         fused = dynamic_masks.fuse(evidence, flows, cfg.motion, cfg.epi)
         mask, mask_conf = fused.mask, fused.confidence
         mask_src = f"motion cues ({', '.join(evidence)})"

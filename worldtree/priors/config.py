@@ -279,6 +279,9 @@ class PriorsConfig:
     """"classical" or a folder of flow files named <i>_<j>.flo / .npy."""
     masks_source: str | None = None
     """None (EPI masks from flow) or a folder of dynamic masks, one per frame, replacing the EPI masks."""
+    threads: int = 0
+    """Frames (depth) and frame pairs (flow) computed at once on threads (0: one per core this process may use).
+    Each item is computed whole on one thread, so the priors are the same for any count."""
 
 
 def config_dict(cfg) -> dict:

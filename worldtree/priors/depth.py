@@ -184,11 +184,13 @@ def plane_fit(inv_depth: np.ndarray, weight: np.ndarray, rounds: int = 10, keep:
     coef = None
     for _ in range(max(rounds, 1)):
         Aw = A[sel] * wi[sel, None]
-        M = A[sel].T @ Aw
+        # einsum, not a BLAS product: its sums run in one fixed order whatever BLAS's threading does, so
+        # the fit is the same on any thread (frames are computed on a pool: worldtree.infra.parallel).
+        M = np.einsum("ni,nj->ij", A[sel], Aw)
         if np.linalg.cond(M) > 1e12:
             break
-        coef = np.linalg.solve(M, Aw.T @ b[sel])
-        res = np.abs(A @ coef - b)
+        coef = np.linalg.solve(M, np.einsum("ni,n->i", Aw, b[sel]))
+        res = np.abs(A[:, 0] * coef[0] + A[:, 1] * coef[1] + A[:, 2] * coef[2] - b)
         new = res <= np.quantile(res, keep)
         if np.array_equal(new, sel):
             break

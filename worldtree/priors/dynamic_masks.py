@@ -91,9 +91,11 @@ def prior_evidence(
     w2cs: np.ndarray,
     motion: MotionConfig,
     epi: EpiConfig,
+    threads: int = 1,
 ) -> dict[str, np.ndarray]:
     """Evidence of the cues available with the priors: ``epipolar`` (from ``epi_error`` [T, H, W] px) and, when
-    ``depth`` [T, H, W] is metric and the poses are used, ``rigid`` (depth consistency of the flow)."""
+    ``depth`` [T, H, W] is metric and the poses are used, ``rigid`` (depth consistency of the flow, its flow
+    pairs computed on ``threads`` threads)."""
     ev: dict[str, np.ndarray] = {}
     if motion.use_epipolar:
         ev["epipolar"] = cues.epipolar_evidence(epi_error, epi.threshold_px)
@@ -101,7 +103,7 @@ def prior_evidence(
     # flow means nothing.
     if motion.use_rigid and depth is not None and epi.use_poses:
         ev["rigid"] = cues.rigid_evidence_maps(
-            flows, depth, Ks, w2cs, motion.rigid_tol_px, motion.rigid_rel_depth
+            flows, depth, Ks, w2cs, motion.rigid_tol_px, motion.rigid_rel_depth, threads=threads
         )
     if not ev:
         ev["none"] = np.zeros_like(epi_error, dtype=np.float32)

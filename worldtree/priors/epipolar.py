@@ -25,6 +25,7 @@ from collections.abc import Callable, Mapping
 import cv2
 import numpy as np
 
+from worldtree.infra.parallel import ordered_map
 from worldtree.priors.config import EpiConfig
 from worldtree.priors.flow import FlowPair
 
@@ -140,11 +141,14 @@ def epipolar_error_maps(
     cfg: EpiConfig,
     on_frame: Callable[[int], None] | None = None,
     seed: int = 0,
+    threads: int = 1,
 ) -> np.ndarray:
     """Per-frame error ``[T, H, W]`` (pixels): the maximum over the flow pairs leaving each frame.
 
     ``Ks`` [T,3,3] and ``w2cs`` [T,4,4] give known poses; pass None (or ``cfg.use_poses=False``) to estimate
-    each pair's fundamental matrix from the flow with LMedS. Frames without any flow pair get zeros.
+    each pair's fundamental matrix from the flow with LMedS. Frames without any flow pair get zeros. With
+    known poses the pairs are computed on ``threads`` threads (the same maps for any count); the LMedS
+    estimate draws its samples from one seeded sequence, pair after pair, so it stays on one thread.
     """
     if not flows:
         raise ValueError("epipolar_error_maps needs at least one flow pair")
@@ -154,17 +158,25 @@ def epipolar_error_maps(
     by_src: dict[int, list[int]] = {}
     for i, j in flows:
         by_src.setdefault(i, []).append(j)
+    order = [(i, j) for i in range(num_frames) for j in sorted(by_src.get(i, []))]
+
+    def one(ij: tuple[int, int]) -> np.ndarray:
+        i, j = ij
+        return pair_error(
+            flows[ij],
+            None if Ks is None else Ks[i],
+            None if w2cs is None else w2cs[i],
+            None if Ks is None else Ks[j],
+            None if w2cs is None else w2cs[j],
+            cfg,
+            rng,
+        )
+
+    posed = cfg.use_poses and w2cs is not None
+    errors = ordered_map(one, order, threads if posed else 1)
     for i in range(num_frames):
         for j in sorted(by_src.get(i, [])):
-            e = pair_error(
-                flows[(i, j)],
-                None if Ks is None else Ks[i],
-                None if w2cs is None else w2cs[i],
-                None if Ks is None else Ks[j],
-                None if w2cs is None else w2cs[j],
-                cfg,
-                rng,
-            )
+            e = next(errors)
             v = flows[(i, j)].valid
             # A pair whose typical (median) error is large failed as a whole (flow lost across a wide
             # camera jump): it says nothing about which pixels move, so it is skipped.

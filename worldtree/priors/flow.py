@@ -110,12 +110,19 @@ def bilinear(img: np.ndarray, pts: np.ndarray) -> np.ndarray:
 
 
 def rigid_transfer(
-    depth: np.ndarray, K_i: np.ndarray, w2c_i: np.ndarray, K_j: np.ndarray, w2c_j: np.ndarray, pts: np.ndarray
+    depth: np.ndarray,
+    K_i: np.ndarray,
+    w2c_i: np.ndarray,
+    K_j: np.ndarray,
+    w2c_j: np.ndarray,
+    pts: np.ndarray,
+    z: np.ndarray | None = None,
 ) -> np.ndarray:
     """Where static points at pixel positions ``pts`` [N,2] of frame i (depth map ``depth`` [H,W] of frame i,
-    sampled bilinearly) project in frame j: ``[N, 2]``. Points that land behind camera j stay in place."""
+    sampled bilinearly) project in frame j: ``[N, 2]``. Points that land behind camera j stay in place.
+    ``z``, when given, is the depth already sampled at ``pts`` ``[N]``."""
     pts = np.asarray(pts, np.float32).reshape(-1, 2)
-    z = bilinear(depth.astype(np.float64), pts)
+    z = bilinear(depth.astype(np.float64), pts) if z is None else np.asarray(z, np.float64)
     Ki, Kj = np.asarray(K_i, np.float64), np.asarray(K_j, np.float64)
     wi, wj = np.asarray(w2c_i, np.float64), np.asarray(w2c_j, np.float64)
     cam = np.stack([(pts[:, 0] - Ki[0, 2]) / Ki[0, 0] * z, (pts[:, 1] - Ki[1, 2]) / Ki[1, 1] * z, z], -1)
@@ -133,7 +140,9 @@ def rigid_flow(
     H, W = depth.shape
     py, px = np.mgrid[0:H, 0:W].astype(np.float32)
     pts = np.stack([px.ravel(), py.ravel()], -1)
-    return (rigid_transfer(depth, K_i, w2c_i, K_j, w2c_j, pts) - pts).reshape(H, W, 2)
+    # At pixel centres the bilinear sample is the depth itself (weights exactly 1 and 0): skip it.
+    z = depth.astype(np.float64).ravel()
+    return (rigid_transfer(depth, K_i, w2c_i, K_j, w2c_j, pts, z) - pts).reshape(H, W, 2)
 
 
 def _normalised_gray(gray: np.ndarray) -> np.ndarray:

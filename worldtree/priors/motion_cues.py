@@ -29,6 +29,7 @@ from collections.abc import Mapping
 import cv2
 import numpy as np
 
+from worldtree.infra.parallel import ordered_map
 from worldtree.priors.flow import FlowPair, rigid_flow
 
 _EPS = 1e-9
@@ -120,19 +121,28 @@ def rigid_evidence_maps(
     tol_px: float = 1.5,
     rel_depth_tol: float = 0.3,
     max_pair_median: float = 0.5,
+    threads: int = 1,
 ) -> np.ndarray:
     """``[T, H, W]`` depth-consistency evidence of every frame: the maximum of :func:`rigid_evidence` over the
     flow pairs leaving it. A pair whose median evidence over valid pixels exceeds ``max_pair_median`` is a
-    failed flow (or depth) and is skipped, as the epipolar test does."""
+    failed flow (or depth) and is skipped, as the epipolar test does. Pairs are computed on ``threads``
+    threads (the same maps for any count)."""
     T, H, W = depth.shape
     out = np.zeros((T, H, W), np.float32)
-    for (i, j), fp in flows.items():
+    pairs = list(flows.items())
+
+    def one(item: tuple[tuple[int, int], FlowPair]) -> np.ndarray | None:
+        (i, j), fp = item
         res, par = rigid_residual(fp, depth[i], Ks[i], w2cs[i], Ks[j], w2cs[j])
         ev = rigid_evidence(res, par, tol_px, rel_depth_tol)
         ok = fp.valid
         if ok.any() and float(np.median(ev[ok])) > max_pair_median:
-            continue
-        out[i] = np.maximum(out[i], np.where(ok, ev, 0.0))
+            return None
+        return np.where(ok, ev, 0.0)
+
+    for ((i, _), _), ev in zip(pairs, ordered_map(one, pairs, threads), strict=True):
+        if ev is not None:
+            out[i] = np.maximum(out[i], ev)
     return out
 
 

@@ -30,6 +30,7 @@ from dataclasses import asdict, dataclass
 import cv2
 import numpy as np
 
+from worldtree.infra.parallel import ordered_map
 from worldtree.priors.config import FlowConfig, MotionConfig
 from worldtree.priors.dynamic_tracks import chain_gaps, dilate_masks
 from worldtree.priors.flow import (
@@ -197,6 +198,7 @@ def object_flows(
     Ks: np.ndarray | None = None,
     w2cs: np.ndarray | None = None,
     stats: dict | None = None,
+    threads: int = 1,
 ) -> dict[tuple[int, int], FlowPair]:
     """The flow pairs with the chaining's pairs recomputed inside the masks (see the module docstring).
 
@@ -209,6 +211,7 @@ def object_flows(
         depth: metric depth ``[T, H, W]`` with ``Ks`` [T, 3, 3], ``w2cs`` [T, 4, 4]: the rigid flow starts DIS
             outside the objects and predicts where they go; without it the current flow does both.
         stats: receives :meth:`ObjectFlowStats.as_dict`.
+        threads: the chaining's frame pairs computed at once (the same flows and counts for any number).
 
     Returns:
         A new dict: the same pairs, those of the chaining's gaps changed only on matched components.
@@ -226,7 +229,7 @@ def object_flows(
     grays = [g.astype(np.float32) / 255.0 for g in gu8]
     rigid = depth is not None and Ks is not None and w2cs is not None
 
-    def start(i: int, j: int) -> tuple[np.ndarray, np.ndarray]:
+    def start(i: int, j: int, st: ObjectFlowStats) -> tuple[np.ndarray, np.ndarray]:
         """Initial flow i -> j [H, W, 2] and the pixels of its matched components [H, W]."""
         if rigid:
             base = rigid_flow(depth[i], Ks[i], w2cs[i], Ks[j], w2cs[j])
@@ -257,31 +260,49 @@ def object_flows(
             region |= comp
         return init, region
 
-    for t in range(T):
-        for g in chain_gaps(cfg):
-            u = t + g
-            if u >= T or (t, u) not in flows or (u, t) not in flows or not (comps[t] or comps[u]):
+    def pair(tu: tuple[int, int]) -> tuple[list[tuple[tuple[int, int], FlowPair]], ObjectFlowStats]:
+        """The changed directed pairs of the gap t -> u and the counts of its matches (its own, so that pairs
+        can run on several threads)."""
+        t, u = tu
+        own = ObjectFlowStats()
+        init_f, reg_f = start(t, u, own)
+        init_b, reg_b = start(u, t, own)
+        if not (reg_f.any() or reg_b.any()):
+            return [], own
+        f = _prefer_translation(
+            gu8[t], gu8[u], dis_flow(gu8[t], gu8[u], flow_cfg.preset, init_f), init_f, reg_f
+        )
+        b = _prefer_translation(
+            gu8[u], gu8[t], dis_flow(gu8[u], gu8[t], flow_cfg.preset, init_b), init_b, reg_b
+        )
+        changed = []
+        for (i, j), fwd, bwd, reg in (((t, u), f, b, reg_f), ((u, t), b, f, reg_b)):
+            if not reg.any():
                 continue
-            init_f, reg_f = start(t, u)
-            init_b, reg_b = start(u, t)
-            if not (reg_f.any() or reg_b.any()):
-                continue
-            f = _prefer_translation(
-                gu8[t], gu8[u], dis_flow(gu8[t], gu8[u], flow_cfg.preset, init_f), init_f, reg_f
-            )
-            b = _prefer_translation(
-                gu8[u], gu8[t], dis_flow(gu8[u], gu8[t], flow_cfg.preset, init_b), init_b, reg_b
-            )
-            for (i, j), fwd, bwd, reg in (((t, u), f, b, reg_f), ((u, t), b, f, reg_b)):
-                if not reg.any():
-                    continue
-                old = flows[(i, j)]
-                valid = pair_validity(gu8[i], gu8[j], fwd, bwd, flow_cfg)
-                out[(i, j)] = FlowPair(
-                    np.where(reg[..., None], fwd, old.flow).astype(np.float32),
-                    np.where(reg, valid, old.valid),
+            old = flows[(i, j)]
+            valid = pair_validity(gu8[i], gu8[j], fwd, bwd, flow_cfg)
+            changed.append(
+                (
+                    (i, j),
+                    FlowPair(
+                        np.where(reg[..., None], fwd, old.flow).astype(np.float32),
+                        np.where(reg, valid, old.valid),
+                    ),
                 )
-                st.pairs_changed += 1
+            )
+            own.pairs_changed += 1
+        return changed, own
+
+    gaps = [
+        (t, t + g)
+        for t in range(T)
+        for g in chain_gaps(cfg)
+        if t + g < T and (t, t + g) in flows and (t + g, t) in flows and (comps[t] or comps[t + g])
+    ]
+    for changed, own in ordered_map(pair, gaps, threads):
+        out.update(changed)
+        for k, v in asdict(own).items():
+            setattr(st, k, getattr(st, k) + v)
     if stats is not None:
         stats.update(st.as_dict())
     return out

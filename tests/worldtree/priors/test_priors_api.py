@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import threading
 
+import cv2
 import numpy as np
 import pytest
 
@@ -120,7 +122,7 @@ def test_interrupted_depth_resumes_per_frame(scene, tmp_path, monkeypatch):
 
     monkeypatch.setattr(api_mod.depth_mod, "frame_depth", flaky)
     with pytest.raises(KeyboardInterrupt):
-        compute_priors(scene, FAST, tmp_path)
+        compute_priors(scene, dataclasses.replace(FAST, threads=1), tmp_path)
     assert done == [0, 1, 2]
     folder = next(tmp_path.glob("depth-*"))
     assert sorted(p.name for p in folder.glob("*.npz")) == ["00000.npz", "00001.npz", "00002.npz"]
@@ -201,3 +203,68 @@ def test_bad_import_fails_before_computing(scene, tmp_path, monkeypatch):
         compute_priors(scene, dataclasses.replace(FAST, masks_source=str(tmp_path / "m")), tmp_path)
     with pytest.raises(UserError, match="not a folder"):
         compute_priors(scene, dataclasses.replace(FAST, flow_source=str(tmp_path / "f")), tmp_path)
+
+
+def _same_priors(a, b) -> bool:
+    flows = a.flow.keys() == b.flow.keys() and all(
+        np.array_equal(a.flow[k].flow, b.flow[k].flow) and np.array_equal(a.flow[k].valid, b.flow[k].valid)
+        for k in a.flow
+    )
+    arrays = (
+        "depth",
+        "depth_conf",
+        "tracks",
+        "track_vis",
+        "track_dynamic",
+        "epi_error",
+        "epi_mask",
+        "mask_conf",
+    )
+    return flows and all(np.array_equal(getattr(a, n), getattr(b, n)) for n in arrays)
+
+
+def test_same_priors_for_any_thread_count_and_caller_opencv_threads(scene):
+    """Frames spread over 1 or 3 threads, and OpenCV left at 3 or 1 threads by the caller: the same priors
+    to the bit, and the caller's OpenCV setting is given back."""
+    before = cv2.getNumThreads()
+    try:
+        cv2.setNumThreads(3)
+        one = compute_priors(scene, dataclasses.replace(FAST, threads=1), None)
+        assert cv2.getNumThreads() == 3
+        cv2.setNumThreads(1)
+        three = compute_priors(scene, dataclasses.replace(FAST, threads=3), None)
+        assert cv2.getNumThreads() == 1
+    finally:
+        cv2.setNumThreads(before)
+    assert _same_priors(one, three)
+
+
+def test_interrupted_depth_on_threads_keeps_whole_frames_in_order(scene, tmp_path, monkeypatch):
+    """On a pool, a failing frame stops the run; what is saved is a prefix of the frames, each complete, and
+    the rerun computes the rest only."""
+    real = api_mod.depth_mod.frame_depth
+    lock = threading.Lock()
+
+    def flaky(t, *a, **k):
+        if t == 4:
+            raise KeyboardInterrupt
+        return real(t, *a, **k)
+
+    monkeypatch.setattr(api_mod.depth_mod, "frame_depth", flaky)
+    cfg = dataclasses.replace(FAST, threads=3)
+    with pytest.raises(KeyboardInterrupt):
+        compute_priors(scene, cfg, tmp_path)
+    folder = next(tmp_path.glob("depth-*"))
+    assert sorted(p.name for p in folder.glob("*.npz")) == [f"{t:05d}.npz" for t in range(4)]
+    assert not list(folder.glob("*.tmp"))
+    resumed = []
+
+    def count(t, *a, **k):
+        with lock:
+            resumed.append(t)
+        return real(t, *a, **k)
+
+    monkeypatch.setattr(api_mod.depth_mod, "frame_depth", count)
+    compute_priors(scene, cfg, tmp_path)
+    assert sorted(resumed) == list(range(4, scene.num_frames))
+    assert (folder / "COMPLETE").exists()
