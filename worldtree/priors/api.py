@@ -80,6 +80,21 @@ class Priors:
     track_pieces: np.ndarray | None = None
     depth_fill: Callable[[np.ndarray], np.ndarray] | None = field(default=None, repr=False)
 
+    def identical(self, other: Priors) -> bool:
+        """Every array of the two (depth, confidences, flow pairs, tracks, masks, epipolar errors) equal bit for
+        bit; the sources and settings are not compared."""
+        arrays = ("depth", "depth_conf", "tracks", "track_vis", "track_dynamic", "epi_error", "epi_mask")
+        same_flow = self.flow.keys() == other.flow.keys() and all(
+            np.array_equal(f.flow, other.flow[k].flow) and np.array_equal(f.valid, other.flow[k].valid)
+            for k, f in self.flow.items()
+        )
+        masks = (self.mask_conf is None) == (other.mask_conf is None) and (
+            self.mask_conf is None or np.array_equal(self.mask_conf, other.mask_conf)
+        )
+        return (
+            same_flow and masks and all(np.array_equal(getattr(self, n), getattr(other, n)) for n in arrays)
+        )
+
     @property
     def num_frames(self) -> int:
         return int(self.depth.shape[0])

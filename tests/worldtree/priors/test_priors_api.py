@@ -205,24 +205,6 @@ def test_bad_import_fails_before_computing(scene, tmp_path, monkeypatch):
         compute_priors(scene, dataclasses.replace(FAST, flow_source=str(tmp_path / "f")), tmp_path)
 
 
-def _same_priors(a, b) -> bool:
-    flows = a.flow.keys() == b.flow.keys() and all(
-        np.array_equal(a.flow[k].flow, b.flow[k].flow) and np.array_equal(a.flow[k].valid, b.flow[k].valid)
-        for k in a.flow
-    )
-    arrays = (
-        "depth",
-        "depth_conf",
-        "tracks",
-        "track_vis",
-        "track_dynamic",
-        "epi_error",
-        "epi_mask",
-        "mask_conf",
-    )
-    return flows and all(np.array_equal(getattr(a, n), getattr(b, n)) for n in arrays)
-
-
 def test_same_priors_for_any_thread_count_and_caller_opencv_threads(scene):
     """Frames spread over 1 or 3 threads, and OpenCV left at 3 or 1 threads by the caller: the same priors
     to the bit, and the caller's OpenCV setting is given back."""
@@ -236,7 +218,7 @@ def test_same_priors_for_any_thread_count_and_caller_opencv_threads(scene):
         assert cv2.getNumThreads() == 1
     finally:
         cv2.setNumThreads(before)
-    assert _same_priors(one, three)
+    assert one.identical(three)
 
 
 def test_interrupted_depth_on_threads_keeps_whole_frames_in_order(scene, tmp_path, monkeypatch):
@@ -268,3 +250,15 @@ def test_interrupted_depth_on_threads_keeps_whole_frames_in_order(scene, tmp_pat
     compute_priors(scene, cfg, tmp_path)
     assert sorted(resumed) == list(range(4, scene.num_frames))
     assert (folder / "COMPLETE").exists()
+
+
+def test_identical_sees_one_changed_value(computed):
+    pri, _ = computed
+    assert pri.identical(pri)
+    other = dataclasses.replace(pri, depth=pri.depth.copy())
+    other.depth[0, 0, 0] = np.nextafter(other.depth[0, 0, 0], np.float32(np.inf))
+    assert not pri.identical(other)
+    k = next(iter(pri.flow))
+    flows = dict(pri.flow)
+    flows[k] = api_mod.FlowPair(pri.flow[k].flow, ~pri.flow[k].valid)
+    assert not pri.identical(dataclasses.replace(pri, flow=flows))
