@@ -121,8 +121,8 @@ inline void edge_grad_c(const ArapInputs& in, ArapEdgeBuffers& b, double w, doub
   }
 }
 
-ArapInputs inputs_of(const at::Tensor& pos, const at::Tensor& R, const at::Tensor& idx, const at::Tensor& w,
-                     const std::vector<int64_t>& shifts, const std::vector<double>& shift_weights) {
+ArapInputs arap_inputs(const at::Tensor& pos, const at::Tensor& R, const at::Tensor& idx, const at::Tensor& w,
+                       const std::vector<int64_t>& shifts, const std::vector<double>& shift_weights) {
   TORCH_CHECK(pos.dim() == 3 && pos.size(2) == 3 && pos.is_contiguous() && pos.scalar_type() == at::kFloat,
               "arap: pos must be a contiguous float32 [T, M, 3] tensor");
   const int64_t T = pos.size(0), M = pos.size(1);
@@ -151,7 +151,7 @@ ArapInputs inputs_of(const at::Tensor& pos, const at::Tensor& R, const at::Tenso
 std::vector<at::Tensor> arap_forward(at::Tensor pos, at::Tensor R, at::Tensor idx, at::Tensor w,
                                      std::vector<int64_t> shifts, std::vector<double> shift_weights,
                                      int64_t threads) {
-  const ArapInputs in = inputs_of(pos, R, idx, w, shifts, shift_weights);
+  const ArapInputs in = arap_inputs(pos, R, idx, w, shifts, shift_weights);
   const int64_t M = in.M, K = idx.size(1);
   const int64_t* ix = idx.data_ptr<int64_t>();
   const float* wt = w.data_ptr<float>();
@@ -192,7 +192,7 @@ std::vector<at::Tensor> arap_forward(at::Tensor pos, at::Tensor R, at::Tensor id
 std::vector<at::Tensor> arap_backward(at::Tensor pos, at::Tensor R, at::Tensor idx, at::Tensor w,
                                       std::vector<int64_t> shifts, std::vector<double> shift_weights,
                                       double g_coord, double g_length, bool detach_neighbours, int64_t threads) {
-  const ArapInputs in = inputs_of(pos, R, idx, w, shifts, shift_weights);
+  const ArapInputs in = arap_inputs(pos, R, idx, w, shifts, shift_weights);
   const int64_t T = in.T, M = in.M, K = idx.size(1);
   const int64_t* ix = idx.data_ptr<int64_t>();
   const float* wt = w.data_ptr<float>();

@@ -614,9 +614,9 @@ void check_inputs(const at::Tensor& pts, const at::Tensor& quats, const at::Tens
   if (has_corr) TORCH_CHECK(corr.sizes() == sigma.sizes() && f32(corr), "dqb: correction must be a float32 [N, K]");
 }
 
-DqbInputs inputs_of(const at::Tensor& pts, const at::Tensor& quats, const at::Tensor& pos, const at::Tensor& sigma,
-                    const at::Tensor& real, const at::Tensor& dual, const at::Tensor& valid, const at::Tensor& corr,
-                    bool has_valid, bool has_corr, bool mix, double eps, double tol) {
+DqbInputs dqb_inputs(const at::Tensor& pts, const at::Tensor& quats, const at::Tensor& pos, const at::Tensor& sigma,
+                     const at::Tensor& real, const at::Tensor& dual, const at::Tensor& valid, const at::Tensor& corr,
+                     bool has_valid, bool has_corr, bool mix, double eps, double tol) {
   check_inputs(pts, quats, pos, sigma, real, dual, valid, corr, has_valid, has_corr);
   return DqbInputs{pts.data_ptr<float>(),
                    quats.data_ptr<float>(),
@@ -696,8 +696,8 @@ std::vector<at::Tensor> dqb_forward(at::Tensor pts, at::Tensor quats, at::Tensor
                                     at::Tensor real, at::Tensor dual, at::Tensor valid, at::Tensor corr,
                                     bool has_valid, bool has_corr, bool mix_identity, double eps,
                                     double degenerate_tol, int64_t threads) {
-  const DqbInputs in = inputs_of(pts, quats, pos, sigma, real, dual, valid, corr, has_valid, has_corr, mix_identity,
-                                 eps, degenerate_tol);
+  const DqbInputs in = dqb_inputs(pts, quats, pos, sigma, real, dual, valid, corr, has_valid, has_corr, mix_identity,
+                                  eps, degenerate_tol);
   auto out_p = at::empty({in.N, 3}, pts.options());
   auto out_q = at::empty({in.N, 4}, pts.options());
   float* op = out_p.data_ptr<float>();
@@ -720,8 +720,8 @@ std::vector<at::Tensor> dqb_backward(at::Tensor pts, at::Tensor quats, at::Tenso
                                      bool has_valid, bool has_corr, bool mix_identity, double eps,
                                      double degenerate_tol, at::Tensor g_pts, at::Tensor g_quats, int64_t needs,
                                      int64_t threads) {
-  const DqbInputs in = inputs_of(pts, quats, pos, sigma, real, dual, valid, corr, has_valid, has_corr, mix_identity,
-                                 eps, degenerate_tol);
+  const DqbInputs in = dqb_inputs(pts, quats, pos, sigma, real, dual, valid, corr, has_valid, has_corr, mix_identity,
+                                  eps, degenerate_tol);
   const int64_t N = in.N, K = in.K;
   TORCH_CHECK(g_pts.sizes() == pts.sizes() && g_pts.scalar_type() == at::kFloat && g_pts.is_contiguous(),
               "dqb_backward: g_pts must be a contiguous float32 [N, 3] tensor");
