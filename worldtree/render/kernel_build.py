@@ -1,6 +1,7 @@
-"""Building and caching the C++ rasterizer (csrc/rasterize_cpu.cpp): one build per target, shared by processes.
+"""Building and caching the C++ rasterizer (csrc/rasterize_cpu.cpp) and, in the same library, the motion kernels
+(csrc/motion_cpu.cpp: ARAP and DQB skinning): one build per target, shared by processes.
 
-Three targets are compiled from the same source:
+Three targets are compiled from the same sources:
 
 - ``native``: ``-march=native``, the instruction set of this CPU (AVX-512, AVX2, ...); the fastest.
 - ``avx2``: x86-64 with AVX2 and FMA and nothing newer (the x86-64-v3 level's vector instructions, no
@@ -16,10 +17,10 @@ on every target; the float ``exp`` and the backward's gradient sums use FMA expl
 so the float results of the targets differ by a few roundings there (and by the order of the gradient sums).
 
 Cache: ``$TORCH_EXTENSIONS_DIR/worldtree/<name>`` (default root ``~/.cache/torch_extensions``), where the name
-carries a hash of everything that changes the built library: the source, the compile flags, the target, the
-torch version and install path, the Python version, the compiler (its ``--version``) and, for ``native``, the
-CPU's model and instruction-set flags. The source is copied into the build folder, so checkouts in different
-places share one build. A file lock around the build makes concurrent processes wait for one build instead of
+carries a hash of everything that changes the built library: the sources (included ones too), the compile flags,
+the target, the torch version and install path, the Python version, the compiler (its ``--version``) and, for
+``native``, the CPU's model and instruction-set flags. The sources are copied into the build folder, so checkouts in
+different places share one build. A file lock around the build makes concurrent processes wait for one build instead of
 compiling the same library twice.
 
 The kernel includes only the ATen headers it uses (not ``<torch/extension.h>``, which alone took about 22 s to
@@ -48,14 +49,16 @@ import torch
 
 log = logging.getLogger("worldtree.render")
 
-SOURCE = Path(__file__).parent / "csrc" / "rasterize_cpu.cpp"
-#: Further translation units linked into the same library (their ops join the namespace as fragments): the ARAP
-#: regulariser of the motion scaffold (worldtree.motion.regularizers) and the DQB skinning of Gaussians
-#: (worldtree.motion.skinning). Compiled in parallel with SOURCE.
-EXTRA_SOURCES: tuple[Path, ...] = (
-    Path(__file__).parent / "csrc" / "arap_cpu.cpp",
-    Path(__file__).parent / "csrc" / "skinning_cpu.cpp",
-)
+_CSRC = Path(__file__).parent / "csrc"
+SOURCE = _CSRC / "rasterize_cpu.cpp"
+#: Further translation units linked into the same library (their ops join the namespace as fragments), compiled
+#: in parallel with SOURCE: motion_cpu.cpp, the ARAP regulariser of the motion scaffold
+#: (worldtree.motion.regularizers) and the DQB skinning of Gaussians (worldtree.motion.skinning) as one unit.
+EXTRA_SOURCES: tuple[Path, ...] = (_CSRC / "motion_cpu.cpp",)
+#: Sources a unit #includes instead of compiling them on their own (motion_cpu.cpp's two kernels): copied next to
+#: the units and covered by the build key like them. Each unit parses the ATen headers once (about 4.5 s here), so
+#: two units, one per core of a 2-core machine, build faster than three (docs/rendering.md).
+INCLUDED_SOURCES: tuple[Path, ...] = (_CSRC / "arap_cpu.cpp", _CSRC / "skinning_cpu.cpp")
 TARGETS = ("native", "avx2", "portable")
 ENV_TARGET = "WORLDTREE_RASTER_TARGET"
 
@@ -144,7 +147,7 @@ def build_key(target: str) -> str:
     """Hash (hex, 16 digits) of everything that changes the library built for ``target``."""
     h = hashlib.sha256()
     parts = [
-        *(src.read_bytes() for src in (SOURCE, *EXTRA_SOURCES)),
+        *(src.read_bytes() for src in (SOURCE, *EXTRA_SOURCES, *INCLUDED_SOURCES)),
         " ".join(COMMON_CFLAGS + target_cflags(target) + LDFLAGS).encode(),
         target.encode(),
         torch.__version__.encode(),
@@ -284,20 +287,19 @@ def build(target: str, *, verbose: bool = False) -> Built:
         # torch's own lock file inside the folder is left behind by a build that was killed; under our lock
         # nobody else is building, so one found now is stale and would make torch wait for ever.
         (folder / "lock").unlink(missing_ok=True)
-        copies = []
-        for source in (SOURCE, *EXTRA_SOURCES):
+        units = (SOURCE, *EXTRA_SOURCES)
+        for source in (*units, *INCLUDED_SOURCES):
             src = folder / source.name
             if not src.is_file() or src.read_bytes() != source.read_bytes():
                 tmp = folder / (source.name + ".tmp")
                 shutil.copyfile(source, tmp)
                 os.replace(tmp, src)
-            copies.append(str(src))
         log.info("compiling the C++ rasterizer (%s target) into %s; about 10 s, once", target, folder)
         # is_python_module=False: torch loads the library with torch.ops.load_library (registering its ops) and
         # returns its path; _load_library then only records it.
         path = load(
             name=name,
-            sources=copies,
+            sources=[str(folder / source.name) for source in units],
             extra_cflags=list(COMMON_CFLAGS + target_cflags(target)),
             extra_ldflags=list(LDFLAGS),
             build_directory=str(folder),

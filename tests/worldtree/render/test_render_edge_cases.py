@@ -178,6 +178,7 @@ def test_auto_falls_back_to_reference_when_the_build_fails(monkeypatch, caplog, 
     monkeypatch.setenv("TORCH_EXTENSIONS_DIR", str(tmp_path / "ext"))
     monkeypatch.setattr(kernel_build, "SOURCE", broken)
     monkeypatch.setattr(kernel_build, "EXTRA_SOURCES", ())
+    monkeypatch.setattr(kernel_build, "INCLUDED_SOURCES", ())
     monkeypatch.delenv(kernel_build.ENV_TARGET, raising=False)
     monkeypatch.setattr(cpu_kernel, "_module", None)
     monkeypatch.setattr(cpu_kernel, "_target", None)

@@ -23,8 +23,11 @@ def test_key_covers_source_flags_target_and_cpu(monkeypatch, tmp_path):
     src.write_text("int a;\n")
     extra = tmp_path / "e.cpp"
     extra.write_text("int e;\n")
+    included = tmp_path / "i.cpp"  # #included by a unit, not compiled on its own
+    included.write_text("int i;\n")
     monkeypatch.setattr(kernel_build, "SOURCE", src)
     monkeypatch.setattr(kernel_build, "EXTRA_SOURCES", (extra,))
+    monkeypatch.setattr(kernel_build, "INCLUDED_SOURCES", (included,))
     monkeypatch.setattr(kernel_build.platform, "machine", lambda: "x86_64")  # every target has flags there
     base = {t: kernel_build.build_key(t) for t in kernel_build.TARGETS}
     assert len(set(base.values())) == len(kernel_build.TARGETS)  # different targets never share a build
@@ -36,12 +39,16 @@ def test_key_covers_source_flags_target_and_cpu(monkeypatch, tmp_path):
     extra.write_text("int f;\n")
     assert all(kernel_build.build_key(t) != base[t] for t in kernel_build.TARGETS)  # an edit of a further unit
     extra.write_text("int e;\n")
+    included.write_text("int j;\n")
+    assert all(kernel_build.build_key(t) != base[t] for t in kernel_build.TARGETS)  # an edit of an included file
+    included.write_text("int i;\n")
 
     monkeypatch.setattr(kernel_build, "COMMON_CFLAGS", (*kernel_build.COMMON_CFLAGS, "-g"))
     assert all(kernel_build.build_key(t) != base[t] for t in kernel_build.TARGETS)  # any flag
     monkeypatch.undo()
     monkeypatch.setattr(kernel_build, "SOURCE", src)
     monkeypatch.setattr(kernel_build, "EXTRA_SOURCES", (extra,))
+    monkeypatch.setattr(kernel_build, "INCLUDED_SOURCES", (included,))
     monkeypatch.setattr(kernel_build.platform, "machine", lambda: "x86_64")
 
     # -march=native compiles for this CPU: another CPU needs another native build, not another portable one.
@@ -125,7 +132,7 @@ _BUILD_ONE = textwrap.dedent(
     from pathlib import Path
     from worldtree.render import kernel_build
     kernel_build.SOURCE = Path(sys.argv[1])
-    kernel_build.EXTRA_SOURCES = ()
+    kernel_build.EXTRA_SOURCES = kernel_build.INCLUDED_SOURCES = ()
     built = kernel_build.build("portable")
     print(json.dumps({"name": built.name, "value": built.module.value()}))
     """
@@ -225,6 +232,7 @@ def test_two_targets_in_one_process_have_their_own_ops(monkeypatch, tmp_path):
     value = "#if defined(__AVX2__)\n2\n#else\n1\n#endif\n"  # what the target's flags compiled
     monkeypatch.setattr(kernel_build, "SOURCE", _tiny_source(tmp_path / "tiny.cpp", value))
     monkeypatch.setattr(kernel_build, "EXTRA_SOURCES", ())
+    monkeypatch.setattr(kernel_build, "INCLUDED_SOURCES", ())
     monkeypatch.setenv("TORCH_EXTENSIONS_DIR", str(tmp_path / "ext"))
     try:
         native, portable = kernel_build.build("native"), kernel_build.build("portable")
@@ -251,3 +259,11 @@ def test_two_targets_in_one_process_have_their_own_ops(monkeypatch, tmp_path):
     # Even from another cache folder: the name (the build key) is what identifies the library.
     monkeypatch.setenv("TORCH_EXTENSIONS_DIR", str(tmp_path / "other-ext"))
     assert kernel_build.build("native").module is native.module
+
+
+def test_included_sources_are_compiled_through_a_unit():
+    """Each INCLUDED_SOURCES file is #included by a compiled unit (else its ops would be missing), none is a unit."""
+    units = (kernel_build.SOURCE, *kernel_build.EXTRA_SOURCES)
+    for inc in kernel_build.INCLUDED_SOURCES:
+        assert inc.is_file() and inc not in units
+        assert sum(f'#include "{inc.name}"' in unit.read_text() for unit in units) == 1, inc.name
