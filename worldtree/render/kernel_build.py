@@ -17,18 +17,20 @@ on every target; the float ``exp`` and the backward's gradient sums use FMA expl
 so the float results of the targets differ by a few roundings there (and by the order of the gradient sums).
 
 Cache: ``$TORCH_EXTENSIONS_DIR/worldtree/<name>`` (default root ``~/.cache/torch_extensions``), where the name
-carries a hash of everything that changes the built library: the sources (included ones too), the compile flags,
-the target, the torch version and install path, the Python version, the compiler (its ``--version``) and, for
-``native``, the CPU's model and instruction-set flags. The sources are copied into the build folder, so checkouts in
-different places share one build. A file lock around the build makes concurrent processes wait for one build instead of
-compiling the same library twice.
+carries a hash of everything that changes the built library: the sources (included ones too), the compile
+flags, the target, the torch version and install path, the Python version, the compiler (its ``--version``)
+and, for ``native``, the CPU's model and instruction-set flags. The sources are copied into the build folder, so
+checkouts in different places share one build. A file lock around the build makes concurrent processes wait for
+one build instead of compiling the same library twice.
 
 The kernel includes only the ATen headers it uses (not ``<torch/extension.h>``, which alone took about 22 s to
 compile) and registers its functions as torch custom ops in the namespace ``torch.ops.<name>`` (the build's name,
-so every target's build has its own), not as a pybind11 module. A first build (``cpu_kernel.prepare()`` in a fresh
-process, Python start and torch import included) took 10.1-10.4 s on the idle 2-core development machine, against
-25.4-25.8 s with ``<torch/extension.h>`` (2026-11-26, docs/rendering.md); loading a finished build takes a few
-milliseconds once torch is imported.
+so every target's build has its own), not as a pybind11 module. Each translation unit still spends about 4.5 s
+parsing those headers, so the library is two units compiled in parallel, one per core of a 2-core machine: SOURCE
+and motion_cpu.cpp, which #includes the ARAP and skinning files (INCLUDED_SOURCES). A first build
+(``cpu_kernel.prepare()`` in a fresh process, Python start and torch import included) took 10.1-11.6 s on the
+2-core development machine, against 13.6-14.0 s as three units (2026-11-26, docs/rendering.md); loading a
+finished build takes a few milliseconds once torch is imported.
 """
 
 from __future__ import annotations
@@ -294,7 +296,7 @@ def build(target: str, *, verbose: bool = False) -> Built:
                 tmp = folder / (source.name + ".tmp")
                 shutil.copyfile(source, tmp)
                 os.replace(tmp, src)
-        log.info("compiling the C++ rasterizer (%s target) into %s; about 10 s, once", target, folder)
+        log.info("compiling the C++ rasterizer (%s target) into %s; about 11 s, once", target, folder)
         # is_python_module=False: torch loads the library with torch.ops.load_library (registering its ops) and
         # returns its path; _load_library then only records it.
         path = load(
