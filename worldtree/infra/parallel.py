@@ -21,8 +21,13 @@ R = TypeVar("R")
 
 
 def resolve_threads(threads: int) -> int:
-    """``threads`` when positive, else the cores this process may use (its affinity mask)."""
-    return int(threads) if threads > 0 else available_cores()
+    """``threads`` when positive, else the threads this process is given: torch's thread count (which a sweep's
+    worker or a Slurm job sets to its share of the CPUs), at most the cores its affinity mask allows."""
+    if threads > 0:
+        return int(threads)
+    import torch
+
+    return max(1, min(available_cores(), torch.get_num_threads()))
 
 
 def ordered_map(fn: Callable[[T], R], items: Iterable[T], threads: int) -> Iterator[R]:

@@ -280,8 +280,9 @@ class PriorsConfig:
     masks_source: str | None = None
     """None (EPI masks from flow) or a folder of dynamic masks, one per frame, replacing the EPI masks."""
     threads: int = 0
-    """Frames (depth) and frame pairs (flow) computed at once on threads (0: one per core this process may use).
-    Each item is computed whole on one thread, so the priors are the same for any count."""
+    """Frames (depth) and frame pairs (flow) computed at once on threads (0: torch's thread count, at most the
+    cores this process may use). Each item is computed whole on one thread, so the priors are the same for any
+    count."""
 
 
 def config_dict(cfg) -> dict:

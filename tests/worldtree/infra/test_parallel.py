@@ -79,6 +79,15 @@ def test_stopping_early_cancels_what_has_not_started():
     assert len(calls) == n <= 5 + 2 * 3
 
 
-def test_resolve_threads():
-    assert resolve_threads(3) == 3
-    assert resolve_threads(0) == available_cores() >= 1
+def test_resolve_threads_follows_torch_within_the_affinity_mask():
+    import torch
+
+    before = torch.get_num_threads()
+    try:
+        assert resolve_threads(3) == 3
+        torch.set_num_threads(1)
+        assert resolve_threads(0) == 1
+        torch.set_num_threads(available_cores() + 4)
+        assert resolve_threads(0) == available_cores()
+    finally:
+        torch.set_num_threads(before)
