@@ -56,6 +56,7 @@ def test_every_preset_is_within_the_declared_ranges():
         ("static", "lambda_dssim=-0.5", "must be at least 0"),
         ("static", "sh_degree=4", "between 0 and 3"),
         ("worldtree", "photometric.lambda_track=-1", "must be at least 0"),
+        ("base", "priors.threads=-3", "must be at least 0 (a thread count"),
     ],
 )
 def test_out_of_range_set_is_one_line(method, item, needle):

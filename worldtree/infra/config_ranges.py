@@ -81,6 +81,7 @@ RULES: tuple[tuple[str, Range], ...] = (
     (r"(steps|\w+_steps)", Range(0, None, "a number of steps")),
     (r"downscale", Range(1, None, "an image shrink factor")),
     (r"seed", Range(0, SEED_MAX, "a random seed")),
+    (r"threads", Range(0, None, "a thread count; 0 takes torch's")),
     (r"sh_degree", Range(0, 3, "a spherical-harmonics degree")),
     (
         r"(init_opacity|dynamic_init_opacity|inherit_opacity)",
