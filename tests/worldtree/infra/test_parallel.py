@@ -40,18 +40,25 @@ def test_pool_runs_items_at_once():
     assert list(ordered_map(meet, [1, 2], 2)) == [1, 2]
 
 
-def test_error_is_raised_at_its_item_and_the_rest_is_not_run():
-    calls = []
+def _recording(fail_at: int | None = None):
+    """``(f, calls)``: ``f(x)`` records x in ``calls`` (thread-safe), raises at ``fail_at``, else sleeps briefly
+    and returns x."""
+    calls: list[int] = []
     lock = threading.Lock()
 
     def f(x):
         with lock:
             calls.append(x)
-        if x == 3:
-            raise ValueError("item 3")
+        if x == fail_at:
+            raise ValueError(f"item {x}")
         time.sleep(0.002)
         return x
 
+    return f, calls
+
+
+def test_error_is_raised_at_its_item_and_the_rest_is_not_run():
+    f, calls = _recording(fail_at=3)
     got = []
     with pytest.raises(ValueError, match="item 3"):
         for r in ordered_map(f, range(1000), 2):
@@ -62,15 +69,7 @@ def test_error_is_raised_at_its_item_and_the_rest_is_not_run():
 
 
 def test_stopping_early_cancels_what_has_not_started():
-    calls = []
-    lock = threading.Lock()
-
-    def f(x):
-        with lock:
-            calls.append(x)
-        time.sleep(0.002)
-        return x
-
+    f, calls = _recording()
     gen = ordered_map(f, range(1000), 3)
     assert [next(gen) for _ in range(5)] == [0, 1, 2, 3, 4]
     gen.close()
