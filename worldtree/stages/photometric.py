@@ -7,6 +7,7 @@ weights of MoSca, REFERENCE section 2)
     L = lambda_rgb (L1 + lambda_dssim (1 - SSIM))            RGB, 1.0 and 0.1
       + lambda_depth * SSI-L1(depth)                          0.05
       + lambda_track * track  (every ``track_every`` steps)   0.005, every 8 steps, clamp 100 px
+      + lambda_depth_spread * spread  (every ``depth_spread_every`` steps)   not in the paper; 0 = off
       + motion regularisers (ARAP coordinate/length, velocity, acceleration; MotionLossConfig)
 
 - SSI-L1: the rendered depth ``depth / alpha`` and the prior are each normalised by their median and mean
@@ -14,6 +15,10 @@ weights of MoSca, REFERENCE section 2)
 - track: for a random other frame ``j``, every Gaussian's pixel position in frame ``j`` (its position at time
   ``j`` projected by camera ``j``) is rendered as a colour from camera ``i``; at each dynamic track's pixel in
   frame ``i`` this predicts its pixel in frame ``j``; the error is clamped at ``track_clamp_px``.
+- spread: the blending-weighted variance of the Gaussians' camera depths along each pixel's ray over the
+  squared mean depth (:func:`relative_depth_variance`), averaged over pixels with alpha > 0.5. One camera per
+  time lets a moving object's Gaussians spread along that camera's rays at no photometric cost; seen from
+  another camera the spread is a smear of about ``baseline x spread / depth`` pixels.
 - cameras: a pose delta per frame (frame 0 fixed) whose learning rate is 0 before ``camera_start_step``.
 
 Density control runs on the static and the dynamic set separately (their own :class:`DensifyStrategy`).
@@ -65,6 +70,10 @@ class PhotometricConfig:
     """The track loss is evaluated every this many steps."""
     track_clamp_px: float = 100.0
     """Track errors are clamped at this many pixels."""
+    lambda_depth_spread: float = 0.0
+    """Weight of the depth spread along each pixel's ray (module docstring; not in the paper). 0 = off."""
+    depth_spread_every: int = 4
+    """The depth-spread term is evaluated every this many steps (one extra render of the frame)."""
     lambda_couple: float = 0.0
     """Weight of the neighbour coupling (``worldtree.stages.frame_coupling``): frame i's dynamic picture carried
     by the scaffold to the next or previous training frame must match that image (RGB term: L1 + lambda_dssim
@@ -202,6 +211,31 @@ def ssi_depth_l1(depth: torch.Tensor, alpha: torch.Tensor, prior: torch.Tensor) 
     d = depth / alpha.clamp_min(1e-6)
     a, b = ssi_normalise(d, mask), ssi_normalise(prior, mask)
     return (a - b)[mask].abs().mean()
+
+
+def relative_depth_variance(
+    moments: torch.Tensor, alpha: torch.Tensor, min_alpha: float = 0.5
+) -> torch.Tensor | None:
+    """Mean over pixels with ``alpha > min_alpha`` of ``Var[z] / E[z]^2`` along each ray.
+
+    Args:
+        moments: ``[H, W, 2]`` the rendered ``sum_i w_i c_i`` and ``sum_i w_i c_i^2`` of the Gaussians'
+            centred depths ``c_i = z_i / z_ref - 1`` (``w_i`` the blending weights, ``z_ref > 0`` any fixed
+            depth near the scene's: centring keeps float32's cancellation in ``E[c^2] - E[c]^2`` small).
+        alpha: ``[H, W]`` accumulated opacity ``sum_i w_i``.
+
+    Returns:
+        A scalar (dimensionless; 0 for a single surface), or None when no pixel is opaque enough. With
+        ``E[.] = sum w . / alpha``: ``Var[z] / E[z]^2 = (E[c^2] - E[c]^2) / (1 + E[c])^2``, guarded against
+        ``E[z] <= 0`` (points behind the camera are not drawn) and negative rounding.
+    """
+    mask = alpha.detach() > min_alpha
+    if not bool(mask.any()):
+        return None
+    a = alpha[mask].clamp_min(1e-6)
+    mean = moments[..., 0][mask] / a
+    var = (moments[..., 1][mask] / a - mean * mean).clamp_min(0.0)
+    return (var / (1.0 + mean).square().clamp_min(1e-6)).mean()
 
 
 def project(points: torch.Tensor, K: torch.Tensor, w2c: torch.Tensor) -> torch.Tensor:
@@ -355,6 +389,21 @@ class PhotometricFit:
         err = (flow[row_i, col_i] - self.tracks[j, both]).norm(dim=-1).clamp(max=self.cfg.track_clamp_px)
         return err[ok].mean()
 
+    def depth_spread_loss(self, i: int, gaussians) -> torch.Tensor | None:
+        """:func:`relative_depth_variance` of frame ``i``'s Gaussians (``gaussians``: its
+        :meth:`gaussians_at` result) seen from camera ``i``; None when nothing is opaque enough."""
+        H, W = self.images.shape[1:3]
+        w2c = self.camera(i)
+        z = gaussians[0] @ w2c[2, :3] + w2c[2, 3]  # camera depth of every centre
+        front = z.detach() > 0
+        if not bool(front.any()):
+            return None
+        z_ref = z.detach()[front].median().clamp_min(1e-6)
+        c = z / z_ref - 1.0
+        moments = torch.stack([c, c * c, torch.zeros_like(c)], 1)
+        out = self.render(self.Ks[i], w2c, W, H, i, colors=moments, gaussians=gaussians)
+        return relative_depth_variance(out.rgb[..., :2], out.alpha)
+
     def coupling_extra(self, j: int):
         """Further Gaussians drawn (fixed) behind the carried picture at frame ``j``; None here (a tree node
         adds its ancestors)."""
@@ -398,6 +447,11 @@ class PhotometricFit:
             if lt is not None:
                 loss = loss + c.lambda_track * lt
                 parts["track_px"] = float(lt.detach())
+        if c.lambda_depth_spread > 0 and c.depth_spread_every > 0 and step % c.depth_spread_every == 0:
+            lds = self.depth_spread_loss(i, frame)
+            if lds is not None:
+                loss = loss + c.lambda_depth_spread * lds
+                parts["spread"] = float(lds.detach())
         if c.lambda_couple > 0 and c.couple_every > 0 and step % c.couple_every == 0 and self.T >= 2:
             lc = self.coupling_loss(i, neighbour(i, self.T, step // c.couple_every))
             if lc is not None:
