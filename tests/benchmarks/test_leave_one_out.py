@@ -326,9 +326,12 @@ def _stop_with(signum, tmp_path):
     out = tmp_path / "out"
     cmd = [sys.executable, "-m", "benchmarks.evaluation.leave_one_out", str(scene), "--frames", "2",
            "--methods", "static", "--steps", "1000000", "--device", "cpu", "-o", str(out)]  # fmt: skip
+    # PYTHONFAULTHANDLER: a child that outlives the signal is sent SIGABRT and prints every thread's stack,
+    # so a hang (seen once on CI, not reproduced here) fails with where it was stuck.
     proc = subprocess.Popen(
         cmd, stderr=subprocess.PIPE, stdout=subprocess.DEVNULL, text=True,
         preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN),
+        env={**os.environ, "PYTHONFAULTHANDLER": "1"},
     )  # fmt: skip
     try:
         for _ in range(1200):
@@ -338,7 +341,12 @@ def _stop_with(signum, tmp_path):
         assert proc.poll() is None, proc.stderr.read()
         assert list(out.glob(f"{loo.TMP_PREFIX}*"))
         os.kill(proc.pid, signum)
-        _, err = proc.communicate(timeout=120)  # a lost signal fails here, not a timing assert
+        try:
+            _, err = proc.communicate(timeout=120)  # a lost signal fails here, not a timing assert
+        except subprocess.TimeoutExpired:
+            os.kill(proc.pid, signal.SIGABRT)
+            _, err = proc.communicate(timeout=60)
+            raise AssertionError(f"still running 120 s after signal {signum}; its stacks:\n{err[-6000:]}") from None
     finally:
         if proc.poll() is None:
             proc.kill()
