@@ -137,7 +137,8 @@ class LoadedRun:
         ``dynamic`` ``[H, W, 3]`` the dynamic Gaussians alone on black.
 
         The test camera is drawn from the pose the run refined for that time (as ``renders/``), a training
-        camera from its frame's fitted pose, any other camera through the run's scene->model Sim(3)."""
+        camera from its frame's fitted pose (Base and WorldTree: also a ``w2c`` equal to a training frame's
+        given pose), any other camera through the run's scene->model Sim(3)."""
         if mode not in RENDER_MODES:
             raise UserError(f"mode {mode!r}: choose one of {', '.join(RENDER_MODES)}")
         K, w2c, width, height, cam = self._camera(camera)

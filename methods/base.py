@@ -74,6 +74,7 @@ from worldtree.stages.testview_pose import (
     FrozenModelRenderer,
     PoseRefineConfig,
     align_sim3,
+    coinciding_frame,
     quick_pose_refine_config,
     refine_test_poses,
 )
@@ -652,7 +653,11 @@ def stage_test_pose(s: BaseState) -> None:
     s.sim3 = align_sim3(sc.w2cs, s.fit.cameras(), s.cfg.test_pose.align_rotation)
     if sc.test_images.shape[0] == 0:
         return
-    start = s.sim3.apply_w2c(sc.test_w2c)
+    same = coinciding_frame(sc.test_w2c, sc.w2cs) if s.cfg.test_pose.start_at_same_camera else None
+    # A test camera that is a training frame's camera (the NVIDIA short protocol's camera 0) starts from that
+    # frame's fitted pose: the Sim(3) of all frames leaves each one a residual that shifts its static pixels.
+    start = s.sim3.apply_w2c(sc.test_w2c) if same is None else s.fit.cameras()[same].detach().clone()
+    s.info["test_pose_start"] = "sim3" if same is None else f"frame {same}"
     W, H = sc.test_images.shape[2], sc.test_images.shape[1]
     times = [min(int(t), sc.num_frames - 1) for t in sc.test_times.tolist()]
 
@@ -761,11 +766,15 @@ class BaseMethod:
         self, w2c: torch.Tensor, time: int, test_view: bool = False, frame: int | None = None
     ) -> torch.Tensor:
         """``[4, 4]`` model-frame pose of the given ``w2c``: the refined test pose at ``time`` (``test_view``),
-        training frame ``frame``'s fitted pose, or the Sim(3) from the given poses to the fitted ones."""
+        training frame ``frame``'s fitted pose (also when ``w2c`` is that frame's given pose:
+        :func:`~worldtree.stages.testview_pose.coinciding_frame`), or the Sim(3) from the given poses to the
+        fitted ones."""
         s = self.state
         w2c = w2c.to(self.device, torch.float32)
         if test_view and int(time) in s.test_poses:
             return s.test_poses[int(time)]
+        if frame is None and self.cfg.test_pose.start_at_same_camera:
+            frame = coinciding_frame(w2c, s.scene.w2cs.to(w2c))  # a training frame's own camera: its fitted pose
         if frame is not None:
             return self._train_w2c(int(frame))
         return s.sim3.apply_w2c(w2c)

@@ -19,8 +19,9 @@ def one_torch_thread():
 
 @pytest.fixture(scope="session")
 def write_tiny_scene():
-    """``write_tiny_scene(root, width=64, height=36, frames=6) -> Path`` from tests/methods/scene_fixture.py
-    (imported by path: the suite runs with --import-mode=importlib, so test folders are not packages)."""
+    """``write_tiny_scene(root, width=64, height=36, frames=6, test_on_rig=False) -> Path`` from
+    tests/methods/scene_fixture.py (imported by path: the suite runs with --import-mode=importlib, so test folders
+    are not packages)."""
     import importlib.util
     from pathlib import Path
 

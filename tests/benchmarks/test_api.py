@@ -58,20 +58,27 @@ def test_cameras_and_times_follow_the_scene(loaded, api_runs):
 
 
 def test_a_camera_of_ones_own_renders_through_the_sim3(loaded):
-    """(K, w2c, W, H) in the scene frame at any size: the base model maps it with the run's Sim(3)."""
+    """(K, w2c, W, H) in the scene frame at any size: the base model maps it with the run's Sim(3), unless it is
+    a training frame's own camera, which is drawn from that frame's fitted pose."""
     run = loaded["base"]
     cam = run.cameras["train_003"]
     K = cam.K.clone()
     K[:2] *= 0.5
-    img = run.render((K, cam.w2c, 32, 18), time=3)
+    moved = cam.w2c.clone()
+    moved[0, 3] += 0.05  # 5 cm sideways: no training camera
+    img = run.render((K, moved, 32, 18), time=3)
     assert img.shape == (18, 32, 3) and img.dtype == torch.float32 and img.device.type == "cpu"
     assert 0 <= float(img.min()) and float(img.max()) <= 1 and float(img.std()) > 0.01
     frame = run.gaussians_at(3)
     np.testing.assert_allclose(
-        run.model_w2c((K, cam.w2c, 32, 18), 3).numpy(),
-        frame.scene_to_model.apply_w2c(cam.w2c).numpy(),
+        run.model_w2c((K, moved, 32, 18), 3).numpy(),
+        frame.scene_to_model.apply_w2c(moved).numpy(),
         atol=1e-6,
     )
+    own = run.model_w2c((K, cam.w2c, 32, 18), 3)
+    torch.testing.assert_close(own, run.model_w2c("train_003"), atol=0, rtol=0)
+    # The fitted pose is not the Sim(3)'s image of the given one (else this test would not tell them apart).
+    assert float((own - frame.scene_to_model.apply_w2c(cam.w2c)).abs().max()) > 1e-5
     with pytest.raises(TypeError, match="give the time"):
         run.render((K, cam.w2c, 32, 18))
 

@@ -2,7 +2,8 @@
 
 World: a smoothly textured plane at z = 4 and a small red square at z = 2 moving along x with time (the
 dynamic content, masked in the test images). Pinhole cameras look along +z from positions on a short
-horizontal rig; training frame t uses rig camera 2 + (t mod 6); the test camera (id 1) sits off the rig.
+horizontal rig; training frame t uses rig camera 2 + (t mod 6); the test camera (id 1) sits off the rig, or
+(``test_on_rig``) at rig camera 2's place, as in the NVIDIA short protocol where it is frame 0's camera.
 """
 
 from __future__ import annotations
@@ -51,7 +52,9 @@ def _trace(K: np.ndarray, centre: np.ndarray, width: int, height: int, t: int, s
     return rgb.mean(axis=(2, 3)), fg.mean(axis=(2, 3)) > 0.5
 
 
-def write_tiny_scene(root: Path, width: int = 64, height: int = 36, frames: int = 6) -> Path:
+def write_tiny_scene(
+    root: Path, width: int = 64, height: int = 36, frames: int = 6, test_on_rig: bool = False
+) -> Path:
     """Write the scene folder at ``root`` (created) and return it."""
     root = Path(root)
     for sub in ("images", "gt_images", "masks"):
@@ -61,6 +64,8 @@ def write_tiny_scene(root: Path, width: int = 64, height: int = 36, frames: int 
     rig = {1: np.array([0.05, 0.04, 0.0])}
     for i in range(6):
         rig[2 + i] = np.array([-0.3 + 0.12 * i, 0.0, 0.0])
+    if test_on_rig:
+        rig[1] = rig[2].copy()
     cameras = []
     for cid, c in rig.items():
         w2c = np.eye(4)

@@ -73,6 +73,9 @@ class PoseRefineConfig:
     ``centres`` (Umeyama); see :func:`align_sim3`."""
     enabled: bool = True
     """Refine the aligned test pose photometrically; False keeps the Sim(3)-aligned pose."""
+    start_at_same_camera: bool = True
+    """A test camera whose given pose is a training frame's (:func:`coinciding_frame`) starts from, and without
+    test images is drawn at, that frame's fitted pose instead of the Sim(3)-aligned one."""
     first_steps: int = 300
     """Adam steps for the first test frame (from the Sim(3)-aligned pose)."""
     next_steps: int = 30
@@ -134,6 +137,29 @@ def align_sim3(
         t = cd.mean(0) - s * R @ cs.mean(0)
     dt, dev = dst_w2cs.dtype, dst_w2cs.device
     return Sim3(s, R.to(dev, dt), t.to(dev, dt))
+
+
+@torch.no_grad()
+def coinciding_frame(w2c: torch.Tensor, given_w2cs: torch.Tensor, tol: float = 1e-4) -> int | None:
+    """The first training frame whose given pose is the pose ``w2c`` [4, 4] itself, or None.
+
+    ``given_w2cs`` [T, 4, 4] are the training frames' given poses. A frame coincides when its rotation differs
+    by at most ``tol`` (Frobenius norm of the difference, about radians) and its centre by at most ``tol``
+    times the spread of the training centres (the rig's size; ``tol`` world units when there is one centre).
+    Intrinsics are not compared: only the pose is mapped. In the NVIDIA short protocol the test camera is frame
+    0's rig camera: placing it at that frame's fitted pose, instead of through the Sim(3) of all the frames,
+    draws what was fitted from that very camera (on Balloon1 the Sim(3) leaves frame 0's camera about 0.1
+    degrees off its fitted pose, which costs its static pixels 5 dB, docs/base_method.md)."""
+    if given_w2cs.shape[0] == 0:
+        return None
+    W, Ws = w2c.double(), given_w2cs.double()
+    dR = torch.linalg.matrix_norm(Ws[:, :3, :3] - W[:3, :3], ord="fro")
+    cs = centres(Ws)
+    spread = float((cs - cs.mean(0)).norm(dim=-1).max())
+    dc = (cs - centres(W[None])[0]).norm(dim=-1)
+    ok = (dR <= tol) & (dc <= tol * (spread if spread > 0 else 1.0))
+    hits = torch.nonzero(ok).flatten()
+    return int(hits[0]) if hits.numel() else None
 
 
 @dataclass

@@ -275,3 +275,29 @@ def test_refinement_with_the_frozen_renderer_matches_the_uncached_one():
     np.testing.assert_allclose(got.loss_after, ref.loss_after, rtol=1e-4, atol=1e-7)
     assert got.steps == ref.steps == [20, 4, 4]
     assert calls == [0, 1, 2]  # the model was evaluated once per frame, not once per step (34 renders)
+
+
+def test_coinciding_frame_finds_the_same_camera_only():
+    from worldtree.stages.testview_pose import coinciding_frame
+
+    rng = np.random.default_rng(3)
+    R = Rotation.random(5, random_state=4).as_matrix()
+    centres_np = rng.normal(size=(5, 3)) * 0.1  # a rig about 0.1 units across
+    given = torch.from_numpy(np.stack([make_w2c(R[i], centres_np[i]) for i in range(5)]))
+    for i in range(5):
+        assert coinciding_frame(given[i].float(), given) == i  # float32 round trip of the same pose
+    dup = torch.cat([given, given[2:3]])
+    assert coinciding_frame(given[2], dup) == 2  # the first of two frames of one camera
+    # Turned by 1e-3 rad, or moved by 1e-3 of the rig: another camera (tolerance 1e-4 of each).
+    turned = make_w2c(Rotation.from_rotvec([0, 1e-3, 0]).as_matrix() @ R[1], centres_np[1])
+    assert coinciding_frame(torch.from_numpy(turned), given) is None
+    spread = np.linalg.norm(centres_np - centres_np.mean(0), axis=1).max()
+    moved = make_w2c(R[1], centres_np[1] + np.array([1e-3 * spread, 0, 0]))
+    assert coinciding_frame(torch.from_numpy(moved), given) is None
+    close = make_w2c(R[1], centres_np[1] + np.array([1e-5 * spread, 0, 0]))
+    assert coinciding_frame(torch.from_numpy(close), given) == 1
+    assert coinciding_frame(given[0], given[:0]) is None
+    # One training camera: the centre tolerance is absolute (no rig size to scale it).
+    assert coinciding_frame(given[0], given[:1]) == 0
+    assert coinciding_frame(torch.from_numpy(moved), given[1:2]) is None  # moved 3e-4 units > 1e-4
+    assert coinciding_frame(torch.from_numpy(close), given[1:2]) == 0  # moved 3e-6 units
