@@ -41,6 +41,8 @@ from worldtree.infra.timing import StageClock
 from worldtree.losses import SSIM_WINDOW
 
 NORMALIZE = ("auto", "rig", "none")
+#: Ways of making the monocular training video and its test view from the rig (BuildConfig.protocol).
+PROTOCOLS = ("nvidia-ls", "classic")
 # Smallest stored image side: training's SSIM loss needs its whole window inside the image.
 MIN_SIZE = SSIM_WINDOW
 
@@ -52,7 +54,12 @@ class BuildConfig:
     frames: int = 160
     """Keep at most this many time steps (uniformly sampled when the capture is longer)."""
     test_camera: int = 1
-    """Rig camera held out as the test view (never a training frame)."""
+    """Rig camera of the test view (never a training frame, except frame 0 under the classic protocol)."""
+    protocol: str = "nvidia-ls"
+    """"nvidia-ls": the test camera held out, the others in ping-pong order over up to --frames time steps;
+    "classic": the 12-frame protocol of DynamicNeRF, NSFF and MoSca: the first N time steps (N the rig's
+    cameras, at most --frames), frame t from the t-th camera in id order starting at the test camera, so that
+    the test view at t = 0 is training frame 0."""
     masks: Path | None = None
     """Folder of imported test-camera masks (by source time: %05d/camNN.png or %05d.png); None = background model."""
     poses: Path | None = None
@@ -86,7 +93,7 @@ class BuildConfig:
             check_name(self.name, "--name")
         if self.frames < 1:
             raise SettingError.of_field(self, "frames", "must be at least 1")
-        for name, choices in (("camera_model", CAMERA_MODELS), ("normalize", NORMALIZE)):
+        for name, choices in (("camera_model", CAMERA_MODELS), ("normalize", NORMALIZE), ("protocol", PROTOCOLS)):
             if getattr(self, name) not in choices:
                 raise SettingError.of_field(
                     self, name, f"choose one of {', '.join(choices)}", shown=repr(getattr(self, name))
@@ -173,11 +180,11 @@ class _Plan:
 
     raw: RawCapture
     train: list[int]
-    """Training cameras."""
+    """Training cameras (in the order frames use them)."""
     kept: list[int]
     """Source time steps kept, in order (frame ``i`` is source time ``kept[i]``)."""
     frame_cams: list[int]
-    """Camera of each training frame (ping-pong over ``train``)."""
+    """Camera of each training frame (ping-pong over ``train``; ``train`` in order under the classic protocol)."""
     out_wh: tuple[int, int]
     """Output (width, height)."""
 
@@ -256,9 +263,20 @@ def _plan(raw_dir: Path, final: Path, cfg: BuildConfig, warn: Callable[[str], No
     if (final.exists() or final.is_symlink()) and not cfg.force:
         raise UserError(f"{final}: already exists; pass --force to replace it")
     train = training_cameras(raw.cameras, cfg.test_camera)
-    kept = sample_times(raw.times, cfg.frames)
-    if len(raw.times) < cfg.frames:
-        warn(f"only {len(raw.times)} time steps available, fewer than --frames {cfg.frames}; keeping all")
+    if cfg.protocol == "classic":
+        # Frame t is the t-th camera from the test camera on (wrapping), at consecutive time steps.
+        i = raw.cameras.index(cfg.test_camera)
+        train = raw.cameras[i:] + raw.cameras[:i]
+        n = min(cfg.frames, len(train))
+        if len(raw.times) < n:
+            warn(f"only {len(raw.times)} time steps available, fewer than the {n} frames of the classic protocol")
+        kept = list(raw.times[:n])
+        frame_cams = train[: len(kept)]
+    else:
+        kept = sample_times(raw.times, cfg.frames)
+        if len(raw.times) < cfg.frames:
+            warn(f"only {len(raw.times)} time steps available, fewer than --frames {cfg.frames}; keeping all")
+        frame_cams = pingpong(train, len(kept))
     out_wh = cfg.size or (raw.width, raw.height)
     if min(out_wh) < MIN_SIZE:
         raise UserError(
@@ -269,7 +287,7 @@ def _plan(raw_dir: Path, final: Path, cfg: BuildConfig, warn: Callable[[str], No
         raise UserError(
             f"--size {out_wh[0]}x{out_wh[1]}: aspect differs from the raw {raw.width}x{raw.height}; keep the aspect"
         )
-    return _Plan(raw, train, kept, pingpong(train, len(kept)), out_wh)
+    return _Plan(raw, train, kept, frame_cams, out_wh)
 
 
 def _rig_poses(raw: RawCapture, cfg: BuildConfig, say: Callable[[str], None]) -> _Poses:
@@ -341,7 +359,8 @@ def _write_frames(tmp: Path, plan: _Plan, undist: list[Undistorter], cfg: BuildC
     time_pos = {s_: i for i, s_ in enumerate(kept)}
     for k, cid in enumerate(raw.cameras):
         test = cid == cfg.test_camera
-        need = kept if test else [kept[i] for i in range(T) if plan.frame_cams[i] == cid]
+        own = {kept[i] for i in range(T) if plan.frame_cams[i] == cid}  # its training frames (classic: frame 0)
+        need = kept if test else [t for t in kept if t in own]
         it = raw.iter_frames(cid, need)
         while True:
             with timer.stage("read"):
@@ -352,12 +371,14 @@ def _write_frames(tmp: Path, plan: _Plan, undist: list[Undistorter], cfg: BuildC
             with timer.stage("undistort"):
                 img = undist[k](img)
             ti = time_pos[src_t]
+            names = ([test_file(ti)] if test else []) + ([frame_file(ti)] if src_t in own else [])
             if test:
                 test_frames[ti] = img
-            elif ti in thumbs_idx:
+            if src_t in own and ti in thumbs_idx:
                 thumbs[ti] = img
             with timer.stage("write"):
-                save_image(tmp / (test_file(ti) if test else frame_file(ti)), img)
+                for name in names:
+                    save_image(tmp / name, img)
         tick("frames", k + 1, len(raw.cameras))
     return test_frames, thumbs
 
@@ -401,6 +422,7 @@ def _manifest(raw_dir: Path, plan: _Plan, poses: _Poses, mask_info: dict, world:
         "source_times": plan.kept,
         "image_size": list(plan.out_wh),
         "test_camera": cfg.test_camera,
+        "protocol": cfg.protocol,
         "train_cameras": plan.train,
         "camera_order": plan.frame_cams,
         "counts": {"frames": T, "test_frames": T, "masks": T, "cameras": len(raw.cameras)},

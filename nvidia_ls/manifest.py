@@ -62,7 +62,7 @@ def verify_scene(scene: str | Path, check_hashes: bool = True) -> list[str]:
 
     Checks: manifest readable; every listed file present with its sha256; no unlisted files; cameras.json
     counts against the manifest and the folders; training frames never use the test camera and follow
-    the ping-pong order; rotations orthonormal; intrinsics positive; near < far; poses_bounds.npy agrees with
+    the ping-pong order (classic protocol: the manifest's order, frame 0 the test camera); rotations orthonormal; intrinsics positive; near < far; poses_bounds.npy agrees with
     cameras.json.
     """
     from worldtree.scene_schema import read_cameras, read_manifest
@@ -121,7 +121,8 @@ def _imported_problems(scene: Path) -> list[str]:
 
 def _count_problems(scene: Path, man: dict, cams: dict) -> list[str]:
     """Frame, test-view and mask counts of the manifest, cameras.json and the folders; the training frames'
-    cameras (never the test camera, ping-pong order)."""
+    cameras (never the test camera, ping-pong order; under the classic protocol the manifest's order from the
+    test camera)."""
     problems: list[str] = []
     counts = man.get("counts", {})
     frames, tests = cams.get("frames", []), cams.get("test_frames", [])
@@ -142,9 +143,15 @@ def _count_problems(scene: Path, man: dict, cams: dict) -> list[str]:
         problems.append(f"mask count mismatch: cameras.json lists {n_mask_expected}, masks/ holds {n_mask}")
     test_cam = cams.get("test_camera")
     used = [f.get("camera") for f in frames]
+    train = man.get("train_cameras")
+    if man.get("protocol", "nvidia-ls") == "classic":
+        # Frame t is the t-th camera of the manifest's order, which starts at the test camera.
+        if train and (used != train[: len(used)] or train[0] != test_cam):
+            problems.append("training frame cameras do not follow the classic order of the manifest (frame t "
+                            "from its t-th camera, frame 0 the test camera)")  # fmt: skip
+        return problems
     if test_cam in used:
         problems.append(f"training frames use the test camera {test_cam}")
-    train = man.get("train_cameras")
     if train and used != pingpong(train, len(used)):
         problems.append("training frame cameras do not follow the ping-pong order of the manifest")
     return problems
