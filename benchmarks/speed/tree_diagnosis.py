@@ -18,12 +18,14 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 from pathlib import Path
 
 import numpy as np
 import torch
 
 from worldtree.imageio import read_image, read_mask
+from worldtree.infra.errors import UserError
 from worldtree.render import rasterize
 from worldtree.scene import load_scene
 from worldtree.tree.node import NodeState
@@ -71,6 +73,10 @@ def _test_psnr(run: Path, scene_dir: Path, frames: list[str]) -> tuple[list[floa
 
 def diagnose(tree_run: Path, root_run: Path, scene_dir: Path) -> list[dict]:
     """One dict per node of ``tree_run`` (see the module docstring)."""
+    for run, what in ((tree_run, "TREE_RUN: a WorldTree run"), (root_run, "ROOT_RUN: a WorldTree run with --ablate tpt")):
+        for need in ("config.json", "timing.json", "model/tree/node1.pt"):
+            if not (run / need).is_file():
+                raise UserError(f"{run / need}: missing; give {what} folder written by `wtbench run`")
     cfg = json.loads((tree_run / "config.json").read_text())
     downscale = int(cfg["config"].get("downscale", 1))
     backend = cfg["config"]["photometric"].get("backend", "auto")
@@ -111,7 +117,11 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--scene", type=Path, required=True)
     ap.add_argument("--json", type=Path, default=None)
     a = ap.parse_args(argv)
-    rows = diagnose(a.tree_run, a.root_run, a.scene)
+    try:
+        rows = diagnose(a.tree_run, a.root_run, a.scene)
+    except UserError as e:  # e.g. a root run that is not a WorldTree run (`--ablate tpt`) has no tree nodes
+        print(f"error: {e}", file=sys.stderr)
+        raise SystemExit(2) from None
 
     def f(x):
         return "-" if x is None else f"{x:6.2f}"
