@@ -262,7 +262,7 @@ def _plan(raw_dir: Path, final: Path, cfg: BuildConfig, warn: Callable[[str], No
         warn(w)
     if (final.exists() or final.is_symlink()) and not cfg.force:
         raise UserError(f"{final}: already exists; pass --force to replace it")
-    train = training_cameras(raw.cameras, cfg.test_camera)
+    train = training_cameras(raw.cameras, cfg.test_camera)  # also checks the test camera is in the rig
     if cfg.protocol == "classic":
         # Frame t is the t-th camera from the test camera on (wrapping), at consecutive time steps.
         i = raw.cameras.index(cfg.test_camera)

@@ -62,8 +62,8 @@ def verify_scene(scene: str | Path, check_hashes: bool = True) -> list[str]:
 
     Checks: manifest readable; every listed file present with its sha256; no unlisted files; cameras.json
     counts against the manifest and the folders; training frames never use the test camera and follow
-    the ping-pong order (classic protocol: the manifest's order, frame 0 the test camera); rotations orthonormal; intrinsics positive; near < far; poses_bounds.npy agrees with
-    cameras.json.
+    the ping-pong order (classic protocol: the manifest's order, frame 0 the test camera); rotations
+    orthonormal; intrinsics positive; near < far; poses_bounds.npy agrees with cameras.json.
     """
     from worldtree.scene_schema import read_cameras, read_manifest
 

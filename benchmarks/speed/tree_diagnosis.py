@@ -73,7 +73,8 @@ def _test_psnr(run: Path, scene_dir: Path, frames: list[str]) -> tuple[list[floa
 
 def diagnose(tree_run: Path, root_run: Path, scene_dir: Path) -> list[dict]:
     """One dict per node of ``tree_run`` (see the module docstring)."""
-    for run, what in ((tree_run, "TREE_RUN: a WorldTree run"), (root_run, "ROOT_RUN: a WorldTree run with --ablate tpt")):
+    runs = ((tree_run, "TREE_RUN: a WorldTree run"), (root_run, "ROOT_RUN: a WorldTree run with --ablate tpt"))
+    for run, what in runs:
         for need in ("config.json", "timing.json", "model/tree/node1.pt"):
             if not (run / need).is_file():
                 raise UserError(f"{run / need}: missing; give {what} folder written by `wtbench run`")

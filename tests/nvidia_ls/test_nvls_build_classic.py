@@ -8,6 +8,7 @@ import shutil
 
 import numpy as np
 import pytest
+import torch
 
 from nvidia_ls.build import BuildConfig, build_scene
 from nvidia_ls.manifest import verify_scene
@@ -36,11 +37,7 @@ def test_frame_t_is_camera_t_at_time_t(classic, synth_raw):
     np.testing.assert_array_equal(read_image(classic / meta["frames"][0]["file"]),
                                   read_image(classic / meta["test_frames"][0]["file"]))  # fmt: skip
     scene = load_scene(classic)
-    assert torch_equal(scene.test_w2c, scene.w2cs[0]) and torch_equal(scene.test_K, scene.Ks[0])
-
-
-def torch_equal(a, b) -> bool:
-    return bool((a == b).all())
+    assert torch.equal(scene.test_w2c, scene.w2cs[0]) and torch.equal(scene.test_K, scene.Ks[0])
 
 
 def test_verify_accepts_it_and_catches_a_wrong_order(classic, tmp_path):
