@@ -280,6 +280,7 @@ def execute(req: RunRequest) -> RunResult:
     """
     from methods.registry import get_method
     from worldtree.checkpoint import seed_everything
+    from worldtree.infra.determinism import deterministic_for
     from worldtree.infra.device import pick_device
     from worldtree.infra.folder_lock import FolderLock
     from worldtree.scene import load_scene
@@ -309,6 +310,7 @@ def execute(req: RunRequest) -> RunResult:
             with timer.stage("kernel_build"):
                 prepare()
         seed_everything(cfg.seed)  # before building: a method may draw its initial points
+        deterministic_for(device)
         with timer.stage("load"):
             scene = load_scene(root, downscale=cfg.downscale)
         if min(scene.height, scene.width) < SSIM_WINDOW:
@@ -416,6 +418,7 @@ def _execute_locked(req, spec, cfg, folder, root, view, device, timer, method, b
         "rasterizer_target": _kernel_target(device),
         "device": str(device),
         "torch_threads": torch.get_num_threads(),
+        "deterministic": torch.are_deterministic_algorithms_enabled(),
         "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY"),
         "method_stats": stats,
     }

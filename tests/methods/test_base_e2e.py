@@ -55,6 +55,7 @@ def test_run_layout_model_and_timings(smoke_runs, tiny_scene):
     order = ["priors", "ba", "sw", "motion", "scaffold", "photometric", "test_pose"]
     assert timing["method_stats"]["stages"] == order and set(stages) == set(order)
     assert all(v >= 0 for v in stages.values())
+    assert timing["deterministic"] is True  # a CPU run trains with torch's deterministic kernels
     # Loadable model files.
     m = folder.model
     static = GaussianSet.load(m / "static_gaussians.pt")

@@ -44,6 +44,7 @@ import torch
 
 from worldtree.infra.atomic import atomic_write_json
 from worldtree.infra.cores import available_cores
+from worldtree.infra.determinism import deterministic_for
 from worldtree.infra.hashing import sha256_file
 from worldtree.tree.node import load_payload, save_payload
 
@@ -187,6 +188,7 @@ def _init_worker(threads: int, device_queue, default_device: str) -> None:
     if device_queue is not None:
         dev = f"cuda:{device_queue.get()}"
         torch.cuda.set_device(torch.device(dev))
+    deterministic_for(dev)  # as the run that started this worker
     _WORKER.update(device=dev, threads=threads)
 
 
