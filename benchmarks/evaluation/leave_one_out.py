@@ -131,6 +131,7 @@ def run_one(
 ) -> dict:
     """Train ``spec`` on ``scene`` minus frame k, render frame k's camera at time k, score it (against
     ``score_scene``'s frame k and through its camera when given: the same scene at another size)."""
+    from worldtree.infra.determinism import deterministic_for
     from worldtree.trainer import TrainContext
 
     sub = drop_frame(scene, k)
@@ -145,6 +146,7 @@ def run_one(
         if hasattr(cfg, "priors_cache"):
             cfg = dataclasses.replace(cfg, priors_cache=False)  # the subset's priors are not the scene's
         torch.manual_seed(cfg.seed)
+        deterministic_for(device)  # as `wtbench run`: one seed, one result
         method = spec.build(cfg, sub, device)
         t0 = time.perf_counter()
         method.fit(TrainContext(checkpoint_dir=None, progress=args.progress, resume=False))

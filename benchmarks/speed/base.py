@@ -55,11 +55,13 @@ def main(argv: list[str] | None = None) -> None:
     import torch
 
     from methods.registry import get_method
+    from worldtree.infra.determinism import deterministic_for
     from worldtree.infra.device import pick_device
     from worldtree.scene import load_scene
     from worldtree.trainer import TrainContext
 
     device = pick_device(args.device)
+    deterministic_for(device)  # timed as `wtbench run` trains
     spec = get_method("base")
     with tempfile.TemporaryDirectory() as tmp:
         root = _scene(args.scene, Path(tmp))

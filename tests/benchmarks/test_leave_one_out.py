@@ -495,3 +495,30 @@ def test_the_quick_preset_trains_a_short_video_at_full_size(tmp_path, monkeypatc
     loo.main(base + ["-o", str(tmp_path / "b"), "--set", "full_size_pixels=2303"])
     loo.main(base + ["-o", str(tmp_path / "c"), "--set", "full_size_pixels=2304", "--downscale", "2"])
     assert seen == [1, 2, 2]
+
+
+def test_each_held_out_run_trains_with_deterministic_kernels(tmp_path, monkeypatch):
+    """A leave-one-out run trains as `wtbench run` does: torch's deterministic kernels on for the CPU, so
+    the per-frame differences between methods are not thread-order noise (two runs of one seed ended 0.70 dB
+    apart without them, docs/worldtree_method.md)."""
+    import torch
+
+    from benchmarks.evaluation import leave_one_out as loo
+    from methods.static3dgs import StaticGaussians
+
+    seen = []
+    fit = StaticGaussians.fit
+
+    def spy(self, ctx):
+        seen.append(torch.are_deterministic_algorithms_enabled())
+        return fit(self, ctx)
+
+    monkeypatch.setattr(StaticGaussians, "fit", spy)
+    before = torch.are_deterministic_algorithms_enabled()
+    torch.use_deterministic_algorithms(False)
+    try:
+        scene = _tiny_scene(tmp_path / "scene", width=48, height=24)
+        loo.main([str(scene), "--frames", "2", "--methods", "static", "-o", str(tmp_path / "out"), "--steps", "3"])
+    finally:
+        torch.use_deterministic_algorithms(before)
+    assert seen == [True]
