@@ -23,6 +23,12 @@ family=(
   "arc_enter_leave_shuffled_40: --rig arc --path enter_leave --camera-order shuffled --steps 40"
   "rows_straight_shuffled_160: --path straight --camera-order shuffled --steps 160"
   "row_loop_smooth_160: --rig row --texture smooth --steps 160"
+  # 12 frames, as the real 12-frame protocol: depth 2's children hold 5 and 7 frames.
+  "rows_loop_12: --steps 12"
+  "row_straight_12: --rig row --path straight --steps 12"
+  "arc_straight_12: --rig arc --path straight --steps 12"
+  "row_turning_12: --rig row --path turning --steps 12"
+  "rows_enter_leave_12: --path enter_leave --steps 12"
 )
 names=()
 for entry in "${family[@]}"; do names+=("${entry%%:*}"); done
