@@ -17,6 +17,15 @@ def one_torch_thread():
     torch.set_num_threads(1)
 
 
+@pytest.fixture(autouse=True)
+def deterministic_kernels_off():
+    """Every test starts and ends with torch's deterministic kernels off (torch's default): a CPU run switches
+    them on for its whole process (worldtree.infra.determinism), which would otherwise carry into later tests."""
+    torch.use_deterministic_algorithms(False)
+    yield
+    torch.use_deterministic_algorithms(False)
+
+
 @pytest.fixture(scope="session")
 def write_tiny_scene():
     """``write_tiny_scene(root, width=64, height=36, frames=6, test_on_rig=False) -> Path`` from

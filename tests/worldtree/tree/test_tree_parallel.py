@@ -111,15 +111,12 @@ def test_warm_up_pays_the_first_optimizer_import_in_the_worker():
 
 def test_cpu_workers_train_with_deterministic_kernels(tmp_path):
     """A node trained in a worker process must be as reproducible as the run itself: the worker switches
-    torch's deterministic algorithms on for a CPU device whatever the parent process had set."""
-    before = torch.are_deterministic_algorithms_enabled()
-    torch.use_deterministic_algorithms(False)
-    try:
-        _write_layer(tmp_path)
-        with LayerRunner(ParallelConfig(device="cpu", max_workers=2, threads_total=2), flags_node) as r:
-            rep = r.run_layer(2, tmp_path, NODES, [1, 2, 3, 4])
-            out = {j: r.load_output(tmp_path, j) for j in NODES}
-    finally:
-        torch.use_deterministic_algorithms(before)
+    torch's deterministic algorithms on for a CPU device whatever the parent process had set (here: off, as
+    conftest leaves every test)."""
+    assert not torch.are_deterministic_algorithms_enabled()
+    _write_layer(tmp_path)
+    with LayerRunner(ParallelConfig(device="cpu", max_workers=2, threads_total=2), flags_node) as r:
+        rep = r.run_layer(2, tmp_path, NODES, [1, 2, 3, 4])
+        out = {j: r.load_output(tmp_path, j) for j in NODES}
     assert rep.mode == "parallel"
     assert all(out[j]["deterministic"] is True for j in NODES)
