@@ -64,7 +64,7 @@ from worldtree.infra.torchfile import save_torch
 from worldtree.optim import GroupedAdam, ScaledLR
 from worldtree.plateau import PlateauRule
 from worldtree.render import rasterize
-from worldtree.stages.photometric import PhotometricConfig, PhotometricFit
+from worldtree.stages.photometric import PhotometricConfig, PhotometricFit, anchored_depth_l1
 from worldtree.strategy import DensifyStrategy, remove
 from worldtree.trainer import TrainContext, Trainer, TrainerConfig, TrainSummary
 from worldtree.tree.adaptive import AutoSplitConfig, assess_fit
@@ -139,6 +139,12 @@ class WorldTreeConfig(BaseConfig):
     1.0; measured here to smear the background seen from the test camera)."""
     ancestor_lr: float = 1.0
     """Learning rates of the optimised ancestors, as a fraction of the root's initial ones (constant)."""
+    lambda_parent_depth: float = 0.0
+    """Weight of a child's depth anchor (not in the paper): the relative L1 of its rendered depth to its
+    parent's at each of its frames, per pixel weighted by one minus the depth prior's confidence, so that
+    where the prior measures no depth (classical priors: moving and filled pixels) a child keeps the depth
+    its parent fitted over more frames and cameras, and where it does (exact or imported depth) the child
+    follows the prior. 0 = off."""
     holdout: HoldoutConfig = field(default_factory=HoldoutConfig)
     """Held-out validation of each child (:mod:`worldtree.tree.validate`): some of its frames are kept from
     its training and it is kept only where it draws them better than its parent."""
@@ -222,7 +228,7 @@ class WorldTreeConfig(BaseConfig):
             why = "no tree grows (depth 0 or --ablate tpt)"
             tree = ("chain_length", "split", "layer_steps", "min_len", "inherit_caps", "inherit_opacity",
                     "ancestors_optimised", "max_workers", "sequential", "node_steps_per_frame", "node_static_lr",
-                    "ancestor_lr")  # fmt: skip
+                    "ancestor_lr", "lambda_parent_depth")  # fmt: skip
             out.update({k: why for k in tree})
         return out
 
@@ -275,6 +281,8 @@ class NodeTrainConfig:
     """The optimised ancestors' constant learning rates as a fraction of the root's initial ones."""
     holdout: HoldoutConfig | None = None
     """Held-out validation of the node (None: off)."""
+    lambda_parent_depth: float = 0.0
+    """Weight of the node's depth anchor to its parent (``WorldTreeConfig.lambda_parent_depth``)."""
     steps_per_frame: float | None = None
     """The root's steps per training frame: a node of ``n`` frames trains at most ``ceil(steps_per_frame *
     n)`` steps (None: ``steps_at(depth)`` whatever its length)."""
@@ -317,6 +325,7 @@ class NodeFit(PhotometricFit):
         super().__init__(*args, **kwargs)
         self.profile = ProfileAccumulator(self.T)
         self._frame = 0
+        self.anchor: tuple[float, torch.Tensor, torch.Tensor] | None = None
         self._build_ancestor_optimizer()
 
     def _build_ancestor_optimizer(self) -> None:
@@ -397,6 +406,21 @@ class NodeFit(PhotometricFit):
         e.g. the parent's)."""
         H, W = self.images.shape[1:3]
         return self.render(self.Ks[i], self.cameras_detached(i), W, H, i, gaussians=gaussians).rgb.clamp(0, 1)
+
+    def set_depth_anchor(self, weight: float, depth: torch.Tensor, pixel_weight: torch.Tensor) -> None:
+        """Hold the node's rendered depth near ``depth`` ``[T, H, W]`` (world units, 0 = none) with per-pixel
+        weights ``pixel_weight`` ``[T, H, W]`` in [0, 1], the term weighted ``weight``
+        (:func:`anchored_depth_l1`; ``lambda_parent_depth``)."""
+        self.anchor = (float(weight), depth, pixel_weight)
+
+    def frame_losses(self, i: int, step: int):
+        loss, parts, out = super().frame_losses(i, step)
+        if self.anchor is not None:
+            lam, depth, pixel_weight = self.anchor
+            la = anchored_depth_l1(out.depth, out.alpha, depth[i], pixel_weight[i])
+            loss = loss + lam * la
+            parts["parent_depth"] = float(la.detach())
+        return loss, parts, out
 
     def optimizer_step(self, step: int, out) -> dict[str, float]:
         g = self.dynamic.params["means"].grad if len(self.dynamic) else None
@@ -527,6 +551,18 @@ def _parent_view(state: NodeState):
     return at
 
 
+@torch.no_grad()
+def _rendered_depths(fit: NodeFit, render_list_at) -> torch.Tensor:
+    """``[T, H, W]`` depth (world units; 0 where the accumulated opacity is at most 0.5) of
+    ``render_list_at(global frame)`` seen from each of the node's cameras at its frames."""
+    H, W = fit.images.shape[1:3]
+    out = []
+    for i in range(fit.T):
+        o = fit.render(fit.Ks[i], fit.cameras_detached(i), W, H, i, gaussians=render_list_at(fit.t0 + i))
+        out.append(torch.where(o.alpha > 0.5, o.depth / o.alpha.clamp_min(1e-6), torch.zeros_like(o.depth)))
+    return torch.stack(out)
+
+
 def _validate(fit: NodeFit, parent_at, hold: list[int], hcfg: HoldoutConfig, record: Path,
               summary: TrainSummary) -> tuple[Verdict, int]:  # fmt: skip
     """The node's verdict on its held-out frames against its parent (:func:`keep_child`) and the step it was
@@ -562,6 +598,9 @@ def train_node(payload: dict, ctx: NodeContext) -> dict:
     state, depth = read_node_input(payload, ctx.device)
     data, cfg = _load_context(Path(ctx.folder).parent.parent, ctx.device)
     iv = state.interval
+    lam = cfg.lambda_parent_depth
+    # The parent as handed over (its chain, before ``ablate sac`` drops it): what the depth anchor renders.
+    parent_view = _parent_view(state) if lam > 0 and state.chain else None
     if cfg.no_ancestors:
         state.chain = []
     steps = cfg.node_steps(depth, iv.length)
@@ -573,6 +612,12 @@ def train_node(payload: dict, ctx: NodeContext) -> dict:
     hold = holdout_frames(iv.length, cfg.holdout.frac) if cfg.holdout is not None and state.chain else []
     parent_at = _parent_view(state) if hold else None
     fit = _node_fit(state, pcfg, data, cfg, ctx.seed, holdout=tuple(hold))
+    if parent_view is not None:
+        sl = slice(iv.start, iv.end + 1)
+        pixel_weight = 1.0 - data["depth_conf"][sl].clamp(0.0, 1.0)
+        adaptive["parent_depth_weight_mean"] = float(pixel_weight.mean())
+        if adaptive["parent_depth_weight_mean"] > 0:  # a prior that measures every pixel leaves nothing to anchor
+            fit.set_depth_anchor(lam, _rendered_depths(fit, parent_view), pixel_weight)
     stop = cfg.early_stop.detector(iv.length) if cfg.early_stop is not None else None
 
     def train(total: int, rule) -> TrainSummary:
@@ -820,6 +865,7 @@ def _write_context(s: WorldTreeState, tree_dir: Path, no_ancestors: bool) -> Non
         "tracks": s.tracks.detach().float().cpu().contiguous(),
         "track_vis": s.track_vis.detach().cpu().contiguous(),
         "masks": s.P["epi_mask"].detach().bool().cpu().contiguous(),
+        "depth_conf": s.P["depth_conf"].detach().float().cpu().contiguous(),
     }
     save_torch(tree_dir / "context.pt", data)
     tcfg = c.tree_config()
@@ -840,6 +886,7 @@ def _write_context(s: WorldTreeState, tree_dir: Path, no_ancestors: bool) -> Non
         node_static_lr=c.node_static_lr,
         ancestor_lr=c.ancestor_lr,
         holdout=c.holdout if c.holdout_on() else None,
+        lambda_parent_depth=c.lambda_parent_depth,
     )
     write_config(tree_dir / "node_config.json", ncfg)
 

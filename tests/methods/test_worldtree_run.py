@@ -429,3 +429,53 @@ def test_node_with_holdout_never_trains_on_its_held_out_frames_and_judges_them(r
     assert v["child_l1"] == pytest.approx(np.mean(l1c), rel=1e-4)
     assert v["parent_l1"] == pytest.approx(np.mean(l1p), rel=1e-4)
     assert v["keep"] == (np.mean(l1c) < np.mean(l1p))
+
+
+def test_parent_depth_anchor_holds_a_child_where_the_prior_measures_no_depth(runs, tmp_path):
+    """Node 6 retrained with and without the depth anchor. Where the depth prior's confidence is 0 the anchored
+    child draws its frames' depth nearer its parent's than the free child does; where it is 1 everywhere the
+    anchor has nothing to hold and the child trains bit for bit as without it."""
+    import dataclasses
+
+    from methods.worldtree import _parent_view, train_node
+    from worldtree.tree.build import read_node_input
+
+    src = runs["default"] / "checkpoints" / "tree"
+    payload_path = src / "layer2" / "node6" / "input.pt"
+    base_cfg = dataclasses.replace(read_config(src / "node_config.json", NodeTrainConfig), checkpoint_every=1000,
+                                   layer_steps=(60, 60))  # fmt: skip
+    context = torch.load(src / "context.pt", weights_only=True)
+
+    def train(name: str, weight: float, conf: float) -> NodeState:
+        tree = tmp_path / name
+        (tree / "layer2" / "node6").mkdir(parents=True)
+        torch.save({**context, "depth_conf": torch.full_like(context["depth_conf"], conf)}, tree / "context.pt")
+        write_config(tree / "node_config.json", dataclasses.replace(base_cfg, lambda_parent_depth=weight))
+        torch.manual_seed(6)
+        out = train_node(load_payload(payload_path), NodeContext(6, 6, "cpu", 1, str(tree / "layer2" / "node6")))
+        return NodeState.from_payload(out["state"])
+
+    free, held, measured = train("free", 0.0, 0.0), train("held", 5.0, 0.0), train("measured", 5.0, 1.0)
+    for k, v in free.dynamic.params.items():
+        assert torch.equal(measured.dynamic.params[k], v), k
+    assert torch.equal(measured.scaffold.pos, free.scaffold.pos)
+
+    start, _ = read_node_input(load_payload(payload_path))
+    parent_at = _parent_view(start)
+    H, W = context["images"].shape[1:3]
+    a, b = INTERVALS[6]
+
+    def departure(node: NodeState) -> float:
+        """Mean |depth - parent's depth| / parent's depth over the node's frames, where both are opaque."""
+        errs = []
+        with torch.no_grad():
+            for i, g in enumerate(range(a, b + 1)):
+                K, w2c = context["Ks"][g], node.w2cs[i]
+                own, par = rasterize(*node.gaussians_at(g), K, w2c, W, H), rasterize(*parent_at(g), K, w2c, W, H)
+                ok = (own.alpha > 0.5) & (par.alpha > 0.5)
+                d, p = own.depth[ok] / own.alpha[ok], par.depth[ok] / par.alpha[ok]
+                errs.append(((d - p).abs() / p).mean())
+        return float(torch.stack(errs).mean())
+
+    free_dep, held_dep = departure(free), departure(held)
+    assert free_dep > 0.0 and held_dep < 0.8 * free_dep, (free_dep, held_dep)

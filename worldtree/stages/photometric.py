@@ -213,6 +213,28 @@ def ssi_depth_l1(depth: torch.Tensor, alpha: torch.Tensor, prior: torch.Tensor) 
     return (a - b)[mask].abs().mean()
 
 
+def anchored_depth_l1(
+    depth: torch.Tensor, alpha: torch.Tensor, anchor: torch.Tensor, weight: torch.Tensor
+) -> torch.Tensor:
+    """Weighted relative L1 of the rendered depth against a fixed depth map, averaged over all pixels.
+
+    Args:
+        depth: ``[H, W]`` alpha-weighted rendered depth (world units along the camera's z).
+        alpha: ``[H, W]`` accumulated opacity; ``depth / alpha`` is the pixel's mean depth.
+        anchor: ``[H, W]`` depth to stay near (world units); pixels with ``anchor <= 0`` or not finite count 0.
+        weight: ``[H, W]`` per-pixel weight in [0, 1].
+
+    Returns:
+        ``sum(w |depth / alpha - anchor| / anchor) / (H W)`` over pixels with ``alpha > 0.5`` (a scalar; 0
+        with a gradient path when no pixel qualifies). Dividing by every pixel, not by the weighted ones, keeps
+        the term's size proportional to the area it covers, as the RGB L1's is.
+    """
+    ok = (alpha.detach() > 0.5) & torch.isfinite(anchor) & (anchor > 0)
+    a = torch.where(ok, anchor, torch.ones_like(anchor)).clamp_min(1e-6)  # no 0 or NaN reaches the division
+    err = ((depth / alpha.clamp_min(1e-6) - a).abs() / a) * weight
+    return torch.where(ok, err, torch.zeros_like(err)).mean()
+
+
 def relative_depth_variance(
     moments: torch.Tensor, alpha: torch.Tensor, min_alpha: float = 0.5
 ) -> torch.Tensor | None:

@@ -9,7 +9,7 @@ from worldtree.dynamic import DynamicGaussians
 from worldtree.gaussians import GaussianSet
 from worldtree.motion.scaffold import ScaffoldConfig, build_scaffold
 from worldtree.render import rasterize
-from worldtree.stages.photometric import PhotometricConfig, PhotometricFit, ssi_depth_l1
+from worldtree.stages.photometric import PhotometricConfig, PhotometricFit, anchored_depth_l1, ssi_depth_l1
 from worldtree.strategy import DensifyStrategy
 from worldtree.trainer import Trainer, TrainerConfig
 
@@ -70,6 +70,51 @@ def test_ssi_depth_is_invariant_to_scale_and_shift():
     alpha = torch.ones(20, 30)
     assert float(ssi_depth_l1(d * alpha, alpha, 3.0 * d + 0.7)) < 1e-5
     assert float(ssi_depth_l1(d * alpha, alpha, torch.rand(20, 30, generator=g) + 1.0)) > 0.1
+
+
+def test_anchored_depth_l1_closed_form_and_edge_cases():
+    g = torch.Generator().manual_seed(1)
+    anchor = torch.rand(6, 8, generator=g) + 1.0
+    alpha = torch.full((6, 8), 0.8)
+    weight = torch.zeros(6, 8)
+    weight[:3] = 1.0  # the top half counts, the bottom half not at all
+    # 10 % too far everywhere: 0.1 over the weighted half, divided by every pixel -> 0.05.
+    far = 1.1 * anchor * alpha
+    assert abs(float(anchored_depth_l1(far, alpha, anchor, weight)) - 0.05) < 1e-6
+    # Exactly on the anchor, or all weights zero: no cost.
+    assert float(anchored_depth_l1(anchor * alpha, alpha, anchor, weight)) < 1e-7
+    assert float(anchored_depth_l1(far, alpha, anchor, torch.zeros(6, 8))) == 0.0
+    # Pixels the anchor does not cover (0, negative, NaN, Inf) and transparent pixels count 0, and stay finite.
+    bad = anchor.clone()
+    bad[0, :2], bad[1, :2], bad[2, :2] = 0.0, float("nan"), float("inf")
+    bad[0, 2] = -1.0
+    thin = alpha.clone()
+    thin[1, 3:] = 0.0  # behind no Gaussian: alpha 0, depth 0
+    depth = (far * thin / alpha).requires_grad_(True)
+    loss = anchored_depth_l1(depth, thin, bad, weight)
+    counted = 24 - 7 - 5  # the weighted half less the 7 bad anchors and the 5 transparent pixels
+    assert abs(float(loss) - 0.1 * counted / 48) < 1e-6
+    loss.backward()
+    assert torch.isfinite(depth.grad).all()
+    assert float(depth.grad[3:].abs().sum()) == 0.0 and float(depth.grad[0, :3].abs().sum()) == 0.0
+
+
+def test_anchored_depth_l1_gradient_matches_finite_differences():
+    g = torch.Generator().manual_seed(2)
+    anchor = torch.rand(5, 7, generator=g, dtype=torch.float64) + 1.0
+    alpha = torch.rand(5, 7, generator=g, dtype=torch.float64) * 0.4 + 0.6
+    weight = torch.rand(5, 7, generator=g, dtype=torch.float64)
+    # Depths kept off the anchor (|d - a| has no kink within the finite-difference step).
+    depth = (anchor * (1.0 + 0.3 * torch.sign(torch.randn(5, 7, generator=g, dtype=torch.float64))) * alpha)
+    depth.requires_grad_(True)
+    anchored_depth_l1(depth, alpha, anchor, weight).backward()
+    eps = 1e-6
+    for idx in [(0, 0), (2, 3), (4, 6)]:
+        up, down = depth.detach().clone(), depth.detach().clone()
+        up[idx] += eps
+        down[idx] -= eps
+        fd = (anchored_depth_l1(up, alpha, anchor, weight) - anchored_depth_l1(down, alpha, anchor, weight)) / (2 * eps)
+        assert abs(float(fd) - float(depth.grad[idx])) < 1e-8
 
 
 def test_photometric_fit_learns_the_object_and_moves_the_scaffold():
