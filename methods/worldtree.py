@@ -139,12 +139,12 @@ class WorldTreeConfig(BaseConfig):
     1.0; measured here to smear the background seen from the test camera)."""
     ancestor_lr: float = 1.0
     """Learning rates of the optimised ancestors, as a fraction of the root's initial ones (constant)."""
-    lambda_parent_depth: float = 0.0
+    lambda_parent_depth: float = 1.0
     """Weight of a child's depth anchor (not in the paper): the relative L1 of its rendered depth to its
     parent's at each of its frames, per pixel weighted by one minus the depth prior's confidence, so that
     where the prior measures no depth (classical priors: moving and filled pixels) a child keeps the depth
     its parent fitted over more frames and cameras, and where it does (exact or imported depth) the child
-    follows the prior. 0 = off."""
+    follows the prior. 0 = off (the paper's children). Measured in docs/worldtree_method.md."""
     holdout: HoldoutConfig = field(default_factory=HoldoutConfig)
     """Held-out validation of each child (:mod:`worldtree.tree.validate`): some of its frames are kept from
     its training and it is kept only where it draws them better than its parent."""
@@ -282,7 +282,8 @@ class NodeTrainConfig:
     holdout: HoldoutConfig | None = None
     """Held-out validation of the node (None: off)."""
     lambda_parent_depth: float = 0.0
-    """Weight of the node's depth anchor to its parent (``WorldTreeConfig.lambda_parent_depth``)."""
+    """Weight of the node's depth anchor to its parent (``WorldTreeConfig.lambda_parent_depth``, which every
+    run writes; 0 here only for node settings written before the anchor existed)."""
     steps_per_frame: float | None = None
     """The root's steps per training frame: a node of ``n`` frames trains at most ``ceil(steps_per_frame *
     n)`` steps (None: ``steps_at(depth)`` whatever its length)."""
