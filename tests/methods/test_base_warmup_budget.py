@@ -8,8 +8,13 @@ from methods.base import BaseConfig, paper_config, warmup_config
 from worldtree.budget import BudgetConfig
 
 
+def test_paper_preset_keeps_the_budget_on_unless_told_otherwise():
+    assert paper_config().root_budget_on() and paper_config().budget_on()
+    assert not paper_config(budget=BudgetConfig(enabled=False)).budget_on()
+
+
 def test_budget_off_leaves_the_warm_up_uncapped():
-    c = paper_config()
+    c = paper_config(budget=BudgetConfig(enabled=False))
     assert not c.root_budget_on()
     sw = warmup_config(c, 6000, 90, 160)
     assert sw.steps == 6000
