@@ -600,8 +600,9 @@ def train_node(payload: dict, ctx: NodeContext) -> dict:
     data, cfg = _load_context(Path(ctx.folder).parent.parent, ctx.device)
     iv = state.interval
     lam = cfg.lambda_parent_depth
-    # The parent as handed over (its chain, before ``ablate sac`` drops it): what the depth anchor renders.
-    parent_view = _parent_view(state) if lam > 0 and state.chain else None
+    # The parent as handed over (its chain, before ``ablate sac`` drops it): what the depth anchor renders and
+    # held-out validation compares with; one snapshot serves both.
+    parent_view = _parent_view(state) if state.chain and (lam > 0 or cfg.holdout is not None) else None
     if cfg.no_ancestors:
         state.chain = []
     steps = cfg.node_steps(depth, iv.length)
@@ -611,9 +612,9 @@ def train_node(payload: dict, ctx: NodeContext) -> dict:
     if cfg.budget is not None:
         adaptive["inherit_prune"] = _prune_inherited(state, pcfg, data, cfg, ctx.seed)
     hold = holdout_frames(iv.length, cfg.holdout.frac) if cfg.holdout is not None and state.chain else []
-    parent_at = _parent_view(state) if hold else None
+    parent_at = parent_view if hold else None
     fit = _node_fit(state, pcfg, data, cfg, ctx.seed, holdout=tuple(hold))
-    if parent_view is not None:
+    if lam > 0 and parent_view is not None:
         sl = slice(iv.start, iv.end + 1)
         pixel_weight = 1.0 - data["depth_conf"][sl].clamp(0.0, 1.0)
         adaptive["parent_depth_weight_mean"] = float(pixel_weight.mean())
