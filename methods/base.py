@@ -687,6 +687,9 @@ def bracket_time(time: float, frames: int) -> tuple[int, float]:
 
 #: The Base method: its stages in order (``ablate`` replaces ``ba`` / ``sw`` by their ablated forms; ``prune``
 #: runs only with the Gaussian budget on).
+STAGE_LEDGER = "stage_timing.json"
+"""The method's per-stage times over every session of a resumed run, under the checkpoint folder."""
+
 BASE_STAGES: tuple[Stage, ...] = (
     Stage("priors", stage_priors),
     Stage("ba", stage_ba),
@@ -738,7 +741,8 @@ class BaseMethod:
         self.device = device
         self.state = self.STATE(cfg, scene.to(device), device)
         self.clock = StageClock()
-        """Times each stage of this session (``stats()["stages_s"]``)."""
+        """Times each stage (``stats()["stages_s"]``): this session's, plus the earlier sessions' of a resumed
+        run once :meth:`fit` attaches the checkpoint folder's :data:`STAGE_LEDGER`."""
         self._loaded: LoadedModel | None = None
         """The model read by :meth:`load_model` (None while it is trained by :meth:`fit`)."""
 
@@ -752,6 +756,9 @@ class BaseMethod:
         checkpoints under ``ctx.checkpoint_dir``)."""
         if ctx.checkpoint_dir is not None:
             ctx.checkpoint_dir.mkdir(parents=True, exist_ok=True)
+            if self.clock.ledger is None:
+                # A resumed run's stages count every session's time, not only the one that finished them.
+                self.clock.attach(ctx.checkpoint_dir / STAGE_LEDGER)
         self.state.ctx = ctx
         run_stages(self.stages(), self.state, self.clock)
         return self.state.summary

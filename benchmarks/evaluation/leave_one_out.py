@@ -36,16 +36,13 @@ NAME:KEY=VALUE`` and ``--NAME-steps N`` change one method's config only)::
 from __future__ import annotations
 
 import argparse
-import contextlib
 import dataclasses
 import hashlib
 import json
 import os
 import shutil
-import signal
 import sys
 import tempfile
-import threading
 import time
 from pathlib import Path
 
@@ -56,6 +53,7 @@ import worldtree
 from methods.registry import list_methods, node_at, render_between, render_training_frame
 from worldtree.imageio import read_mask, write_image
 from worldtree.infra.atomic import atomic_write_json
+from worldtree.infra.cli_runner import Terminated, signals_raise, terminated_line
 from worldtree.infra.device import pick_device
 from worldtree.infra.errors import UserError
 from worldtree.scene import Scene, load_scene
@@ -272,7 +270,7 @@ def main(argv: list[str] | None = None) -> None:
     out.mkdir(parents=True, exist_ok=True)
     # One writer of OUT (loo.json and the temporary prior folders): every temporary folder found while
     # holding the lock is a leftover of a killed run.
-    with FolderLock(out, "leave-one-out folder"), _signals_raise():
+    with FolderLock(out, "leave-one-out folder"), signals_raise():
         for stale in sorted(out.glob(f"{TMP_PREFIX}*")):
             shutil.rmtree(stale, ignore_errors=True)
         _run_all(args, plans, scenes, frames, device, prior_dirs, out, score_scene)
@@ -402,32 +400,6 @@ def _config_key(method: str, cfg, args, prior_dirs: dict[str, Path]) -> str:
     return hashlib.sha256(text.encode("utf-8")).hexdigest()[:16]
 
 
-class Terminated(BaseException):
-    """SIGTERM, raised in the main thread so that ``finally`` blocks (temporary folders, the lock) run."""
-
-
-@contextlib.contextmanager
-def _signals_raise():
-    """While running: SIGINT raises KeyboardInterrupt and SIGTERM :class:`Terminated` at once, even when the
-    process was started with SIGINT ignored (a shell's background job), so a stop never waits for the end
-    of a training and never leaves a temporary folder. Handlers are put back on exit."""
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-
-    def on_term(signum, frame):
-        raise Terminated
-
-    old = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
-    signal.signal(signal.SIGINT, signal.default_int_handler)
-    signal.signal(signal.SIGTERM, on_term)
-    try:
-        yield
-    finally:
-        for sig, handler in old.items():
-            signal.signal(sig, handler if handler is not None else signal.SIG_DFL)
-
-
 def _run_all(
     args, plans, scenes: dict[int, Scene], frames: list[int], device, prior_dirs: dict[str, Path], out: Path,
     score_scene: Scene | None = None,
@@ -520,7 +492,7 @@ if __name__ == "__main__":
         # interpreter shutdown: a SIGINT arriving during it (CI saw one) ends the process as killed by the
         # signal instead of with the documented status.
         term = isinstance(e, Terminated)
-        print(INTERRUPTED.replace("interrupted", "terminated", 1) if term else INTERRUPTED, file=sys.stderr)
+        print(terminated_line(INTERRUPTED) if term else INTERRUPTED, file=sys.stderr)
         sys.stdout.flush()
         sys.stderr.flush()
         os._exit(143 if term else 130)

@@ -46,6 +46,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from worldtree.infra.cli_runner import INTERRUPTED, Terminated, signals_raise, terminated_line
+
 FRAMES = (40, 80, 160)
 SIZES = ((160, 90), (320, 180), (480, 270))
 PRESETS = ("quick", "paper")
@@ -374,8 +376,8 @@ def _run_logged(cmd: list[str], log: Path) -> tuple[int, float, float, float, fl
         memory = _TreeMemory(proc.pid)
         try:
             _, status, usage = os.wait4(proc.pid, 0)
-        except KeyboardInterrupt:
-            proc.terminate()
+        except (KeyboardInterrupt, Terminated):
+            proc.terminate()  # the run saves its timing ledger on SIGTERM and resumes next time
             proc.wait()
             raise
         finally:
@@ -740,10 +742,15 @@ def main(argv: Sequence[str] | None = None) -> int:
             parse_list(args.methods, "--methods", list(METHODS)),
             parse_list(args.presets, "--presets", PRESETS),
         )
-        return _sweep(cells, args)
+        with signals_raise():  # SIGTERM too stops the cell's run through its finally blocks (its time kept)
+            return _sweep(cells, args)
     except CostError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
+    except (KeyboardInterrupt, Terminated) as e:
+        line = terminated_line(INTERRUPTED) if isinstance(e, Terminated) else INTERRUPTED
+        print(line, file=sys.stderr)
+        return 143 if isinstance(e, Terminated) else 130
 
 
 def _sweep(cells: list[Cell], args: argparse.Namespace) -> int:

@@ -1,9 +1,11 @@
-"""`wtbench run` as a real process under faults: Ctrl-C (SIGINT) prints the documented line and exits 130;
+"""`wtbench run` as a real process under faults: Ctrl-C (SIGINT) prints the documented line and exits 130, SIGTERM
+the same line as "terminated" and 143, both keeping the interrupted session's time;
 ``kill -9`` at random points followed by the same command finishes with results identical to an uninterrupted
 run and leaves nothing stale; two real processes on one run folder: the second is refused at once."""
 
 from __future__ import annotations
 
+import json
 import os
 import random
 import re
@@ -13,9 +15,10 @@ import sys
 import time
 from pathlib import Path
 
+import pytest
 import torch
 
-from worldtree.infra.cli_runner import INTERRUPTED
+from worldtree.infra.cli_runner import INTERRUPTED, terminated_line
 from worldtree.infra.folder_lock import lock_paths
 
 # Tiny static run: 12 steps, a checkpoint every 4 (so kills land before, between and after checkpoints).
@@ -58,7 +61,10 @@ def _stale(runs: Path) -> list[str]:
     )
 
 
-def test_ctrl_c_prints_the_interrupted_line_and_exits_130(scene, tmp_path):
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM], ids=["ctrl_c", "sigterm"])
+def test_a_stop_prints_the_interrupted_line_and_keeps_the_session_time(scene, tmp_path, sig):
+    """Ctrl-C exits 130, SIGTERM (kill, a batch system) 143 with the same line saying "terminated"; both
+    leave through the stage's ``finally``, so the run's ledger holds the interrupted training's time."""
     proc = _start(_cmd(scene, tmp_path / "runs", steps=100_000))
     # Interrupt the training loop (the documented case), not the first-use kernel build before it: wait for
     # the first checkpoint.
@@ -67,12 +73,15 @@ def test_ctrl_c_prints_the_interrupted_line_and_exits_130(scene, tmp_path):
     while not any(checkpoints.glob("ckpt_*.pt")):
         assert proc.poll() is None and time.monotonic() < deadline, "the run made no checkpoint"
         time.sleep(0.02)
-    proc.send_signal(signal.SIGINT)
+    proc.send_signal(sig)
     _, err = proc.communicate(timeout=120)
     # The progress line is redrawn with carriage returns; the message follows on a line of its own.
     lines = [ln.strip() for ln in re.split(r"[\r\n]", err) if ln.strip()]
-    assert proc.returncode == 130, err
-    assert lines[-1] == INTERRUPTED and "Traceback" not in err, err
+    term = sig == signal.SIGTERM
+    assert proc.returncode == (143 if term else 130), err
+    assert lines[-1] == (terminated_line(INTERRUPTED) if term else INTERRUPTED) and "Traceback" not in err, err
+    ledger = json.loads((checkpoints / "timing_sessions.json").read_text())
+    assert ledger["stages_s"].get("train", 0.0) > 0.0, ledger  # written on the way out, not lost
 
 
 def test_a_second_process_on_the_same_run_folder_is_refused_at_once(scene, tmp_path):

@@ -105,7 +105,7 @@ def test_presets_and_config_fields():
 
 
 def test_second_fit_resumes_from_the_checkpoints(tiny_scene, tmp_path):
-    from methods.base import BaseMethod, smoke_config
+    from methods.base import STAGE_LEDGER, BaseMethod, smoke_config
     from worldtree.checkpoint import seed_everything
     from worldtree.infra.device import pick_device
     from worldtree.scene import load_scene
@@ -125,6 +125,12 @@ def test_second_fit_resumes_from_the_checkpoints(tiny_scene, tmp_path):
     torch.testing.assert_close(second.state.fit.cameras(), first.state.fit.cameras())
     img2 = second.render(scene.test_K, scene.test_w2c, scene.width, scene.height, 2, test_view=True)
     torch.testing.assert_close(img2, img1)
+    # The resumed method's stage times count both sessions (the second only reloads the checkpoints), read
+    # from the checkpoint folder's ledger, which holds both sessions.
+    t1, t2 = first.stats()["stages_s"], second.stats()["stages_s"]
+    assert set(t2) == set(t1) and all(t2[k] >= t1[k] for k in t1), (t1, t2)
+    ledger = json.loads((tmp_path / "ckpt" / STAGE_LEDGER).read_text())
+    assert len(ledger["sessions_s"]) == 2 and ledger["stages_s"] == pytest.approx(t2)
 
 
 def test_prior_use_follows_ablations_and_weights():

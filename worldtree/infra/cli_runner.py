@@ -1,10 +1,14 @@
 """Running a command-line app: a :class:`~worldtree.infra.errors.UserError` becomes one ``error:`` line (exit 2),
-Ctrl-C the documented interrupted line (exit 130). Shared by the ``wtbench`` and ``nvls`` entry points; the
-library itself never runs an app."""
+Ctrl-C the documented interrupted line (exit 130), SIGTERM (``kill``, a batch system's stop) the same line as
+"terminated" (exit 143) after the ``finally`` blocks ran, so a stop saves what an interrupt saves (the run's
+timing ledger, temporary folders removed, locks released). Shared by the ``wtbench`` and ``nvls`` entry points;
+the library itself never runs an app."""
 
 from __future__ import annotations
 
 import contextlib
+import signal
+import threading
 from collections.abc import Iterator, Mapping
 
 from worldtree.infra.errors import SettingError, UserError
@@ -13,6 +17,38 @@ INTERRUPTED = "interrupted: re-run the same command to resume from the last chec
 #: Ctrl-C of a command that keeps no checkpoint (nvls): its output appears whole or not at all.
 INTERRUPTED_NO_CHECKPOINT = "interrupted: nothing was written (the unfinished output is removed); run the same command again"
 NOT_A_FOLDER = "a part of this path is a file, not a folder; choose another path"
+
+
+class Terminated(BaseException):
+    """SIGTERM, raised in the main thread (:func:`signals_raise`) so that ``finally`` blocks run."""
+
+
+def terminated_line(interrupted: str) -> str:
+    """The ``interrupted`` line said of a SIGTERM."""
+    return interrupted.replace("interrupted", "terminated", 1)
+
+
+@contextlib.contextmanager
+def signals_raise() -> Iterator[None]:
+    """Inside: SIGINT raises KeyboardInterrupt and SIGTERM :class:`Terminated`, even when the process was
+    started with SIGINT ignored (a shell's background job) or SIGTERM at its default (which would end the
+    process without running ``finally`` blocks). Handlers are put back on exit; outside the main thread it
+    does nothing (Python delivers signals there only)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def on_term(signum, frame):
+        raise Terminated
+
+    old = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
+    signal.signal(signal.SIGINT, signal.default_int_handler)
+    signal.signal(signal.SIGTERM, on_term)
+    try:
+        yield
+    finally:
+        for sig, handler in old.items():
+            signal.signal(sig, handler if handler is not None else signal.SIG_DFL)
 
 
 @contextlib.contextmanager
@@ -29,15 +65,19 @@ def options_named(options: Mapping[str, str]) -> Iterator[None]:
 
 
 def run_cli(app, interrupted: str = INTERRUPTED, options: Mapping[str, str] | None = None) -> None:
-    """Run a typer/click ``app``; print a :class:`UserError` as one line (exit 2) and Ctrl-C as exit 130 with
-    the line ``interrupted`` (what a re-run does: resume from a checkpoint, or start again). ``options``: the
-    app's options of library settings that every command names alike (:func:`options_named`)."""
+    """Run a typer/click ``app``; print a :class:`UserError` as one line (exit 2), Ctrl-C as exit 130 with
+    the line ``interrupted`` (what a re-run does: resume from a checkpoint, or start again) and SIGTERM as exit
+    143 with the same line saying "terminated". ``options``: the app's options of library settings that every
+    command names alike (:func:`options_named`)."""
     import sys
 
     try:
         # With standalone_mode=False click returns a typer.Exit's code instead of exiting with it.
-        with options_named(options or {}):
+        with signals_raise(), options_named(options or {}):
             code = app(standalone_mode=False)
+    except Terminated:
+        print(terminated_line(interrupted), file=sys.stderr)
+        raise SystemExit(143) from None
     except UserError as e:
         print(f"error: {e}", file=sys.stderr)
         raise SystemExit(2) from None

@@ -178,6 +178,17 @@ def _fn_ref(fn: str | NodeFn) -> str | NodeFn:
     return fn
 
 
+def _terminate_workers(pool: ProcessPoolExecutor) -> None:
+    """SIGTERM every worker process of ``pool`` (``terminate_workers`` where Python has it, 3.14+)."""
+    stop = getattr(pool, "terminate_workers", None)
+    if callable(stop):
+        stop()
+        return
+    for proc in list((getattr(pool, "_processes", None) or {}).values()):
+        if proc.is_alive():
+            proc.terminate()
+
+
 # ---------------------------------------------------------------------------------- worker side
 _WORKER: dict[str, Any] = {"device": "cpu", "threads": 1}
 
@@ -273,11 +284,17 @@ class LayerRunner:
     def __enter__(self) -> LayerRunner:
         return self
 
-    def __exit__(self, *exc) -> None:
-        self.close()
+    def __exit__(self, exc_type, exc, tb) -> None:
+        # Leaving on an error or a stop (Ctrl-C, SIGTERM): the nodes in flight are not waited for; each
+        # restarts from its input on resume.
+        self.close(stop_workers=exc_type is not None)
 
-    def close(self) -> None:
+    def close(self, stop_workers: bool = False) -> None:
+        """Shut the worker pool down; ``stop_workers``: terminate the workers instead of waiting for the nodes
+        they are training."""
         if self._pool is not None:
+            if stop_workers:
+                _terminate_workers(self._pool)
             self._pool.shutdown(wait=True, cancel_futures=True)
             self._pool = None
 

@@ -120,3 +120,17 @@ def test_cpu_workers_train_with_deterministic_kernels(tmp_path):
         out = {j: r.load_output(tmp_path, j) for j in NODES}
     assert rep.mode == "parallel"
     assert all(out[j]["deterministic"] is True for j in NODES)
+
+
+def test_leaving_on_an_interrupt_stops_the_nodes_in_flight():
+    # Ctrl-C or SIGTERM while a layer trains: the workers are terminated, not waited for (a node can take an
+    # hour at full size); the node starts again from its input on resume.
+    import time
+
+    runner = LayerRunner(ParallelConfig(device="cpu", max_workers=2, threads_total=2), fit_node)
+    pool = runner._pool_for(2)
+    busy = pool.submit(time.sleep, 120)
+    procs = list(pool._processes.values())
+    runner.__exit__(KeyboardInterrupt, KeyboardInterrupt(), None)
+    assert runner._pool is None and procs and not any(p.is_alive() for p in procs)
+    assert busy.cancelled() or busy.exception(timeout=0) is not None  # it never finished its 120 s
