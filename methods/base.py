@@ -17,7 +17,8 @@ is timed (``method_stats.stages_s`` in ``timing.json``; docs/base_method.md, doc
 6. photometric -- joint fit of static + dynamic Gaussians, scaffold and (from a set step) cameras, under the
    Gaussian budget and the loss-plateau stop when they are on (``budget`` / ``early_stop``);
 7. prune -- (budget on only) Gaussians of negligible contribution removed;
-8. test_pose -- Sim(3) of the given training poses onto the optimised ones applied to the test camera, then
+8. test_pose -- Sim(3) of the given training poses onto the optimised ones and the frames' residuals near
+   each time (how any camera the model did not train with is placed), applied to the test camera, then
    photometric refinement per test frame on the test images.
 
 A scene without dynamic content (no dynamic track) gets an empty scaffold and no dynamic Gaussian: the model
@@ -71,6 +72,7 @@ from worldtree.stages.static_warmup import (
     quick_static_warmup_config,
 )
 from worldtree.stages.testview_pose import (
+    CameraPlacement,
     FrozenModelRenderer,
     PoseRefineConfig,
     align_sim3,
@@ -294,6 +296,9 @@ class BaseState:
     frame ``t`` (set with it), so a stage that renders a fixed model many times per frame computes it once."""
     sim3: Any = None
     """Sim(3) from the given training poses to the optimised ones (stage ``test_pose``)."""
+    placement: CameraPlacement | None = None
+    """How a camera the model did not train with is placed: the Sim(3), then the training frames' residuals
+    near its time (stage ``test_pose``, or :meth:`BaseMethod.load_model`)."""
     test_poses: dict[int, torch.Tensor] = field(default_factory=dict)
     """Refined test-camera pose [4, 4] by test time (stage ``test_pose``)."""
 
@@ -651,26 +656,34 @@ def stage_prune(s: BaseState) -> None:
 
 
 def stage_test_pose(s: BaseState) -> None:
-    """Sim(3) of the given training poses onto the optimised ones applied to the test camera, then
-    photometric refinement per test frame on the test images (rendered by ``s.renderer``)."""
+    """The camera placement (Sim(3) of the given training poses onto the optimised ones, and the frames'
+    residuals) applied to the test camera, then photometric refinement per test frame on the test images
+    (rendered by ``s.renderer``)."""
     sc = s.scene
-    s.sim3 = align_sim3(sc.w2cs, s.fit.cameras(), s.cfg.test_pose.align_rotation)
+    fitted = s.fit.cameras().detach()
+    s.sim3 = align_sim3(sc.w2cs, fitted, s.cfg.test_pose.align_rotation)
+    s.placement = CameraPlacement.fit(sc.w2cs, fitted, s.sim3, s.cfg.test_pose.residual_time_sigma)
     if sc.test_images.shape[0] == 0:
         return
+    times = [min(int(t), sc.num_frames - 1) for t in sc.test_times.tolist()]
     same = coinciding_frame(sc.test_w2c, sc.w2cs) if s.cfg.test_pose.start_at_same_camera else None
     # A test camera that is a training frame's camera (the NVIDIA short protocol's camera 0) starts from that
     # frame's fitted pose: the Sim(3) of all frames leaves each one a residual that shifts its static pixels.
-    start = s.sim3.apply_w2c(sc.test_w2c) if same is None else s.fit.cameras()[same].detach().clone()
-    s.info["test_pose_start"] = "sim3" if same is None else f"frame {same}"
+    # Any other starts where the placement puts it; later frames may start there again (their own time's
+    # residual) when that renders them better than the previous frame's refined pose.
+    placed = torch.stack([s.placement.place(sc.test_w2c, t) for t in times]).to(fitted) if times else None
+    start = placed[0] if same is None else fitted[same].clone()
+    s.info["test_pose_start"] = "placed" if same is None else f"frame {same}"
     W, H = sc.test_images.shape[2], sc.test_images.shape[1]
-    times = [min(int(t), sc.num_frames - 1) for t in sc.test_times.tolist()]
 
     def render_fn(t: int, w2c: torch.Tensor):
         return s.renderer(sc.test_K, w2c, W, H, t)
 
     if s.gaussians_at is not None:  # the model is fixed here: its Gaussians once per test frame, not per step
         render_fn = FrozenModelRenderer(s.gaussians_at, sc.test_K, W, H, s.cfg.photometric.backend)
-    res = refine_test_poses(render_fn, start, sc.test_images, times, s.cfg.test_pose)
+    # Without refinement a camera of a training frame stays at that frame's pose; any other at its placement.
+    cands = placed if same is None or s.cfg.test_pose.enabled else None
+    res = refine_test_poses(render_fn, start, sc.test_images, times, s.cfg.test_pose, w2c_candidates=cands)
     s.test_poses = {int(t): res.w2cs[k] for k, t in enumerate(sc.test_times.tolist())}
     s.info["test_pose_l1_before"] = res.loss_before
     s.info["test_pose_l1_after"] = res.loss_after
@@ -770,16 +783,17 @@ class BaseMethod:
     ) -> torch.Tensor:
         """``[height, width, 3]`` of camera ``K``/``w2c`` (given frame) at frame ``time``. ``test_view``: the
         camera is the scene's test camera, rendered from its refined pose at that time; any other camera
-        (or a time without a refined pose) goes through the Sim(3) alignment."""
+        (or a time without a refined pose) is placed by :meth:`model_w2c`."""
         return self.render_mode(K, w2c, width, height, time, "rgb", test_view)
 
     def model_w2c(
-        self, w2c: torch.Tensor, time: int, test_view: bool = False, frame: int | None = None
+        self, w2c: torch.Tensor, time: float, test_view: bool = False, frame: int | None = None
     ) -> torch.Tensor:
         """``[4, 4]`` model-frame pose of the given ``w2c``: the refined test pose at ``time`` (``test_view``),
         training frame ``frame``'s fitted pose (also when ``w2c`` is that frame's given pose:
-        :func:`~worldtree.stages.testview_pose.coinciding_frame`), or the Sim(3) from the given poses to the
-        fitted ones."""
+        :func:`~worldtree.stages.testview_pose.coinciding_frame`), or the camera placed at ``time`` (frames,
+        may be fractional) by :class:`~worldtree.stages.testview_pose.CameraPlacement`: the Sim(3) from the
+        given poses to the fitted ones and the residual of the training frames near that time."""
         s = self.state
         w2c = w2c.to(self.device, torch.float32)
         if test_view and int(time) in s.test_poses:
@@ -788,6 +802,8 @@ class BaseMethod:
             frame = coinciding_frame(w2c, s.scene.w2cs.to(w2c))  # a training frame's own camera: its fitted pose
         if frame is not None:
             return self._train_w2c(int(frame))
+        if s.placement is not None:
+            return s.placement.place(w2c, float(time))
         return s.sim3.apply_w2c(w2c)
 
     @torch.no_grad()
@@ -837,14 +853,14 @@ class BaseMethod:
         ``a + 1`` (:meth:`methods.registry.Method.render_between`): every Gaussian between its positions at the
         two frames (:func:`worldtree.dynamic.between`; means interpolated, rotations nlerped), the dynamic
         opacities evaluated at ``time`` (they change with it only under temporal opacity; static Gaussians are
-        the same at both). The camera goes through the Sim(3) alignment, as a non-test camera in :meth:`render`.
+        the same at both). The camera is placed at ``time`` by :meth:`model_w2c`, as a non-test camera in :meth:`render`.
         An integer ``time`` (or one outside the training frames) is :meth:`render` of the nearest frame."""
         a, frac = bracket_time(time, self.state.scene.num_frames)
         if frac == 0.0:
             return self.render(K, w2c, width, height, a)
         ga, gb, o = self._between_lists(a, time)
         m, q, ls, o, c = between(ga, gb, o, frac)
-        pose = self.model_w2c(w2c, a)
+        pose = self.model_w2c(w2c, time)  # placed at the fractional time: the residuals drift with it
         out = rasterize(m, q, ls, o, c, K.to(self.device, torch.float32), pose, width, height,
                         backend=self.cfg.photometric.backend)  # fmt: skip
         return out.rgb.clamp(0.0, 1.0)
@@ -904,6 +920,9 @@ class BaseMethod:
                  torch.tensor(sim["t"], dtype=torch.float32, device=dev))
             if sim else Sim3.identity(device=dev)
         )  # fmt: skip
+        s.placement = CameraPlacement.fit(
+            s.scene.w2cs.to(dev), self._loaded.w2cs, s.sim3, self.cfg.test_pose.residual_time_sigma
+        )
         loaded, backend = self._loaded, self.cfg.photometric.backend
 
         def at(t: int, cache: SkinCache | None = None):

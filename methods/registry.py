@@ -144,11 +144,12 @@ class Method(Protocol):
         ...
 
     def model_w2c(
-        self, w2c: torch.Tensor, time: int, test_view: bool = False, frame: int | None = None
+        self, w2c: torch.Tensor, time: float, test_view: bool = False, frame: int | None = None
     ) -> torch.Tensor:
         """``[4, 4]`` pose in the model's world frame that :meth:`render` uses for the given ``w2c`` (scene
         frame): the refined test pose (``test_view``), training frame ``frame``'s own fitted pose, or else the
-        scene->model Sim(3) applied to ``w2c``."""
+        camera as the method places one it did not train with at ``time`` (frames; a method that moves its
+        cameras: the scene->model Sim(3), and the Base methods the training frames' residuals near ``time``)."""
         ...
 
     def render_mode(

@@ -983,7 +983,7 @@ class WorldTreeMethod(BaseMethod):
         ga = st.gaussians_at(a, s.cfg.chain_length, s.caches[j])
         gb = st.gaussians_at(a + 1, s.cfg.chain_length, s.caches[j])
         m, q, ls, o, c = between(ga, gb, node_opacities_at(st, a, frac, s.cfg.chain_length), frac)
-        pose = self.model_w2c(w2c, a)
+        pose = self.model_w2c(w2c, time)  # placed at the fractional time: the residuals drift with it
         out = rasterize(m, q, ls, o, c, K.to(self.device, torch.float32), pose, width, height,
                         backend=s.cfg.photometric.backend)  # fmt: skip
         return out.rgb.clamp(0.0, 1.0)

@@ -57,9 +57,10 @@ def test_cameras_and_times_follow_the_scene(loaded, api_runs):
     np.testing.assert_array_equal(test.w2c.numpy(), np.asarray(doc.camera(doc.test_camera).w2c, np.float32))
 
 
-def test_a_camera_of_ones_own_renders_through_the_sim3(loaded):
-    """(K, w2c, W, H) in the scene frame at any size: the base model maps it with the run's Sim(3), unless it is
-    a training frame's own camera, which is drawn from that frame's fitted pose."""
+def test_a_camera_of_ones_own_is_placed_by_the_method(loaded):
+    """(K, w2c, W, H) in the scene frame at any size: the base model places it (the run's Sim(3) and the
+    training frames' residuals at the time given), unless it is a training frame's own camera, which is drawn
+    from that frame's fitted pose."""
     run = loaded["base"]
     cam = run.cameras["train_003"]
     K = cam.K.clone()
@@ -72,7 +73,7 @@ def test_a_camera_of_ones_own_renders_through_the_sim3(loaded):
     frame = run.gaussians_at(3)
     np.testing.assert_allclose(
         run.model_w2c((K, moved, 32, 18), 3).numpy(),
-        frame.scene_to_model.apply_w2c(moved).numpy(),
+        run.method.state.placement.place(moved, 3.0).numpy(),
         atol=1e-6,
     )
     own = run.model_w2c((K, cam.w2c, 32, 18), 3)

@@ -377,7 +377,7 @@ def test_sigterm_leaves_no_temporary_folder(tmp_path):
 
 def _old_formula_base(method, K, w2c, W, H, a):
     """What the harness computed before the protocol (Base family), reaching into the fitted state: every
-    Gaussian halfway between frames a and a + 1, dynamic opacities at a + 0.5, the Sim(3)-mapped camera."""
+    Gaussian halfway between frames a and a + 1, dynamic opacities at a + 0.5, the camera placed at a + 0.5."""
     from worldtree.dynamic import halfway
     from worldtree.render import rasterize
 
@@ -388,7 +388,7 @@ def _old_formula_base(method, K, w2c, W, H, a):
     if o.shape[0] == n_s + n_d:
         o = torch.cat([o[:n_s], fit.dynamic.opacities_at(a + 0.5)])
     m, q, ls, o, c = halfway(ga, fit.gaussians_at(a + 1), o)
-    pose = method.state.sim3.apply_w2c(w2c.to(torch.float32))
+    pose = method.state.placement.place(w2c.to(torch.float32), a + 0.5)
     return rasterize(m, q, ls, o, c, K.to(torch.float32), pose, W, H, backend=fit.cfg.backend).rgb.clamp(0, 1)
 
 
@@ -408,7 +408,7 @@ def _fitted(name, scene_dir, **sets):
 
 def _off_rig(w2c):
     """``w2c`` moved 2 cm up: a camera no training frame has (a training frame's own pose is drawn from that
-    frame's fitted pose, not through the Sim(3) these formulas use)."""
+    frame's fitted pose, not through the placement these formulas use)."""
     out = w2c.clone()
     out[1, 3] += 0.02
     return out
@@ -446,7 +446,7 @@ def test_worldtree_render_between_uses_the_node_holding_both_frames(tmp_path):
         ga = st.gaussians_at(a, s.cfg.chain_length, cache)
         gb = st.gaussians_at(a + 1, s.cfg.chain_length, cache)
         m, q, ls, o, c = halfway(ga, gb, node_opacities_at(st, a, 0.5, s.cfg.chain_length))
-        pose = s.sim3.apply_w2c(w2c)
+        pose = s.placement.place(w2c, a + 0.5)
         want = rasterize(m, q, ls, o, c, K, pose, W, H, backend=s.cfg.photometric.backend).rgb.clamp(0, 1)
         assert torch.equal(method.render_between(K, w2c, W, H, a + 0.5), want)
     assert method.node_at(2) == method.node_at(2.0)

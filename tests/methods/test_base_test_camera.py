@@ -50,11 +50,22 @@ def test_the_test_camera_starts_at_its_frames_fitted_pose(on_rig):
     assert float((s.sim3.apply_w2c(sc.test_w2c) - fitted).abs().max()) > 1e-5
 
 
-def test_the_sim3_start_is_kept_when_asked_or_when_no_frame_coincides(on_rig, tiny_scene):
+def test_any_other_test_camera_is_placed_at_each_time_and_sigma_0_is_the_sim3(on_rig, tiny_scene):
+    """Off a training frame's camera (or with the same-camera start off), the test camera starts where the
+    placement puts it: the Sim(3) and the residual of the frames near each test time; without refinement each
+    test time keeps its own placement. ``residual_time_sigma=0`` is the Sim(3) alone (the placement before)."""
     torch.set_num_threads(1)
-    m = _fit(on_rig, enabled=False, start_at_same_camera=False)
+    for scene_dir, sets in ((on_rig, {"start_at_same_camera": False}), (tiny_scene, {})):
+        m = _fit(scene_dir, enabled=False, **sets)
+        s = m.state
+        assert s.info["test_pose_start"] == "placed"
+        sc = s.scene
+        for t in sc.test_times.tolist():
+            want = s.placement.place(sc.test_w2c, min(int(t), sc.num_frames - 1))
+            torch.testing.assert_close(s.test_poses[int(t)], want, atol=0, rtol=0)
+        # The residuals moved it off the Sim(3)'s image (else this test would not tell them apart).
+        assert float((s.test_poses[0] - s.sim3.apply_w2c(sc.test_w2c)).abs().max()) > 1e-6
+    m = _fit(tiny_scene, enabled=False, residual_time_sigma=0.0)
     s = m.state
-    assert s.info["test_pose_start"] == "sim3"
-    torch.testing.assert_close(s.test_poses[0], s.sim3.apply_w2c(s.scene.test_w2c), atol=0, rtol=0)
-    m = _fit(tiny_scene, enabled=False)  # the test camera off the rig
-    assert m.state.info["test_pose_start"] == "sim3"
+    for pose in s.test_poses.values():
+        torch.testing.assert_close(pose, s.sim3.apply_w2c(s.scene.test_w2c), atol=0, rtol=0)

@@ -108,3 +108,32 @@ def test_checkpoint_roundtrip_and_damaged_file(tmp_path):
 def test_negative_steps_rejected():
     with pytest.raises(UserError):
         Trainer(TrainerConfig(steps=-1), Toy(0))
+
+
+def test_a_stop_whose_exception_was_lost_is_raised_by_the_next_step(tmp_path):
+    """A signal handler's exception raised inside a callback whose errors Python only prints is lost; the stop
+    it recorded is raised by the next training step, and leaving the handlers forgets it."""
+    import signal
+
+    from worldtree.infra import stop_request
+    from worldtree.infra.cli_runner import Terminated, signals_raise
+
+    class Swallowing(Toy):
+        steps: list[int] = []
+
+        def training_step(self, step):
+            self.steps.append(step)
+            if step == 4:
+                try:
+                    signal.raise_signal(signal.SIGTERM)  # the handler records the stop and raises...
+                except Terminated:
+                    pass  # ...and the exception is lost, as in a weakref callback
+            return super().training_step(step)
+
+    before = signal.getsignal(signal.SIGTERM)
+    task = Swallowing(seed=1)
+    with pytest.raises(Terminated), signals_raise():
+        _fit(task, tmp_path / "a")
+    assert task.steps == [1, 2, 3, 4]  # step 4 finished, step 5 never started
+    assert signal.getsignal(signal.SIGTERM) == before
+    stop_request.check()  # forgotten on the way out: nothing raised

@@ -11,6 +11,7 @@ import signal
 import threading
 from collections.abc import Iterator, Mapping
 
+from worldtree.infra import stop_request
 from worldtree.infra.errors import SettingError, UserError
 
 INTERRUPTED = "interrupted: re-run the same command to resume from the last checkpoint"
@@ -32,21 +33,28 @@ def terminated_line(interrupted: str) -> str:
 def signals_raise() -> Iterator[None]:
     """Inside: SIGINT raises KeyboardInterrupt and SIGTERM :class:`Terminated`, even when the process was
     started with SIGINT ignored (a shell's background job) or SIGTERM at its default (which would end the
-    process without running ``finally`` blocks). Handlers are put back on exit; outside the main thread it
+    process without running ``finally`` blocks); the stop is also recorded for the training loops
+    (:mod:`worldtree.infra.stop_request`), which raise it again where the first one was lost. Handlers are put back on exit; outside the main thread it
     does nothing (Python delivers signals there only)."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return
 
+    def on_int(signum, frame):
+        stop_request.request(KeyboardInterrupt)  # raised again by the next training step if this one is lost
+        raise KeyboardInterrupt
+
     def on_term(signum, frame):
+        stop_request.request(Terminated)
         raise Terminated
 
     old = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
-    signal.signal(signal.SIGINT, signal.default_int_handler)
+    signal.signal(signal.SIGINT, on_int)
     signal.signal(signal.SIGTERM, on_term)
     try:
         yield
     finally:
+        stop_request.clear()
         for sig, handler in old.items():
             signal.signal(sig, handler if handler is not None else signal.SIG_DFL)
 

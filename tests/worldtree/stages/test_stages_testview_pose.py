@@ -10,6 +10,7 @@ from scipy.spatial.transform import Rotation
 from worldtree.render import rasterize
 from worldtree.stages.cameras import Sim3, apply_delta, centres, rotation_angle_deg
 from worldtree.stages.testview_pose import (
+    CameraPlacement,
     FrozenModelRenderer,
     PoseRefineConfig,
     align_sim3,
@@ -301,3 +302,87 @@ def test_coinciding_frame_finds_the_same_camera_only():
     assert coinciding_frame(given[0], given[:1]) == 0
     assert coinciding_frame(torch.from_numpy(moved), given[1:2]) is None  # moved 3e-4 units > 1e-4
     assert coinciding_frame(torch.from_numpy(close), given[1:2]) == 0  # moved 3e-6 units
+
+
+def drifting_rig(T: int = 12, seed: int = 0):
+    """A row of T cameras (frame i from camera i) looking down +z, a known Sim(3), and fitted poses that are
+    the Sim(3) of the given ones left-multiplied by a residual drifting linearly with time (rotations of a
+    few tenths of a degree, translations of a few thousandths), written with scipy, not the module's se3."""
+    rng = np.random.default_rng(seed)
+    given = np.stack([make_w2c(np.eye(3), np.array([0.1 * i, 0.02 * (i % 2), 0.0])) for i in range(T)])
+    s, R, t = 2.0, Rotation.from_euler("xyz", [5, -8, 12], degrees=True).as_matrix(), np.array([0.3, -0.1, 0.5])
+    placed = transform_poses(given, s, R, t)
+    a0, a1 = rng.normal(size=3) * 0.004, rng.normal(size=3) * 0.0004  # radians, radians per frame
+    b0, b1 = rng.normal(size=3) * 0.004, rng.normal(size=3) * 0.0004
+
+    def residual(time: float) -> np.ndarray:
+        D = np.eye(4)
+        D[:3, :3] = Rotation.from_rotvec(a0 + a1 * time).as_matrix()
+        D[:3, 3] = b0 + b1 * time
+        return D
+
+    fitted = np.stack([residual(i) @ placed[i] for i in range(T)])
+    sim3 = Sim3(s, torch.tensor(R), torch.tensor(t))
+    return torch.tensor(given), torch.tensor(fitted), sim3, residual, (s, R, t)
+
+
+def test_placement_carries_the_residual_of_the_frames_near_in_time():
+    given, fitted, sim3, residual, (s, R, t) = drifting_rig()
+    place = CameraPlacement.fit(given, fitted, sim3, time_sigma=2.0)
+    assert place.spacing == pytest.approx(0.1 * float(np.hypot(0.1, 0.02)), rel=1e-6)
+    # A camera halfway between cameras 4 and 5, at time 4.5: where the drifting residual puts it.
+    new = make_w2c(np.eye(3), np.array([0.45, 0.01, 0.0]))
+    truth = residual(4.5) @ transform_poses(new[None], s, R, t)[0]
+    got = place.place(torch.tensor(new), 4.5)
+    only_sim3 = sim3.apply_w2c(torch.tensor(new))
+    rot, tr = pose_errors(got, torch.tensor(truth))
+    rot0, tr0 = pose_errors(only_sim3, torch.tensor(truth))
+    assert rot < 0.02 * rot0 and tr < 0.02 * tr0, (rot, rot0, tr, tr0)
+    # Every training camera at its own time comes back near its fitted pose (its own residual weighs most).
+    for i in (0, 5, 11):
+        rot, tr = pose_errors(place.place(given[i], float(i)), fitted[i])
+        rot0, tr0 = pose_errors(sim3.apply_w2c(given[i]), fitted[i])
+        assert rot < 0.1 * rot0 and tr < 0.1 * tr0
+    assert got.dtype == torch.float64 and place.place(given[0].float(), 0.0).dtype == torch.float32
+
+
+def test_placement_without_time_weight_is_the_sim3_and_weights_stay_finite():
+    given, fitted, sim3, _, _ = drifting_rig()
+    off = CameraPlacement.fit(given, fitted, sim3, time_sigma=0.0)
+    torch.testing.assert_close(off.place(given[3], 3.0), sim3.apply_w2c(given[3]))
+    on = CameraPlacement.fit(given, fitted, sim3, time_sigma=2.0)
+    for time in (-1e6, 1e6, 5.5):  # far outside the video: the nearest frame's residual, no 0 / 0
+        w = on.weights(centres(given[2][None])[0], time)
+        assert torch.isfinite(w).all() and float(w.sum()) == pytest.approx(1.0)
+    assert float(on.weights(centres(given[2][None])[0], 1e6).argmax()) == 11
+    torch.testing.assert_close(on.place(given[3], float("nan")), sim3.apply_w2c(given[3]))
+    # A frame whose fitted pose is not finite contributes a zero residual instead of NaN.
+    bad = fitted.clone()
+    bad[4] = float("nan")
+    p = CameraPlacement.fit(given, bad, sim3, time_sigma=2.0)
+    assert torch.isfinite(p.twists).all() and float(p.twists[4].abs().max()) == 0.0
+    assert torch.isfinite(p.place(given[4], 4.0)).all()
+    # Every camera at one centre (a fixed camera): a unit spacing, the time alone decides.
+    one = given[:1].repeat(5, 1, 1)
+    p = CameraPlacement.fit(one, fitted[:5], sim3, time_sigma=1.0)
+    assert p.spacing == pytest.approx(0.1) and int(p.weights(centres(one[:1])[0], 4.0).argmax()) == 4
+    with pytest.raises(ValueError, match=r"\[T, 4, 4\]"):
+        CameraPlacement.fit(given, fitted[:3], sim3, time_sigma=1.0)
+
+
+def test_a_frame_starts_from_its_candidate_when_that_renders_it_better():
+    render_fn = tiny_scene(2)
+    truth = torch.eye(4)
+    with torch.no_grad():
+        target = render_fn(0, truth).rgb
+    far = apply_delta(torch.tensor([0.3, 0.2, 0.0, 0.0, 0.05, 0.0]), truth)
+    near = apply_delta(torch.tensor([0.01, 0.0, 0.0, 0.0, 0.0, 0.0]), truth)
+    cfg = PoseRefineConfig(first_steps=0, next_steps=0)  # no steps: only the choice of start is seen
+    cands = torch.stack([far, near, far])
+    res = refine_test_poses(render_fn, far, target[None].repeat(3, 1, 1, 1), [0, 1, 2], cfg, w2c_candidates=cands)
+    torch.testing.assert_close(res.w2cs[0], far)  # the first frame starts from w2c_init
+    torch.testing.assert_close(res.w2cs[1], near)  # the candidate renders frame 1 better than frame 0's pose
+    torch.testing.assert_close(res.w2cs[2], near)  # the worse candidate is not taken
+    assert res.loss_before[1] < res.loss_before[0]
+    with pytest.raises(ValueError, match="candidates"):
+        refine_test_poses(render_fn, far, target[None], [0], cfg, w2c_candidates=cands)
