@@ -920,9 +920,12 @@ class BaseMethod:
                  torch.tensor(sim["t"], dtype=torch.float32, device=dev))
             if sim else Sim3.identity(device=dev)
         )  # fmt: skip
-        s.placement = CameraPlacement.fit(
-            s.scene.w2cs.to(dev), self._loaded.w2cs, s.sim3, self.cfg.test_pose.residual_time_sigma
-        )
+        given = s.scene.w2cs.to(dev)
+        # A scene whose frames are not the run's (moved, rebuilt) has no residual per frame: the Sim(3) alone.
+        s.placement = (
+            CameraPlacement.fit(given, self._loaded.w2cs, s.sim3, self.cfg.test_pose.residual_time_sigma)
+            if given.shape == self._loaded.w2cs.shape else None
+        )  # fmt: skip
         loaded, backend = self._loaded, self.cfg.photometric.backend
 
         def at(t: int, cache: SkinCache | None = None):
