@@ -81,7 +81,7 @@ from worldtree.stages.testview_pose import (
     refine_test_poses,
 )
 from worldtree.strategy import DensifyStrategy
-from worldtree.trainer import TrainContext, Trainer, TrainerConfig, TrainSummary
+from worldtree.trainer import Progress, TrainContext, Trainer, TrainerConfig, TrainSummary
 
 
 @dataclass
@@ -582,7 +582,17 @@ def stage_scaffold(s: BaseState) -> None:
         radius = c.scaffold.complete_radius_units * c.scaffold.unit_ratio * scale
         traj, observed = complete_trajectories(pts.float(), valid, radius, c.scaffold.complete_k)
         scf = build_scaffold(traj, observed, scale, c.scaffold)
-        s.info["scaffold_fit"] = fit_scaffold(scf, scf.pos.detach().clone(), scf.observed, c.scaffold_fit)
+        steps = c.scaffold_fit.steps
+        report = Progress("scaffold fit", 0, steps, s.ctx is not None and s.ctx.progress, log_every=1)
+
+        def on_log(rec: dict[str, float]) -> None:  # every 100 steps: minutes at the real size
+            report.update(min(int(rec["step"]) + 1, steps), {"loss": rec["data_units"] + rec["motion"]})
+
+        try:
+            fitted = fit_scaffold(scf, scf.pos.detach().clone(), scf.observed, c.scaffold_fit, on_log)
+        finally:
+            report.close()
+        s.info["scaffold_fit"] = fitted
     if scf.M == 0:
         dyn = DynamicGaussians.empty(s.device)
     else:

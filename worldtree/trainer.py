@@ -332,7 +332,7 @@ class Trainer:
         start = self.resume() if resume else 0
         total = self.cfg.steps
         writer = _tensorboard_writer(self.tensorboard_dir)
-        report = _Progress(self.description, start, total, self.progress, self.cfg.log_every)
+        report = Progress(self.description, start, total, self.progress, self.cfg.log_every)
         last_loss: float | None = None
         t0 = time.perf_counter()
         step = start
@@ -396,8 +396,10 @@ def _tensorboard_writer(log_dir: str | Path | None):
     return SummaryWriter(log_dir=str(log_dir))
 
 
-class _Progress:
-    """Rich progress bar on a terminal; plain lines every ``log_every`` steps otherwise; nothing if disabled."""
+class Progress:
+    """Rich progress bar on a terminal; plain lines every ``log_every`` steps otherwise; nothing if disabled.
+    ``update(step, {"loss": ..., ...})`` after a step, ``close()`` at the end (the Trainer's, and a stage's own
+    loop)."""
 
     def __init__(self, description: str, start: int, total: int, enabled: bool, log_every: int):
         self.enabled = enabled
