@@ -53,7 +53,7 @@ import worldtree
 from methods.registry import list_methods, node_at, render_between, render_training_frame
 from worldtree.imageio import read_mask, write_image
 from worldtree.infra.atomic import atomic_write_json
-from worldtree.infra.cli_runner import Terminated, signals_raise, terminated_line
+from worldtree.infra.cli_runner import Terminated, signals_raise, stop_report
 from worldtree.infra.device import pick_device
 from worldtree.infra.errors import UserError
 from worldtree.scene import Scene, load_scene
@@ -491,8 +491,8 @@ if __name__ == "__main__":
         # The temporary folder and the lock were released by the finally blocks on the way here. Leave without
         # interpreter shutdown: a SIGINT arriving during it (CI saw one) ends the process as killed by the
         # signal instead of with the documented status.
-        term = isinstance(e, Terminated)
-        print(terminated_line(INTERRUPTED) if term else INTERRUPTED, file=sys.stderr)
+        line, code = stop_report(e, INTERRUPTED)
+        print(line, file=sys.stderr)
         sys.stdout.flush()
         sys.stderr.flush()
-        os._exit(143 if term else 130)
+        os._exit(code)

@@ -46,7 +46,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from worldtree.infra.cli_runner import INTERRUPTED, Terminated, signals_raise, terminated_line
+from worldtree.infra.cli_runner import Terminated, signals_raise, stop_report
 
 FRAMES = (40, 80, 160)
 SIZES = ((160, 90), (320, 180), (480, 270))
@@ -748,9 +748,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"error: {e}", file=sys.stderr)
         return 2
     except (KeyboardInterrupt, Terminated) as e:
-        line = terminated_line(INTERRUPTED) if isinstance(e, Terminated) else INTERRUPTED
+        line, code = stop_report(e)
         print(line, file=sys.stderr)
-        return 143 if isinstance(e, Terminated) else 130
+        return code
 
 
 def _sweep(cells: list[Cell], args: argparse.Namespace) -> int:

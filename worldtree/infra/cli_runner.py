@@ -29,6 +29,14 @@ def terminated_line(interrupted: str) -> str:
     return interrupted.replace("interrupted", "terminated", 1)
 
 
+def stop_report(stop: BaseException, interrupted: str = INTERRUPTED) -> tuple[str, int]:
+    """``(line, exit status)`` of a command stopped by ``stop``: KeyboardInterrupt -> ``interrupted``, 130;
+    :class:`Terminated` -> the same line saying "terminated", 143."""
+    if isinstance(stop, Terminated):
+        return terminated_line(interrupted), 143
+    return interrupted, 130
+
+
 @contextlib.contextmanager
 def signals_raise() -> Iterator[None]:
     """Inside: SIGINT raises KeyboardInterrupt and SIGTERM :class:`Terminated`, even when the process was
@@ -83,15 +91,13 @@ def run_cli(app, interrupted: str = INTERRUPTED, options: Mapping[str, str] | No
         # With standalone_mode=False click returns a typer.Exit's code instead of exiting with it.
         with signals_raise(), options_named(options or {}):
             code = app(standalone_mode=False)
-    except Terminated:
-        print(terminated_line(interrupted), file=sys.stderr)
-        raise SystemExit(143) from None
+    except (KeyboardInterrupt, Terminated) as e:
+        line, code = stop_report(e, interrupted)
+        print(line, file=sys.stderr)
+        raise SystemExit(code) from None
     except UserError as e:
         print(f"error: {e}", file=sys.stderr)
         raise SystemExit(2) from None
-    except KeyboardInterrupt:
-        print(interrupted, file=sys.stderr)
-        raise SystemExit(130) from None
     except NotADirectoryError as e:
         # An output path running through a file (-o FILE/sub) that a command's own check did not catch.
         print(f"error: {e.filename}: {NOT_A_FOLDER}", file=sys.stderr)
