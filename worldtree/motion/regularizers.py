@@ -22,6 +22,7 @@ __all__ = [
     "acceleration_losses",
     "arap_loss",
     "arap_loss_autograd",
+    "frame_window",
     "local_coordinates",
     "motion_losses",
     "velocity_losses",
@@ -359,3 +360,17 @@ def motion_losses(
         + cfg.lambda_acc_rot * a_rot
     )
     return MotionLosses(coord, length, v_xyz, v_rot, a_xyz, a_rot, total)
+
+
+def frame_window(frames: int, size: int, seed: int, step: int) -> slice:
+    """The consecutive frames a step's motion terms see: ``size`` of ``frames``, at a start drawn from
+    ``(seed, step)`` alone, so a resumed fit repeats it; every frame when ``size`` is 0 or covers the video.
+
+    Every motion term is a mean over frames, so a window's value estimates the full one at a cost that does
+    not grow with the video; frames within ``size`` of either end are drawn a little less often.
+    """
+    if size <= 0 or size >= frames:
+        return slice(None)
+    g = torch.Generator().manual_seed(int(seed) * 1_000_003 + int(step))
+    a = int(torch.randint(0, frames - size + 1, (1,), generator=g))
+    return slice(a, a + size)

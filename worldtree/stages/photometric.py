@@ -41,7 +41,7 @@ from worldtree.budget import growth_cap, negligible, render_contributions
 from worldtree.dynamic import TIME_STD, DynamicGaussians, gaussians_at
 from worldtree.gaussians import GaussianSet
 from worldtree.losses import SsimTargets, ssim
-from worldtree.motion.regularizers import MotionLossConfig, motion_losses
+from worldtree.motion.regularizers import MotionLossConfig, frame_window, motion_losses
 from worldtree.motion.scaffold import Scaffold, SkinCache, densify
 from worldtree.optim import ConstantLR, GroupedAdam, gaussian_schedules
 from worldtree.render import rasterize
@@ -150,6 +150,10 @@ class PhotometricConfig:
     """Rasterizer backend."""
 
 
+PRESET_MOTION_WINDOW = 12
+"""Frames per step of the motion regularisers in the quick and paper presets (``motion_window``)."""
+
+
 def quick_photometric_config() -> PhotometricConfig:
     """CPU-friendly: 600 steps, cameras from step 300, density control (Gaussians and scaffold nodes) every 100
     steps between 100 and 450, motion regularisers on a 12-frame window per step."""
@@ -159,7 +163,7 @@ def quick_photometric_config() -> PhotometricConfig:
     return PhotometricConfig(
         steps=600,
         camera_start_step=300,
-        motion_window=12,
+        motion_window=PRESET_MOTION_WINDOW,
         node_densify_start=100,
         node_densify_stop=450,
         node_densify_every=100,
@@ -490,12 +494,7 @@ class PhotometricFit:
 
     def _motion_window(self, step: int) -> slice:
         """Frames the motion regularisers see at ``step`` (``motion_window``; a function of seed and step)."""
-        w = self.cfg.motion_window
-        if w <= 0 or w >= self.T:
-            return slice(None)
-        g = torch.Generator().manual_seed(self.seed * 1_000_003 + int(step))
-        a = int(torch.randint(0, self.T - w + 1, (1,), generator=g))
-        return slice(a, a + w)
+        return frame_window(self.T, self.cfg.motion_window, self.seed, step)
 
     # ------------------------------------------------------------------ Trainable
     def _next_frame(self) -> int:

@@ -294,3 +294,21 @@ def test_arap_shows_a_nan_position_in_its_value(compiled, monkeypatch):
     pos[2, 3, 1] = float("nan")
     coord, length = arap_loss(pos, quat.float(), graph)
     assert math.isnan(float(coord)) and math.isnan(float(length))
+
+
+
+def test_frame_window_is_seeded_sized_and_covers_the_video():
+    from worldtree.motion.regularizers import frame_window
+
+    assert frame_window(40, 0, 1, 5) == slice(None) and frame_window(40, 40, 1, 5) == slice(None)
+    assert frame_window(40, 100, 1, 5) == slice(None)
+    seen = torch.zeros(40)
+    for step in range(400):
+        w = frame_window(40, 12, 3, step)
+        assert w == frame_window(40, 12, 3, step)  # (seed, step) alone: a resumed fit repeats it
+        assert w.stop - w.start == 12 and 0 <= w.start and w.stop <= 40
+        seen[w] += 1
+    assert seen.min() > 0  # every frame, ends included, is drawn
+    # Middle frames are covered about 12/29 of the steps (29 possible starts); binomial sd is about 10.
+    assert abs(float(seen[14:26].mean()) - 400 * 12 / 29) < 40
+    assert any(frame_window(40, 12, 3, k) != frame_window(40, 12, 4, k) for k in range(10))  # the seed matters
