@@ -320,20 +320,23 @@ def test_deform_gradients_reach_every_parameter(device):
         assert x.grad is not None and torch.isfinite(x.grad).all() and bool((x.grad != 0).any())
 
 
-def test_scalar_target_table_path_has_the_per_gaussian_gradients(device):
-    # One target frame uses the per-node dual-quaternion table (converted once, gathered per neighbour); a
-    # per-Gaussian target vector composes every (Gaussian, neighbour) transform itself: same values, same
-    # gradients for every parameter.
-    T, N = 6, 80
+@pytest.mark.parametrize("T, n_gauss", [(6, 80), (40, 12)], ids=["every-frame-node", "used-pairs"])
+def test_scalar_target_table_path_has_the_per_gaussian_gradients(device, T, n_gauss):
+    # One target frame uses a dual-quaternion table of node motions (converted once, gathered per neighbour):
+    # over every (frame, node) when that is smaller than the Gaussians' (Gaussian, neighbour) pairs, else over
+    # the distinct pairs they use. A per-Gaussian target vector composes every (Gaussian, neighbour) transform
+    # itself: same values, same gradients for every parameter, either way.
+    N = 80
     traj, _ = rigid_scene(T, N, seed=21, device=device)
     g = torch.Generator().manual_seed(2)
     traj = traj + 0.003 * torch.randn(T, N, 3, generator=g, dtype=f64).to(device)
     scf = build_scaffold(traj, torch.ones(T, N, dtype=torch.bool, device=device), SCALE)
-    t_ref = torch.randint(0, T, (N,), generator=g).to(device)
-    pts = traj[t_ref, torch.arange(N, device=device)] + 0.01
-    rot = Q.normalize(torch.randn(N, 4, generator=g, dtype=f64)).to(device)
+    t_ref = torch.randint(0, T, (n_gauss,), generator=g).to(device)
+    pts = traj[t_ref, torch.arange(n_gauss, device=device)] + 0.01
+    rot = Q.normalize(torch.randn(n_gauss, 4, generator=g, dtype=f64)).to(device)
     cache = scf.attach(pts, t_ref)
-    assert scf.T * scf.M < cache.idx.numel()  # the table path is taken for a scalar target
+    assert (scf.T * scf.M < cache.idx.numel()) == (n_gauss == N)  # which table the scalar target builds
+    N = n_gauss
     wp = torch.randn(N, 3, generator=g, dtype=f64).to(device)
     wq = torch.randn(N, 4, generator=g, dtype=f64).to(device)
     grads = []
