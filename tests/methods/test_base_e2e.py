@@ -104,7 +104,8 @@ def test_presets_and_config_fields():
     assert dataclasses.replace(off, ablate=("ba",)) == off
 
 
-def test_second_fit_resumes_from_the_checkpoints(tiny_scene, tmp_path):
+def test_second_fit_resumes_from_the_checkpoints(tiny_scene, tmp_path, monkeypatch):
+    import methods.base as base_module
     from methods.base import STAGE_LEDGER, BaseMethod, smoke_config
     from worldtree.checkpoint import seed_everything
     from worldtree.infra.device import pick_device
@@ -117,10 +118,17 @@ def test_second_fit_resumes_from_the_checkpoints(tiny_scene, tmp_path):
     first = BaseMethod(smoke_config(), scene, pick_device("cpu"))
     s1 = first.fit(ctx)
     img1 = first.render(scene.test_K, scene.test_w2c, scene.width, scene.height, 2, test_view=True)
-    assert (tmp_path / "ckpt" / "ba.pt").is_file()
+    assert (tmp_path / "ckpt" / "ba.pt").is_file() and (tmp_path / "ckpt" / "scaffold.pt").is_file()
+    assert first.state.scaffold.M > 0
+
+    def no_refit(*args, **kwargs):
+        raise AssertionError("the resumed run fitted the scaffold again instead of reading scaffold.pt")
+
+    monkeypatch.setattr(base_module, "fit_scaffold", no_refit)
     seed_everything(0)
     second = BaseMethod(smoke_config(), scene, pick_device("cpu"))
     s2 = second.fit(ctx)
+    assert second.state.info["scaffold_fit"] == first.state.info["scaffold_fit"]
     assert (s1.start_step, s1.end_step) == (0, 20) and (s2.start_step, s2.end_step) == (20, 20)
     torch.testing.assert_close(second.state.fit.cameras(), first.state.fit.cameras())
     img2 = second.render(scene.test_K, scene.test_w2c, scene.width, scene.height, 2, test_view=True)
