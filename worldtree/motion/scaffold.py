@@ -545,7 +545,7 @@ class Scaffold(nn.Module):
             # quaternions, then gather, instead of composing and converting a transform per (Gaussian,
             # neighbour); the same per-entry arithmetic, and one compiled skinning pass. The table covers every
             # (frame, node) when that is the smaller set, else only the pairs the Gaussians use (a long video
-            # with many nodes: 160 x 3,459 entries against 30,000 x 8 pairs). Neighbour values are gathered
+            # with many nodes: 160 x 3,459 entries against 30,000 x 16 pairs). Neighbour values are gathered
             # component-major ([C, N, K]).
             ti = int(t)
             pos, quat, frame, table_idx = self.pos, self.quat, t_ref, idx

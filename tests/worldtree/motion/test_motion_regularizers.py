@@ -296,7 +296,6 @@ def test_arap_shows_a_nan_position_in_its_value(compiled, monkeypatch):
     assert math.isnan(float(coord)) and math.isnan(float(length))
 
 
-
 def test_frame_window_is_seeded_sized_and_covers_the_video():
     from worldtree.motion.regularizers import frame_window
 
