@@ -48,6 +48,7 @@ from worldtree.gaussian_frame import GaussianFrame, RenderMode, render_frame
 from worldtree.gaussians import GaussianSet
 from worldtree.infra.atomic import atomic_write_bytes, atomic_write_json
 from worldtree.infra.errors import SettingError, UserError
+from worldtree.infra.heap import release_freed_memory
 from worldtree.infra.timing import StageClock
 from worldtree.infra.torchfile import load_torch, save_torch
 from worldtree.motion.lift import lift_tracks, sample_depth
@@ -658,6 +659,8 @@ def stage_photometric(s: BaseState) -> None:
         stop=s.stop,
     )
     s.summary = trainer.fit(resume=s.ctx.resume)
+    fit.ssim_targets.clear()  # training is over; the tree's workers and the test pose do not use them
+    release_freed_memory()
     rec = s.info["adaptive"]
     rec["steps_max"], rec["steps_taken"] = c.steps, s.summary.end_step
     if s.stop is not None:

@@ -120,6 +120,7 @@ def test_second_fit_resumes_from_the_checkpoints(tiny_scene, tmp_path, monkeypat
     img1 = first.render(scene.test_K, scene.test_w2c, scene.width, scene.height, 2, test_view=True)
     assert (tmp_path / "ckpt" / "ba.pt").is_file() and (tmp_path / "ckpt" / "scaffold.pt").is_file()
     assert first.state.scaffold.M > 0
+    assert len(first.state.fit.ssim_targets) == 0  # the finished fit keeps no per-frame SSIM statistics
 
     def no_refit(*args, **kwargs):
         raise AssertionError("the resumed run fitted the scaffold again instead of reading scaffold.pt")

@@ -101,3 +101,10 @@ def test_frame_targets_are_computed_once_and_checked():
         ssim(torch.rand(16, 17, 3), cache[0])
     with pytest.raises(ValueError):
         ssim_target(torch.rand(10, 30, 3))
+    kept = cache[2]
+    assert len(cache) == 3
+    cache.clear()  # dropped, then recomputed alike on the next use
+    assert len(cache) == 0
+    again = cache[2]
+    assert again is not kept and len(cache) == 1
+    torch.testing.assert_close(again.mu, ssim_target(frames[2]).mu, rtol=0, atol=0)
