@@ -28,6 +28,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from worldtree.stages.cameras import project_points
+
 __all__ = ["frame_depth_errors", "measure_run", "summarise"]
 
 
@@ -40,13 +42,10 @@ def frame_depth_errors(
     ``log(z / z_true)`` and of its absolute value; NaN when nothing lands inside), ``n`` and ``inside`` (the
     share of the Gaussians in front of the camera and on the image that land inside the mask)."""
     H, W = depth.shape
-    p = means.double() @ w2c[:3, :3].double().T + w2c[:3, 3].double()
-    z = p[:, 2]
-    front = z > 1e-9
-    uv = (p[front, :2] / z[front, None]) @ K[:2, :2].double().T + K[:2, 2].double()
+    uv, z = project_points(means.double(), K.double(), w2c.double())
     u, v = uv[:, 0].round().long(), uv[:, 1].round().long()
-    on = (u >= 0) & (u < W) & (v >= 0) & (v < H)
-    u, v, zs = u[on].numpy(), v[on].numpy(), z[front][on].numpy() / max(float(scale), 1e-12)
+    on = (z > 1e-6) & (u >= 0) & (u < W) & (v >= 0) & (v < H)
+    u, v, zs = u[on].numpy(), v[on].numpy(), z[on].numpy() / max(float(scale), 1e-12)
     inside = mask[v, u] & (depth[v, u] > 0)
     nan = float("nan")
     if not inside.any():
