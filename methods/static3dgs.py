@@ -28,6 +28,7 @@ from worldtree.infra.atomic import atomic_write_json
 from worldtree.infra.errors import UserError
 from worldtree.losses import photometric_loss
 from worldtree.optim import ConstantLR, GroupedAdam, gaussian_schedules
+from worldtree.pixels import unit_float
 from worldtree.render import rasterize
 from worldtree.scene import Scene
 from worldtree.stages.cameras import Sim3
@@ -234,7 +235,7 @@ class StaticGaussians(DensifiedGaussianTrainable):
         i = self._next_frame()
         s = self.scene
         out = self._render(s.Ks[i], s.w2cs[i], s.width, s.height, self.centres[i], step)
-        loss, parts = photometric_loss(out.rgb, s.images[i], self.cfg.lambda_dssim)
+        loss, parts = photometric_loss(out.rgb, unit_float(s.images[i]), self.cfg.lambda_dssim)
         self.cfg.strategy.step_pre_backward(self.gaussians, self.optimizer, self.strategy_state, step, out)
         return StepOutput(loss=loss, scalars=parts, info=out)
 
@@ -282,7 +283,7 @@ class StaticGaussians(DensifiedGaussianTrainable):
     def _mean_error(self) -> float:
         """Mean L1 of the current model over every training frame (colour units)."""
         s = self.scene
-        errs = [float((self._render(s.Ks[i], s.w2cs[i], s.width, s.height, self.centres[i]).rgb - s.images[i])
+        errs = [float((self._render(s.Ks[i], s.w2cs[i], s.width, s.height, self.centres[i]).rgb - unit_float(s.images[i]))
                       .abs().mean()) for i in range(s.num_frames)]  # fmt: skip
         e = float(np.mean(errs))
         return e if np.isfinite(e) else float("inf")

@@ -62,6 +62,7 @@ from worldtree.infra.config_json import read_config, write_config
 from worldtree.infra.errors import SettingError, UserError
 from worldtree.infra.torchfile import save_torch
 from worldtree.optim import GroupedAdam, ScaledLR
+from worldtree.pixels import unit_float
 from worldtree.plateau import PlateauRule
 from worldtree.render import rasterize
 from worldtree.stages.photometric import PhotometricConfig, PhotometricFit, anchored_depth_l1
@@ -584,7 +585,7 @@ def _validate(fit: NodeFit, parent_at, hold: list[int], hcfg: HoldoutConfig, rec
             g = fit.t0 + i
             pmid = parent_at(g)
             parent.append(fit.render_frame(i, halfway(parent_at(g - 1), parent_at(g + 1), pmid[3])))
-    target = [fit.images[i] for i in hold]
+    target = [unit_float(fit.images[i]) for i in hold]
     verdict = keep_child(child, parent, target, hold, hcfg.margin)
     atomic_write_json(record, {**verdict.to_dict(), "end_step": summary.end_step})
     return verdict, summary.end_step

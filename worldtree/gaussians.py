@@ -27,6 +27,7 @@ from torch import nn
 from worldtree.infra.atomic import atomic_write_bytes
 from worldtree.infra.errors import UserError
 from worldtree.infra.torchfile import load_torch, save_torch
+from worldtree.pixels import unit_float
 
 # Degree-0 real spherical harmonic, 1 / (2 sqrt(pi)); the PLY files of 3DGS viewers use this convention.
 SH_C0 = 0.28209479177387814
@@ -237,7 +238,7 @@ class GaussianSet(nn.Module):
         if images is not None:
             px = u.long().clamp(0, width - 1)
             py = v.long().clamp(0, height - 1)
-            colors = images.detach().to(cpu)[frame, py, px].float()
+            colors = unit_float(images.detach().to(cpu)[frame, py, px])
         else:
             colors = None
         dev = Ks.device

@@ -17,6 +17,8 @@ from dataclasses import dataclass
 import torch
 import torch.nn.functional as F
 
+from worldtree.pixels import unit_float
+
 SSIM_WINDOW = 11
 """Side of the training SSIM window (pixels); training images must be at least this large."""
 
@@ -86,7 +88,7 @@ class SsimTargets:
     def __getitem__(self, i: int) -> SsimTarget:
         i = int(i)
         if i not in self._done:
-            self._done[i] = ssim_target(self.images[i], self.window_size, self.sigma)
+            self._done[i] = ssim_target(unit_float(self.images[i]), self.window_size, self.sigma)
         return self._done[i]
 
     def __len__(self) -> int:

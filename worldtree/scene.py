@@ -20,7 +20,8 @@ from worldtree.scene_schema import read_cameras, resolve_inside
 
 @dataclass
 class Scene:
-    """A loaded scene. Images are float32 in [0, 1]; poses are OpenCV world-to-camera.
+    """A loaded scene. Images are ``uint8`` as read (:mod:`worldtree.pixels`: :func:`~worldtree.pixels.unit_float`
+    gives float32 in [0, 1]; a hand-made scene may hold float images instead); poses are OpenCV world-to-camera.
 
     Attributes:
         name: scene folder name.
@@ -140,7 +141,8 @@ def load_scene(root: str | Path, downscale: int = 1, load_masks: bool = True) ->
         return torch.from_numpy(np.ascontiguousarray(np.asarray(a), dtype=np.float32))
 
     def stack_images(lst: list[np.ndarray]) -> torch.Tensor:
-        return torch.from_numpy(np.stack(lst)).float().div_(255.0) if lst else torch.zeros(0, 1, 1, 3)
+        # Held as read (worldtree.pixels): a quarter of float32's memory; consumers convert per frame.
+        return torch.from_numpy(np.stack(lst)) if lst else torch.zeros(0, 1, 1, 3, dtype=torch.uint8)
 
     return Scene(
         name=root.name,

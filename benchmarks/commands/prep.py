@@ -140,9 +140,9 @@ def _run(scene_dir, depth, depth_kind, depth_fit, depth_png_scale, tracks, flow,
     )
     console.print(f"cache: {cache_dir}")
     if preview:
-        import numpy as np
+        from worldtree.pixels import as_uint8
 
-        imgs = np.clip(np.round(sc.images.numpy() * 255), 0, 255).astype(np.uint8)
+        imgs = as_uint8(sc.images).numpy()
         files = write_previews(pri, imgs, Path(cache_dir) / "preview", threshold=epi_threshold)
         console.print(
             f"previews: {len(files)} PNGs in {Path(cache_dir) / 'preview'} (sheet.png is the overview)"

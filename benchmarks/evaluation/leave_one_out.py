@@ -56,6 +56,7 @@ from worldtree.infra.atomic import atomic_write_json
 from worldtree.infra.cli_runner import Terminated, signals_raise, stop_report
 from worldtree.infra.device import pick_device
 from worldtree.infra.errors import UserError
+from worldtree.pixels import as_uint8
 from worldtree.scene import Scene, load_scene
 
 
@@ -120,7 +121,7 @@ def score(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray | None = None) -> f
 
 def _to_u8(img: torch.Tensor) -> np.ndarray:
     """``[H, W, 3]`` in [0, 1] -> uint8, rounded: every score is on the 8-bit images, as written to disk."""
-    return np.clip(np.round(img.detach().cpu().numpy() * 255.0), 0, 255).astype(np.uint8)
+    return as_uint8(img.detach().cpu()).numpy()
 
 
 def run_one(

@@ -26,6 +26,7 @@ import torch
 
 from worldtree.imageio import read_image, read_mask
 from worldtree.infra.errors import UserError
+from worldtree.pixels import as_uint8
 from worldtree.render import rasterize
 from worldtree.scene import load_scene
 from worldtree.tree.node import NodeState
@@ -53,7 +54,7 @@ def _node_train_psnr(st: NodeState, scene, backend: str) -> list[float]:
             img = rasterize(m, q, ls, o, c, scene.Ks[g].float(), st.w2cs[g - st.interval.start].float(), W, H,
                             backend=backend).rgb  # fmt: skip
             pred = (img.clamp(0, 1) * 255).round().to(torch.uint8).numpy()
-            gt = (scene.images[g].clamp(0, 1) * 255).round().to(torch.uint8).numpy()
+            gt = as_uint8(scene.images[g]).numpy()
             out.append(_psnr(pred, gt))
     return out
 

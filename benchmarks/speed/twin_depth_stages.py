@@ -99,6 +99,7 @@ def main(argv: list[str] | None = None) -> None:
 
     from benchmarks.api import load_run
     from benchmarks.speed.twin_score import Truth, erode, render_depth
+    from worldtree.pixels import unit_float
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("run", type=Path)
@@ -135,7 +136,7 @@ def main(argv: list[str] | None = None) -> None:
         on_px[vi[on], ui[on]] = True
         rows.append({"frame": t, "prior": med(prior[t], P), "scaffold": med(sd, P), "tracks": med(sd, on_px),
                      "n_tracks": int(on.sum()), "model": med(d_m, P)})  # fmt: skip
-        pics[t] = (scene.images[t].numpy(), d_gt, prior[t], sd, d_m, ids == a.object)
+        pics[t] = (unit_float(scene.images[t]).numpy(), d_gt, prior[t], sd, d_m, ids == a.object)
     # Smoothness of the object's exact tracks against a global depth scale k.
     z = np.load(a.scene / "gt_priors" / "tracks.npz")
     full_w = int(z["image_size"][0])

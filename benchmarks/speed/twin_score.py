@@ -38,6 +38,7 @@ import numpy as np
 import torch
 
 from worldtree.gaussian_frame import GaussianFrame
+from worldtree.pixels import as_uint8
 
 
 # ------------------------------------------------------------------------------------------------ geometry
@@ -228,7 +229,7 @@ def score_run(run: Path, raw: Path, scene_dir: Path, object_id: int = 1, erode_p
             if pred_path.is_file():
                 _, ids_test = truth.view(tc, tau, Wf, Hf)
                 pred = read_image(pred_path)
-                gt = (full.test_images[k].clamp(0, 1) * 255).round().to(torch.uint8).numpy()
+                gt = as_uint8(full.test_images[k]).numpy()
                 row["mpsnr"] = masked_psnr(pred, gt, ids_test == object_id)
                 row["psnr"] = masked_psnr(pred, gt)
         rows.append(row)

@@ -8,6 +8,7 @@ from methods.plugin import Grid, GridPoint, MethodOption
 from methods.registry import CommonConfig, MethodSpec, register_method
 from methods.stages import Stage, run_stages
 from worldtree.infra.timing import StageClock
+from worldtree.pixels import unit_float
 
 
 @dataclass
@@ -24,7 +25,7 @@ class FrameCopyState:
 
 
 def stage_copy(state: FrameCopyState) -> None:
-    state.frames = state.scene.images.clone()
+    state.frames = unit_float(state.scene.images)  # the scene holds its frames as uint8
 
 
 STAGES = (Stage("copy", stage_copy),)

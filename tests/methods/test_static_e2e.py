@@ -11,6 +11,7 @@ from skimage.metrics import peak_signal_noise_ratio
 
 from methods.static3dgs import StaticConfig, StaticGaussians, scene_extent
 from worldtree.checkpoint import seed_everything
+from worldtree.pixels import unit_float
 from worldtree.scene import load_scene
 from worldtree.strategy import DensifyStrategy
 from worldtree.trainer import TrainContext
@@ -38,8 +39,8 @@ def test_static_psnr_well_above_mean_colour(tiny_scene):
     assert summary.end_step == 250 and np.isfinite(summary.final_loss)
     assert len(model.gaussians) != n0, "density control should have changed the set"
     img = model.render(scene.test_K, scene.test_w2c, scene.width, scene.height, time=0).numpy()
-    mean_img = np.broadcast_to(scene.images.numpy().mean(axis=(0, 1, 2)), img.shape)
-    gts = scene.test_images.numpy()
+    mean_img = np.broadcast_to(unit_float(scene.images).numpy().mean(axis=(0, 1, 2)), img.shape)
+    gts = unit_float(scene.test_images).numpy()
     p_model = np.mean([peak_signal_noise_ratio(g, img, data_range=1.0) for g in gts])
     p_mean = np.mean([peak_signal_noise_ratio(g, mean_img, data_range=1.0) for g in gts])
     assert p_model > p_mean + 4.0, (p_model, p_mean)
@@ -84,8 +85,8 @@ def test_static_budget_and_early_stop(tiny_scene):
         )
     assert bool((contrib >= 1.0 - 1e-3).all())
     img = model.render(scene.test_K, scene.test_w2c, scene.width, scene.height, time=0).numpy()
-    mean_img = np.broadcast_to(scene.images.numpy().mean(axis=(0, 1, 2)), img.shape)
-    gts = scene.test_images.numpy()
+    mean_img = np.broadcast_to(unit_float(scene.images).numpy().mean(axis=(0, 1, 2)), img.shape)
+    gts = unit_float(scene.test_images).numpy()
     p_model = np.mean([peak_signal_noise_ratio(g, img, data_range=1.0) for g in gts])
     p_mean = np.mean([peak_signal_noise_ratio(g, mean_img, data_range=1.0) for g in gts])
     assert p_model > p_mean + 4.0, (p_model, p_mean)

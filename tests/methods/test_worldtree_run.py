@@ -425,8 +425,9 @@ def test_node_with_holdout_never_trains_on_its_held_out_frames_and_judges_them(r
         with torch.no_grad():
             rc = rasterize(*c, ctx["Ks"][g], child.w2cs[i], W, H).rgb.clamp(0, 1)
             rp = rasterize(*p, ctx["Ks"][g], child.w2cs[i], W, H).rgb.clamp(0, 1)
-        l1c.append(float((rc - ctx["images"][g]).abs().mean()))
-        l1p.append(float((rp - ctx["images"][g]).abs().mean()))
+        target = ctx["images"][g].float() / 255.0  # the context holds the frames as uint8
+        l1c.append(float((rc - target).abs().mean()))
+        l1p.append(float((rp - target).abs().mean()))
     assert v["child_l1"] == pytest.approx(np.mean(l1c), rel=1e-4)
     assert v["parent_l1"] == pytest.approx(np.mean(l1p), rel=1e-4)
     assert v["keep"] == (np.mean(l1c) < np.mean(l1p))

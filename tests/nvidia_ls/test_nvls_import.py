@@ -10,6 +10,7 @@ import sys
 
 import numpy as np
 import pytest
+import torch
 
 from benchmarks.fixtures.planar_scene import PlanarScene, PlanarSceneConfig
 from nvidia_ls.importer import ImportConfig, import_scene, run_args
@@ -42,12 +43,13 @@ def imported(exported, tmp_path_factory):
 def test_frames_cameras_and_test_views_round_trip(exported, imported):
     _, gt = exported
     sc = load_scene(imported)
-    np.testing.assert_array_equal(np.round(sc.images.numpy() * 255).astype(np.uint8), gt["rgb"])
+    assert sc.images.dtype == torch.uint8 and sc.test_images.dtype == torch.uint8  # held as read
+    np.testing.assert_array_equal(sc.images.numpy(), gt["rgb"])
     np.testing.assert_allclose(sc.Ks.numpy(), gt["Ks"], rtol=1e-6, atol=1e-4)
     np.testing.assert_allclose(sc.w2cs.numpy(), gt["w2cs"], atol=1e-5)
     # The 12-frame protocol: the test view is frame 0's camera at every time.
     np.testing.assert_allclose(sc.test_w2c.numpy(), gt["w2cs"][0], atol=1e-5)
-    np.testing.assert_array_equal(np.round(sc.test_images.numpy() * 255).astype(np.uint8), gt["test"])
+    np.testing.assert_array_equal(sc.test_images.numpy(), gt["test"])
     assert sc.test_times.tolist() == list(range(T))
     assert verify_scene(imported) == []
 
@@ -243,7 +245,7 @@ def test_clip_without_poses(exported, tmp_path):
         import_scene(clip, tmp_path / "o", ImportConfig())
     out = import_scene(clip, tmp_path / "o", ImportConfig(no_poses=True), log=lambda m: None)
     sc = load_scene(out)
-    np.testing.assert_array_equal(np.round(sc.images.numpy() * 255).astype(np.uint8), gt["rgb"])
+    np.testing.assert_array_equal(sc.images.numpy(), gt["rgb"])
     np.testing.assert_allclose(sc.w2cs.numpy(), np.tile(np.eye(4), (T, 1, 1)), atol=1e-9)
     np.testing.assert_allclose(sc.Ks[0, 0, 0].item(), 1.2 * CFG.width, rtol=1e-6)
     assert json.loads((out / "manifest.json").read_text())["poses"]["method"] == "none"

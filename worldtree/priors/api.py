@@ -15,6 +15,7 @@ from worldtree.infra.atomic import atomic_write_json
 from worldtree.infra.errors import UserError
 from worldtree.infra.hashing import sha256_file
 from worldtree.infra.parallel import ordered_map, resolve_threads
+from worldtree.pixels import as_uint8
 from worldtree.priors import depth as depth_mod
 from worldtree.priors import (
     depth_scale,
@@ -106,8 +107,7 @@ class Priors:
 
 
 def _scene_arrays(scene) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    imgs = scene.images.detach().cpu().numpy()
-    imgs_u8 = np.clip(np.round(imgs * 255.0), 0, 255).astype(np.uint8)
+    imgs_u8 = as_uint8(scene.images.detach().cpu()).numpy()
     return imgs_u8, scene.Ks.detach().cpu().double().numpy(), scene.w2cs.detach().cpu().double().numpy()
 
 

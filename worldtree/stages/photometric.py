@@ -44,6 +44,7 @@ from worldtree.losses import SsimTargets, ssim
 from worldtree.motion.regularizers import MotionLossConfig, frame_window, motion_losses
 from worldtree.motion.scaffold import Scaffold, SkinCache, densify
 from worldtree.optim import ConstantLR, GroupedAdam, gaussian_schedules
+from worldtree.pixels import unit_float
 from worldtree.render import rasterize
 from worldtree.stages import set_migration as mig
 from worldtree.stages.cameras import apply_delta, project_points
@@ -446,7 +447,7 @@ class PhotometricFit:
             return None
         H, W = self.images.shape[1:3]
         out = rasterize(*carried, self.Ks[j], self.camera(j).detach(), W, H, backend=self.cfg.backend)
-        loss = (out.rgb - self.images[j]).abs().mean()
+        loss = (out.rgb - unit_float(self.images[j])).abs().mean()
         if self.cfg.lambda_dssim > 0:
             loss = loss + self.cfg.lambda_dssim * (1.0 - ssim(out.rgb, self.ssim_targets[j]))
         return loss
@@ -456,7 +457,7 @@ class PhotometricFit:
         H, W = self.images.shape[1:3]
         frame = self.gaussians_at(i)  # shared by the RGB render and the track loss's render of frame i
         out = self.render(self.Ks[i], self.camera(i), W, H, i, gaussians=frame)
-        l1 = (out.rgb - self.images[i]).abs().mean()
+        l1 = (out.rgb - unit_float(self.images[i])).abs().mean()
         loss = l1
         parts = {"l1": float(l1.detach())}
         if c.lambda_dssim > 0:
@@ -540,7 +541,7 @@ class PhotometricFit:
         """``[T, H, W]`` per-pixel L1 photometric residual (mean over colour channels) of every frame."""
         H, W = self.images.shape[1:3]
         out = [
-            (self.render(self.Ks[i], self.camera(i), W, H, i).rgb - self.images[i]).abs().mean(-1)
+            (self.render(self.Ks[i], self.camera(i), W, H, i).rgb - unit_float(self.images[i])).abs().mean(-1)
             for i in range(self.T)
         ]
         return torch.stack(out)
@@ -648,7 +649,7 @@ class PhotometricFit:
             m, q, ls, o, col = self.gaussians_at(t, cache)
             w2c = self.camera(t)
             out = rasterize(m, q, ls, o, col, self.Ks[t], w2c, W, H, backend=c.backend)
-            r = mig.residual_map(out.rgb, self.images[t])
+            r = mig.residual_map(out.rgb, unit_float(self.images[t]))
             front = mig.in_front(m, self.Ks[t], w2c, out.depth, out.alpha)
             acc_s.add(r, out.means2d[:n_s], out.radii[:n_s], t, front[:n_s])
             acc_d.add(r, out.means2d[n_s:], out.radii[n_s:], t, front[n_s:])

@@ -28,6 +28,7 @@ from worldtree.infra.config_ranges import in_range
 from worldtree.infra.errors import UserError
 from worldtree.losses import SsimTargets, ssim_map
 from worldtree.optim import GroupedAdam, gaussian_schedules
+from worldtree.pixels import unit_float
 from worldtree.render import rasterize
 from worldtree.stages.cameras import project_points
 from worldtree.strategy import DensifyStrategy
@@ -149,7 +150,7 @@ def lift_pixels(
         cam = torch.stack([x, y, zz], -1)
         R, tr = w2cs[t, :3, :3].to(depth.dtype), w2cs[t, :3, 3].to(depth.dtype)
         pts.append((cam - tr) @ R)
-        cols.append(images[t, v[ok], u[ok]])
+        cols.append(unit_float(images[t, v[ok], u[ok]]))
         frames.append(torch.full((int(ok.sum()),), t, dtype=torch.long, device=depth.device))
     if not pts:
         z3 = depth.new_zeros((0, 3))
@@ -261,7 +262,7 @@ class StaticWarmup(DensifiedGaussianTrainable):
         """Masked loss of render ``out`` against frame ``i`` (see the module docstring)."""
         c = self.cfg
         w = self.static[i]
-        err = (out.rgb - self.images[i]).abs().mean(-1)
+        err = (out.rgb - unit_float(self.images[i])).abs().mean(-1)
         l1 = (err * w).sum() / w.sum().clamp_min(1.0)
         loss = (1.0 - c.lambda_dssim) * l1
         parts = {"l1": float(l1.detach())}

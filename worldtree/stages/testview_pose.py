@@ -26,6 +26,7 @@ import torch
 from worldtree.infra import stop_request
 from worldtree.motion import se3
 from worldtree.optim import ExponentialLR
+from worldtree.pixels import unit_float
 from worldtree.render import rasterize
 from worldtree.stages.cameras import Sim3, apply_delta, centres
 
@@ -313,7 +314,7 @@ def refine_test_poses(
     current = w2c_init.detach().clone()
     out_w2cs, before, after, steps_used = [], [], [], []
     for k, time in enumerate(times):
-        target = images[k].to(current)
+        target = unit_float(images[k]).to(current)
         n_steps = cfg.first_steps if k == 0 else cfg.next_steps
         with torch.no_grad():
             out = render_fn(int(time), current)
