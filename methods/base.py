@@ -55,7 +55,6 @@ from worldtree.motion.lift import lift_tracks, sample_depth
 from worldtree.motion.scaffold import Scaffold, ScaffoldConfig, SkinCache, build_scaffold
 from worldtree.motion.track_completion import complete_trajectories
 from worldtree.motion.track_depth import ratio_map, smooth_trajectory_depths
-from worldtree.pixels import unit_float
 from worldtree.plateau import PlateauDetector
 from worldtree.priors import Priors, PriorsConfig, compute_priors
 from worldtree.priors.api import add_chained_tracks
@@ -485,7 +484,7 @@ def stage_motion(s: BaseState) -> None:
     ).cpu().numpy()  # fmt: skip
     before = pri.epi_mask
     fused = refine_with_residual(
-        pri.motion_evidence, unit_float(sc.images).cpu().numpy(), renders, pri.flow, before, pc.motion, pc.epi
+        pri.motion_evidence, sc.images.cpu().numpy(), renders, pri.flow, before, pc.motion, pc.epi
     )
     mask = fused.mask
     n_lk = pri.tracks.shape[1] - pri.num_chained_tracks
@@ -494,7 +493,7 @@ def stage_motion(s: BaseState) -> None:
     links: dict[str, int] = {}
     depth = s.depth.cpu().numpy() if pri.depth_metric else None
     xy, vis, dyn, n_ch, pieces = add_chained_tracks(
-        xy, vis, dyn, pri.flow, mask, pc, unit_float(sc.images).cpu().numpy(), depth, sc.Ks.cpu().numpy(),
+        xy, vis, dyn, pri.flow, mask, pc, sc.images.cpu().numpy(), depth, sc.Ks.cpu().numpy(),
         s.w2cs.cpu().numpy(), links,
     )  # fmt: skip
     s.info["motion_refine"] = {

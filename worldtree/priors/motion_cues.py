@@ -46,10 +46,16 @@ def _blur(x: np.ndarray, sigma: float) -> np.ndarray:
     return cv2.GaussianBlur(x.astype(np.float32), (0, 0), sigma)
 
 
+def _unit(image: np.ndarray) -> np.ndarray:
+    a = np.asarray(image)
+    return a.astype(np.float32) / np.float32(255.0) if a.dtype == np.uint8 else np.asarray(a, np.float32)
+
+
 def residual_map(image: np.ndarray, render: np.ndarray, blur_px: float = 1.0) -> np.ndarray:
     """Mean absolute colour difference ``[H, W]`` (image units) of ``image`` and ``render`` ``[H, W, 3]`` in
-    [0, 1], Gaussian-blurred by ``blur_px`` (a single noisy pixel is not an object)."""
-    d = np.abs(np.asarray(image, np.float32) - np.asarray(render, np.float32)).mean(-1)
+    [0, 1] (either may be ``uint8``, read as ``v / 255``: frames are held as read, one converted at a time),
+    Gaussian-blurred by ``blur_px`` (a single noisy pixel is not an object)."""
+    d = np.abs(_unit(image) - _unit(render)).mean(-1)
     return _blur(d, blur_px)
 
 

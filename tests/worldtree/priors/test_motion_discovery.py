@@ -287,3 +287,17 @@ def test_chained_step_on_a_texture_too_faint_to_compare_is_kept_with_a_texture_f
     assert floor.num_tracks > 0 and floor.visible[5].all()
     # Strict: most points stop (those at the square's edge keep the edge's look and may pass).
     assert strict.visible[5].mean() < 0.5
+
+
+def test_residual_map_reads_uint8_frames_as_v_over_255():
+    """Frames are held as uint8 (worldtree.pixels): the static-model residual must read them as v / 255,
+    exactly as the float frames they replace."""
+    from worldtree.priors.motion_cues import residual_map
+
+    rng = np.random.default_rng(0)
+    u8 = rng.integers(0, 256, (12, 16, 3), dtype=np.uint8)
+    render = rng.random((12, 16, 3), dtype=np.float32)
+    as_float = u8.astype(np.float32) / np.float32(255.0)
+    np.testing.assert_array_equal(residual_map(u8, render), residual_map(as_float, render))
+    expected = np.abs(as_float - render).mean(-1)  # unblurred: the plain mean absolute difference
+    np.testing.assert_allclose(residual_map(u8, render, blur_px=0), expected, rtol=0, atol=1e-7)
