@@ -13,7 +13,9 @@ def test_unit_float_divides_uint8_by_255_and_keeps_float():
     u8 = torch.arange(256, dtype=torch.uint8).reshape(4, 8, 8)
     f = unit_float(u8)
     assert f.dtype == torch.float32
-    np.testing.assert_array_equal(f.numpy(), np.arange(256, dtype=np.float32).reshape(4, 8, 8) / np.float32(255))
+    np.testing.assert_array_equal(
+        f.numpy(), np.arange(256, dtype=np.float32).reshape(4, 8, 8) / np.float32(255)
+    )
     x = torch.rand(3, 2, 2, 3)
     assert unit_float(x) is x  # float input: unchanged, no copy
     assert u8[-1, -1, -1] == 255  # the uint8 input is not modified in place
@@ -34,4 +36,3 @@ def test_as_uint8_clamps_and_rounds():
 def test_unit_float_refuses_other_integer_types():
     with pytest.raises(TypeError, match="uint8"):
         unit_float(torch.zeros(2, dtype=torch.int64))
-

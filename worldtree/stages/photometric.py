@@ -276,7 +276,8 @@ class PhotometricFit:
 
     Args:
         cfg: settings.
-        images: [T, H, W, 3] in [0, 1]. depth: [T, H, W] depth prior. Ks: [T, 3, 3]. w2cs: [T, 4, 4] start.
+        images: [T, H, W, 3], uint8 or float in [0, 1] (:mod:`worldtree.pixels`).
+        depth: [T, H, W] depth prior. Ks: [T, 3, 3]. w2cs: [T, 4, 4] start.
         static: background Gaussians (e.g. from the static warm-up). dynamic: dynamic Gaussians.
         scaffold: motion scaffold over the T frames.
         tracks: [T, N, 2] dynamic tracks (pixels) and ``track_vis`` [T, N] bool, or None (no track loss).

@@ -207,7 +207,8 @@ class StaticWarmup(DensifiedGaussianTrainable):
 
     Args:
         cfg: settings.
-        images: [T, H, W, 3] training frames in [0, 1]. dynamic: [T, H, W] bool dynamic masks.
+        images: [T, H, W, 3] training frames, uint8 or float in [0, 1] (:mod:`worldtree.pixels`).
+        dynamic: [T, H, W] bool dynamic masks.
         depth: [T, H, W] depth prior (scene units, after BA scaling). Ks: [T, 3, 3]. w2cs: [T, 4, 4] (fixed).
         extent: scene extent (world units) for the learning rate and density thresholds.
         seed: seed of the frame order and of the initial subset.

@@ -293,7 +293,7 @@ def refine_test_poses(
     Args:
         render_fn: ``render_fn(time, w2c)`` -> render with ``.rgb`` [H, W, 3] and ``.alpha`` [H, W].
         w2c_init: [4, 4] starting pose of the first frame (typically the placed test pose).
-        images: [F, H, W, 3] test images in [0, 1], at the render size.
+        images: [F, H, W, 3] test images, uint8 or float in [0, 1] (:mod:`worldtree.pixels`), at the render size.
         times: F time indices (frame k is rendered at ``times[k]``).
         cfg: schedule (default :class:`PoseRefineConfig`).
         w2c_candidates: [F, 4, 4] another starting pose per frame (the camera placed at that frame's time,
