@@ -53,7 +53,7 @@ def _node_train_psnr(st: NodeState, scene, backend: str) -> list[float]:
             m, q, ls, o, c = st.gaussians_at(g, None, cache)
             img = rasterize(m, q, ls, o, c, scene.Ks[g].float(), st.w2cs[g - st.interval.start].float(), W, H,
                             backend=backend).rgb  # fmt: skip
-            pred = (img.clamp(0, 1) * 255).round().to(torch.uint8).numpy()
+            pred = as_uint8(img).numpy()
             gt = as_uint8(scene.images[g]).numpy()
             out.append(_psnr(pred, gt))
     return out
