@@ -31,7 +31,7 @@ from nvidia_ls import llff
 from nvidia_ls.raycast import Primitive, cast
 from nvidia_ls.writer import save_image
 from worldtree import __version__
-from worldtree.imageio import check_pixels
+from worldtree.imageio import as_uint8_array, check_pixels
 from worldtree.infra.atomic import atomic_dir, atomic_write_json
 from worldtree.infra.cores import available_cores
 from worldtree.infra.errors import SettingError, UserError
@@ -604,7 +604,7 @@ def _downsample(rgb: np.ndarray, ss: int) -> np.ndarray:
         # INTER_AREA with an integer factor is the exact box average of each ss x ss block.
         h, w = rgb.shape[0] // ss, rgb.shape[1] // ss
         rgb = cv2.resize(rgb.astype(np.float32), (w, h), interpolation=cv2.INTER_AREA)
-    return np.clip(np.round(rgb * 255.0), 0, 255).astype(np.uint8)
+    return as_uint8_array(rgb)
 
 
 class _CameraRenderer:

@@ -125,6 +125,21 @@ def _to_uint8(img: np.ndarray, path: Path) -> np.ndarray:
     raise UserError(f"{path}: unsupported pixel type {img.dtype}; save it as 8- or 16-bit PNG/JPG")
 
 
+def as_uint8_array(images: np.ndarray) -> np.ndarray:
+    """``images`` (any shape) as ``uint8``: returned as they are when ``uint8``, else float in [0, 1] clamped,
+    times 255 and rounded to the nearest level (half to even, as ``torch.round``; NaN reads as 0). The numpy
+    twin of :func:`worldtree.pixels.as_uint8`, for the OpenCV code (priors, previews, the generator), which does
+    not load torch."""
+    a = np.asarray(images)
+    if a.dtype == np.uint8:
+        return a
+    if not np.issubdtype(a.dtype, np.floating):
+        raise TypeError(f"as_uint8_array: expected uint8 or floating-point images, got {a.dtype}")
+    # In the input's own float precision (the callers' results stay what they were); NaN to 0 first, because
+    # a NaN cast to uint8 is undefined in numpy.
+    return np.round(np.clip(np.nan_to_num(a, nan=0.0), 0.0, 1.0) * 255.0).astype(np.uint8)
+
+
 def read_image(path: str | Path) -> np.ndarray:
     """Read an image as RGB ``uint8`` ``[H, W, 3]`` (grey is replicated, alpha dropped, 16-bit rounded)."""
     path = Path(path)

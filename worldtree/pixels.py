@@ -25,7 +25,9 @@ def unit_float(images: torch.Tensor) -> torch.Tensor:
 
 def as_uint8(images: torch.Tensor) -> torch.Tensor:
     """``images`` (any shape) as ``uint8``: returned as they are when already ``uint8``, else float in [0, 1]
-    clamped, times 255 and rounded (exact for values ``k / 255``, which is what :func:`unit_float` gives)."""
+    clamped, times 255 and rounded (exact for values ``k / 255``, which is what :func:`unit_float` gives).
+    The numpy twin, for code that must not load torch: :func:`worldtree.imageio.as_uint8_array`."""
     if images.dtype == torch.uint8:
         return images
     return images.detach().float().clamp(0.0, 1.0).mul(255.0).round_().to(torch.uint8)
+

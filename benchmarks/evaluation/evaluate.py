@@ -27,6 +27,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from worldtree.imageio import as_uint8_array
 from worldtree.infra.cores import available_cores
 from worldtree.infra.errors import UserError
 
@@ -173,8 +174,11 @@ def _as_uint8(a: np.ndarray, what: str) -> np.ndarray:
     if a.dtype == np.uint8:
         return a
     if np.issubdtype(a.dtype, np.floating):
+        if not np.isfinite(a).all():
+            # A NaN would be scored as a black pixel: say so instead of scoring it.
+            raise UserError(f"{what}: the image holds NaN or Inf values; check the method's render")
         # Quantise as a saved 8-bit image would be: values in [0, 1], rounded to the nearest level.
-        return np.round(np.clip(a, 0.0, 1.0) * 255.0).astype(np.uint8)
+        return as_uint8_array(a)
     raise UserError(f"{what}: dtype {a.dtype} is not supported; pass uint8 or float in [0, 1]")
 
 

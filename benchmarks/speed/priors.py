@@ -30,6 +30,7 @@ import torch
 
 import worldtree
 from benchmarks.fixtures.planar_scene import ping_pong
+from worldtree.imageio import as_uint8_array
 from worldtree.priors.config import PriorsConfig
 from worldtree.priors.depth import abs_rel, frame_depth
 from worldtree.priors.epipolar import epi_masks, epipolar_error_maps, label_dynamic_tracks
@@ -121,7 +122,7 @@ def planar_video(frames: int, width: int, height: int, seed: int, steps: int | N
     sc = PlanarScene(PlanarSceneConfig(width=width, height=height, num_frames=frames, seed=seed))
     fr = sc.frames()
     return GroundTruth(
-        np.round(fr["rgb"] * 255).astype(np.uint8), fr["depth"], fr["mask"].astype(np.int64), fr["Ks"],
+        as_uint8_array(fr["rgb"]), fr["depth"], fr["mask"].astype(np.int64), fr["Ks"],
         fr["w2cs"], lambda k, time: sc.object_pose(time), 1.0, 6.0,
     )  # fmt: skip
 

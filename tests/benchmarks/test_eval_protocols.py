@@ -208,6 +208,10 @@ def test_array_errors():
         evaluate_arrays(preds, gts[:1], lpips_weights=False)
     with pytest.raises(UserError, match="--protocol"):
         evaluate_arrays(preds, gts, protocol="nope", lpips_weights=False)
+    bad = preds[0].astype(np.float32) / 255
+    bad[3, 4, 1] = np.nan  # a diverged render: refused, not scored as a black pixel
+    with pytest.raises(UserError, match="prediction 0000: the image holds NaN"):
+        evaluate_arrays([bad], [gts[0]], lpips_weights=False)
     small = [np.zeros((10, 12, 3), np.uint8)]
     with pytest.raises(UserError, match="at least 11 pixels"):
         evaluate_arrays(small, small, protocol="dycheck", lpips_weights=False)

@@ -23,6 +23,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from worldtree.imageio import as_uint8_array
 from worldtree.priors.config import DepthConfig
 from worldtree.priors.epipolar import relative_pose
 
@@ -147,9 +148,7 @@ def edge_aware_fill(
     smoothed weight ``FGS(w)`` much above ``s``), the plane where none does. With ``support = 0`` the
     plain ``FGS(w * x) / FGS(w)``, and where no confident pixel reaches, the weighted mean of the frame.
     """
-    guide = np.asarray(guide_rgb)
-    if guide.dtype != np.uint8:
-        guide = np.clip(np.round(guide * 255.0), 0, 255).astype(np.uint8)
+    guide = as_uint8_array(guide_rgb)
     w = weight.astype(np.float32)
     num = cv2.ximgproc.fastGlobalSmootherFilter(guide, (inv_depth * w).astype(np.float32), lam, sigma)
     den = cv2.ximgproc.fastGlobalSmootherFilter(guide, w, lam, sigma)

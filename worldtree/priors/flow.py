@@ -17,6 +17,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from worldtree.imageio import as_uint8_array
 from worldtree.priors.config import FlowConfig
 
 _PRESETS = {
@@ -37,8 +38,7 @@ class FlowPair:
 def to_gray_u8(image: np.ndarray) -> np.ndarray:
     """RGB float [H,W,3] in [0,1] or uint8 -> grey uint8 [H,W]."""
     img = np.asarray(image)
-    if img.dtype != np.uint8:
-        img = np.clip(np.round(img * 255.0), 0, 255).astype(np.uint8)
+    img = as_uint8_array(img)
     return cv2.cvtColor(img, cv2.COLOR_RGB2GRAY) if img.ndim == 3 else img
 
 

@@ -13,14 +13,13 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from worldtree.imageio import write_image
+from worldtree.imageio import as_uint8_array, write_image
 
 
 def _u8(img: np.ndarray) -> np.ndarray:
     img = np.asarray(img)
-    if img.dtype == np.uint8:
-        return img.copy()
-    return np.clip(np.round(img * 255.0), 0, 255).astype(np.uint8)
+    # A copy either way: the callers draw on the result.
+    return img.copy() if img.dtype == np.uint8 else as_uint8_array(img)
 
 
 def colorize_depth(
