@@ -43,7 +43,7 @@ from methods.registry import QUICK_FULL_SIZE_PIXELS, CommonConfig, MethodSpec, r
 from methods.stages import Ablation, Stage, run_stages, with_ablations
 from methods.static3dgs import scene_extent
 from worldtree.budget import BudgetConfig, node_budget
-from worldtree.dynamic import DynamicGaussians, between, gaussians_at
+from worldtree.dynamic import DynamicGaussians, between_path, gaussians_at
 from worldtree.gaussian_frame import GaussianFrame, RenderMode, render_frame
 from worldtree.gaussians import GaussianSet
 from worldtree.infra.atomic import atomic_write_bytes, atomic_write_json
@@ -126,6 +126,12 @@ class BaseConfig(CommonConfig):
     falloff of this standard deviation (frames) around its own frame, learned in the photometric fit; 0 = off
     (the paper's model: visible at every frame). On by default in every preset: it keeps wrongly carried
     copies from blurring every frame (docs/base_method.md, "Temporal opacity")."""
+    between_frames: int = 4
+    """Frames a time between two training frames is drawn through (:meth:`BaseMethod.render_between`, e.g.
+    the leave-one-out protocol's held-out time): 4, every Gaussian on the cubic through its positions at the
+    two frames and the ones before and after them (a parabola through three at either end of the video), which
+    follows a path that curves (:func:`worldtree.dynamic.between_path`); 2, on the straight line between its
+    two positions (before 2026-11-28). Measured: docs/base_method.md, "A time between two frames"."""
     refine_masks: bool = True
     """After the static warm-up, refine the dynamic masks with the warm-up model's residual on every training
     frame (``worldtree.priors.dynamic_masks.refine_with_residual``) and re-chain the dynamic tracks inside
@@ -196,6 +202,8 @@ class BaseConfig(CommonConfig):
             names.add("sw")
             self.sw = dataclasses.replace(self.sw, enabled=True)
         self.ablate = tuple(a for a in allowed if a in names)
+        if self.between_frames not in (2, 4):
+            raise SettingError.of_field(self, "between_frames", "choose 2 (straight line) or 4 (cubic)")
 
 
 def paper_config(cls: type[BaseConfig] = BaseConfig, **fields: Any) -> BaseConfig:
@@ -889,15 +897,20 @@ class BaseMethod:
     ) -> torch.Tensor:
         """``[height, width, 3]`` at a fractional ``time`` between training frames ``a = floor(time)`` and
         ``a + 1`` (:meth:`methods.registry.Method.render_between`): every Gaussian between its positions at the
-        two frames (:func:`worldtree.dynamic.between`; means interpolated, rotations nlerped), the dynamic
+        two frames (:func:`worldtree.dynamic.between_path`: means on the line between them, or with
+        ``between_frames`` 4 on the cubic through the frames around them too; rotations nlerped), the dynamic
         opacities evaluated at ``time`` (they change with it only under temporal opacity; static Gaussians are
         the same at both). The camera is placed at ``time`` by :meth:`model_w2c`, as a non-test camera in :meth:`render`.
         An integer ``time`` (or one outside the training frames) is :meth:`render` of the nearest frame."""
-        a, frac = bracket_time(time, self.state.scene.num_frames)
+        T = self.state.scene.num_frames
+        a, frac = bracket_time(time, T)
         if frac == 0.0:
             return self.render(K, w2c, width, height, a)
         ga, gb, o = self._between_lists(a, time)
-        m, q, ls, o, c = between(ga, gb, o, frac)
+        lists = {0: ga, 1: gb}
+        if self.cfg.between_frames == 4:
+            lists.update({d: self.state.gaussians_at(a + d) for d in (-1, 2) if 0 <= a + d < T})
+        m, q, ls, o, c = between_path(lists, o, frac)
         pose = self.model_w2c(w2c, time)  # placed at the fractional time: the residuals drift with it
         out = rasterize(m, q, ls, o, c, K.to(self.device, torch.float32), pose, width, height,
                         backend=self.cfg.photometric.backend)  # fmt: skip

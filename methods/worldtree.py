@@ -55,7 +55,7 @@ from methods.plugin import Grid, GridPoint, MethodOption
 from methods.registry import MethodSpec, register_method, settings_of
 from methods.stages import Ablation, Stage
 from worldtree.budget import BudgetConfig, inherited_prune_due, negligible
-from worldtree.dynamic import between, gaussians_at, halfway
+from worldtree.dynamic import between_path, gaussians_at, halfway
 from worldtree.gaussians import GaussianSet, inverse_sigmoid
 from worldtree.infra.atomic import atomic_write_json
 from worldtree.infra.config_json import read_config, write_config
@@ -971,8 +971,9 @@ class WorldTreeMethod(BaseMethod):
     ) -> torch.Tensor:
         """The Base method's :meth:`~methods.base.BaseMethod.render_between`, drawn by the node that holds both
         frames ``a = floor(time)`` and ``a + 1`` (:func:`node_between`) with its chain (``chain_length``),
-        every Gaussian between its two positions and the opacities at ``time``, each set's at its own local
-        time (:func:`node_opacities_at`)."""
+        every Gaussian between its two positions (on the cubic through the frames around them too, those of
+        the node's interval, with ``between_frames`` 4) and the opacities at ``time``, each set's at its own
+        local time (:func:`node_opacities_at`)."""
         s = self.state
         a, frac = bracket_time(time, s.scene.num_frames)
         if frac == 0.0:
@@ -981,9 +982,13 @@ class WorldTreeMethod(BaseMethod):
         st = s.states[j]
         if j not in s.caches:
             s.caches[j] = st.dynamic.attach(st.scaffold)
-        ga = st.gaussians_at(a, s.cfg.chain_length, s.caches[j])
-        gb = st.gaussians_at(a + 1, s.cfg.chain_length, s.caches[j])
-        m, q, ls, o, c = between(ga, gb, node_opacities_at(st, a, frac, s.cfg.chain_length), frac)
+        offsets = (-1, 0, 1, 2) if s.cfg.between_frames == 4 else (0, 1)
+        lists = {
+            d: st.gaussians_at(a + d, s.cfg.chain_length, s.caches[j])
+            for d in offsets
+            if st.interval.start <= a + d <= st.interval.end  # the node's own frames only
+        }
+        m, q, ls, o, c = between_path(lists, node_opacities_at(st, a, frac, s.cfg.chain_length), frac)
         pose = self.model_w2c(w2c, time)  # placed at the fractional time: the residuals drift with it
         out = rasterize(m, q, ls, o, c, K.to(self.device, torch.float32), pose, width, height,
                         backend=s.cfg.photometric.backend)  # fmt: skip

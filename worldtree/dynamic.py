@@ -170,6 +170,42 @@ def between(ga: RenderList, gb: RenderList, opacities: torch.Tensor, frac: float
     return (1.0 - frac) * ma + frac * mb, q, ls, opacities, c
 
 
+def path_weights(knots: tuple[int, ...], frac: float) -> tuple[float, ...]:
+    """Weights ``w_i`` of the polynomial through values at the integer ``knots`` (frame offsets from frame
+    ``a``, distinct, e.g. ``(-1, 0, 1, 2)``), evaluated at offset ``frac``: ``p(frac) = sum_i w_i y_i``
+    (Lagrange; they sum to 1, so a point that does not move stays put). Two knots ``(0, 1)`` give the straight
+    line ``(1 - frac, frac)``; four give the cubic, exact for a path of degree 3 in time."""
+    if len(set(knots)) != len(knots) or not knots:
+        raise ValueError(f"path_weights: distinct knots needed, got {knots}")
+    out = []
+    for i, ki in enumerate(knots):
+        w = 1.0
+        for j, kj in enumerate(knots):
+            if j != i:
+                w *= (frac - kj) / (ki - kj)  # knots are distinct integers: no zero division
+        out.append(w)
+    return tuple(out)
+
+
+def between_path(lists: dict[int, RenderList], opacities: torch.Tensor, frac: float) -> RenderList:
+    """The render list ``frac`` of the way from frame ``a`` to ``a + 1`` along the path through every frame
+    given: ``lists`` maps frame offsets (``0`` and ``1`` required, ``-1`` and ``2`` where the model has those
+    frames) to render lists of the same Gaussians. Means follow the polynomial through all of them
+    (:func:`path_weights`: the cubic through four frames, a parabola through three, the straight line of
+    :func:`between` through two), so a path that curves between the frames is followed rather than cut;
+    rotations are nlerped between frames ``a`` and ``a + 1`` as in :func:`between`; the given ``opacities``
+    ``[N]``; log-scales and colours of frame ``a``."""
+    if 0 not in lists or 1 not in lists:
+        raise ValueError(f"between_path: frames 0 and 1 are needed, got offsets {sorted(lists)}")
+    knots = tuple(sorted(lists))
+    m, q, ls, o, c = between(lists[0], lists[1], opacities, frac)
+    if len(knots) == 2:
+        return m, q, ls, o, c
+    weights = path_weights(knots, frac)
+    m = sum(w * lists[k][0] for w, k in zip(weights, knots, strict=True))
+    return m, q, ls, o, c
+
+
 def halfway(ga: RenderList, gb: RenderList, opacities: torch.Tensor) -> RenderList:
     """:func:`between` at ``frac = 0.5``: means averaged, rotations nlerped, the caller's ``opacities`` at the
     middle time (e.g. one model at frames ``t - 1`` and ``t + 1`` predicting frame ``t``). Halving is exact in

@@ -138,6 +138,57 @@ def test_between_is_halfway_at_one_half_bit_for_bit_and_the_ends_at_zero_and_one
     torch.testing.assert_close(q1, qb / qb.norm(dim=-1, keepdim=True))
 
 
+def test_path_weights_are_the_polynomial_through_the_knots():
+    import numpy as np
+
+    from worldtree.dynamic import path_weights
+
+    rng = np.random.default_rng(0)
+    for knots in ((-1, 0, 1, 2), (0, 1, 2), (-1, 0, 1), (0, 1)):
+        for frac in (0.0, 0.25, 0.5, 0.9):
+            y = rng.normal(size=len(knots))
+            w = path_weights(knots, frac)
+            # numpy's own fit of the polynomial of degree len - 1 through the points, evaluated at frac
+            want = np.polyval(np.polyfit(knots, y, len(knots) - 1), frac)
+            assert abs(sum(wi * yi for wi, yi in zip(w, y, strict=True)) - want) < 1e-9
+            assert abs(sum(w) - 1.0) < 1e-12
+    assert path_weights((-1, 0, 1, 2), 0.5) == (-1 / 16, 9 / 16, 9 / 16, -1 / 16)  # the four-point midpoint rule
+    import pytest
+
+    with pytest.raises(ValueError, match="distinct"):
+        path_weights((0, 0, 1), 0.5)
+
+
+def test_between_path_follows_a_cubic_path_and_keeps_still_points():
+    from worldtree.dynamic import between, between_path
+
+    g = torch.Generator().manual_seed(1)
+    n = 200
+    coef = torch.randn(4, n, 3, generator=g)  # a path of degree 3 in time per Gaussian
+
+    def at(t: float) -> torch.Tensor:
+        return coef[0] + coef[1] * t + coef[2] * t**2 + coef[3] * t**3
+
+    q = torch.randn(n, 4, generator=g)
+    rest = (torch.randn(n, 3, generator=g), torch.rand(n, generator=g), torch.rand(n, 3, generator=g))
+    lists = {d: (at(float(d)), q, *rest) for d in (-1, 0, 1, 2)}
+    o = torch.rand(n, generator=g)
+    for frac in (0.1, 0.5, 0.8):
+        m, *_ = between_path(lists, o, frac)
+        torch.testing.assert_close(m, at(frac), atol=1e-4, rtol=1e-5)
+        # A parabola through three frames at a video's end is exact for degree 2 (the cubic term dropped).
+        coef3 = coef[3].clone()
+        coef[3] = 0.0
+        three = {d: (at(float(d)), q, *rest) for d in (0, 1, 2)}
+        torch.testing.assert_close(between_path(three, o, frac)[0], at(frac), atol=1e-4, rtol=1e-5)
+        coef[3] = coef3
+    still = {d: (lists[0][0], q, *rest) for d in (-1, 0, 1, 2)}  # a Gaussian that does not move stays put
+    torch.testing.assert_close(between_path(still, o, 0.5)[0], lists[0][0], atol=1e-6, rtol=0)
+    two = {0: lists[0], 1: lists[1]}  # two frames: exactly the straight line
+    assert all(torch.equal(x, y) for x, y in zip(between_path(two, o, 0.3), between(lists[0], lists[1], o, 0.3),
+                                                 strict=True))  # fmt: skip
+
+
 def _dyn(t_ref: list[float], std: list[float], logits: list[float]):
     from worldtree.dynamic import DynamicGaussians
 
@@ -415,7 +466,10 @@ def _off_rig(w2c):
 
 
 def test_base_render_between_is_the_old_halfway_and_its_frames_at_integer_times(tmp_path):
-    method = _fitted("base", _tiny_scene(tmp_path / "scene"))
+    from methods.base import BaseConfig
+
+    assert BaseConfig().between_frames == 4  # the default; the straight line (2) is checked first
+    method = _fitted("base", _tiny_scene(tmp_path / "scene"), between_frames=2)  # the straight line first
     sc = method.state.scene
     K, w2c, W, H = sc.Ks[0], _off_rig(sc.w2cs[0]), sc.width, sc.height
     for a in (0, 2):
@@ -426,6 +480,40 @@ def test_base_render_between_is_the_old_halfway_and_its_frames_at_integer_times(
     torch.testing.assert_close(method.render_between(K, w2c, W, H, 1 + 1e-6), method.render(K, w2c, W, H, 1),
                                atol=1e-3, rtol=0)  # fmt: skip
     assert method.node_at(1.5) is None
+    # between_frames 4: the cubic through frames a - 1 .. a + 2 (a parabola through three at the video's ends),
+    # recomputed here from the fitted lists and numpy's polynomial fit.
+    import dataclasses
+
+    import numpy as np
+
+    from worldtree.render import rasterize
+
+    method.cfg = dataclasses.replace(method.cfg, between_frames=4)
+    fit, T = method.state.fit, sc.num_frames
+    for a, frac in ((1, 0.5), (0, 0.25), (T - 2, 0.5)):
+        knots = [d for d in (-1, 0, 1, 2) if 0 <= a + d < T]
+        pos = np.stack([fit.gaussians_at(a + d)[0].detach().numpy().astype(np.float64) for d in knots])  # [k, N, 3]
+        flat = pos.reshape(len(knots), -1)
+        want_m = np.stack([np.polyval(np.polyfit(knots, flat[:, i], len(knots) - 1), frac)
+                           for i in range(flat.shape[1])]).reshape(pos.shape[1:])  # fmt: skip
+        ga, gb = (tuple(x.detach() for x in fit.gaussians_at(t)) for t in (a, a + 1))
+        o = ga[3]
+        n_s, n_d = len(fit.static), len(fit.dynamic)
+        if o.shape[0] == n_s + n_d:
+            o = torch.cat([o[:n_s], fit.dynamic.opacities_at(a + frac)])
+        from worldtree.dynamic import between
+
+        _, q, ls, o, c = between(ga, gb, o, frac)
+        pose = method.state.placement.place(w2c.to(torch.float32), a + frac)
+        want = rasterize(torch.from_numpy(want_m).float(), q, ls, o, c, K.to(torch.float32), pose, W, H,
+                         backend=fit.cfg.backend).rgb.clamp(0, 1)  # fmt: skip
+        torch.testing.assert_close(method.render_between(K, w2c, W, H, a + frac), want, atol=2e-4, rtol=0)
+    import pytest
+
+    from worldtree.infra.errors import SettingError
+
+    with pytest.raises(SettingError, match="between_frames"):
+        dataclasses.replace(method.cfg, between_frames=3)
 
 
 def test_worldtree_render_between_uses_the_node_holding_both_frames(tmp_path):
@@ -433,7 +521,7 @@ def test_worldtree_render_between_uses_the_node_holding_both_frames(tmp_path):
     from worldtree.dynamic import halfway
     from worldtree.render import rasterize
 
-    method = _fitted("worldtree", _tiny_scene(tmp_path / "scene"), min_len=2, sequential=True)
+    method = _fitted("worldtree", _tiny_scene(tmp_path / "scene"), min_len=2, sequential=True, between_frames=2)
     s = method.state
     assert s.tree is not None and len(s.states) > 1
     sc = s.scene
@@ -450,6 +538,22 @@ def test_worldtree_render_between_uses_the_node_holding_both_frames(tmp_path):
         want = rasterize(m, q, ls, o, c, K, pose, W, H, backend=s.cfg.photometric.backend).rgb.clamp(0, 1)
         assert torch.equal(method.render_between(K, w2c, W, H, a + 0.5), want)
     assert method.node_at(2) == method.node_at(2.0)
+    # between_frames 4: the path through the frames around a and a + 1 that the drawing node holds, no others.
+    import dataclasses
+
+    from worldtree.dynamic import between_path
+
+    s.cfg = dataclasses.replace(s.cfg, between_frames=4)
+    method.cfg = s.cfg
+    for a in range(sc.num_frames - 1):
+        st = s.states[tree_node_between(s.tree, a)]
+        cache = st.dynamic.attach(st.scaffold)
+        lists = {d: st.gaussians_at(a + d, s.cfg.chain_length, cache) for d in (-1, 0, 1, 2)
+                 if st.interval.start <= a + d <= st.interval.end}  # fmt: skip
+        m, q, ls, o, c = between_path(lists, node_opacities_at(st, a, 0.5, s.cfg.chain_length), 0.5)
+        want = rasterize(m, q, ls, o, c, K, s.placement.place(w2c, a + 0.5), W, H,
+                         backend=s.cfg.photometric.backend).rgb.clamp(0, 1)  # fmt: skip
+        assert torch.equal(method.render_between(K, w2c, W, H, a + 0.5), want)
 
 
 def test_score_size_full_renders_and_scores_at_the_scenes_own_size(tmp_path):
