@@ -426,6 +426,15 @@ def test_sigterm_leaves_no_temporary_folder(tmp_path):
 # ------------------------------------------------------------------------ the methods' render_between, trained
 
 
+def _opacities_between(fit, ga, time):
+    """``[N]`` opacities of frame ``a``'s render list ``ga`` with the dynamic ones taken at ``time``."""
+    o = ga[3]
+    n_s, n_d = len(fit.static), len(fit.dynamic)
+    if o.shape[0] == n_s + n_d:
+        o = torch.cat([o[:n_s], fit.dynamic.opacities_at(time)])
+    return o
+
+
 def _old_formula_base(method, K, w2c, W, H, a):
     """What the harness computed before the protocol (Base family), reaching into the fitted state: every
     Gaussian halfway between frames a and a + 1, dynamic opacities at a + 0.5, the camera placed at a + 0.5."""
@@ -434,11 +443,7 @@ def _old_formula_base(method, K, w2c, W, H, a):
 
     fit = method.state.fit
     ga = fit.gaussians_at(a)
-    o = ga[3]
-    n_s, n_d = len(fit.static), len(fit.dynamic)
-    if o.shape[0] == n_s + n_d:
-        o = torch.cat([o[:n_s], fit.dynamic.opacities_at(a + 0.5)])
-    m, q, ls, o, c = halfway(ga, fit.gaussians_at(a + 1), o)
+    m, q, ls, o, c = halfway(ga, fit.gaussians_at(a + 1), _opacities_between(fit, ga, a + 0.5))
     pose = method.state.placement.place(w2c.to(torch.float32), a + 0.5)
     return rasterize(m, q, ls, o, c, K.to(torch.float32), pose, W, H, backend=fit.cfg.backend).rgb.clamp(0, 1)
 
@@ -485,7 +490,10 @@ def test_base_render_between_is_the_old_halfway_and_its_frames_at_integer_times(
     import dataclasses
 
     import numpy as np
+    import pytest
 
+    from worldtree.dynamic import between
+    from worldtree.infra.errors import SettingError
     from worldtree.render import rasterize
 
     method.cfg = dataclasses.replace(method.cfg, between_frames=4)
@@ -497,21 +505,11 @@ def test_base_render_between_is_the_old_halfway_and_its_frames_at_integer_times(
         want_m = np.stack([np.polyval(np.polyfit(knots, flat[:, i], len(knots) - 1), frac)
                            for i in range(flat.shape[1])]).reshape(pos.shape[1:])  # fmt: skip
         ga, gb = (tuple(x.detach() for x in fit.gaussians_at(t)) for t in (a, a + 1))
-        o = ga[3]
-        n_s, n_d = len(fit.static), len(fit.dynamic)
-        if o.shape[0] == n_s + n_d:
-            o = torch.cat([o[:n_s], fit.dynamic.opacities_at(a + frac)])
-        from worldtree.dynamic import between
-
-        _, q, ls, o, c = between(ga, gb, o, frac)
+        _, q, ls, o, c = between(ga, gb, _opacities_between(fit, ga, a + frac), frac)
         pose = method.state.placement.place(w2c.to(torch.float32), a + frac)
         want = rasterize(torch.from_numpy(want_m).float(), q, ls, o, c, K.to(torch.float32), pose, W, H,
                          backend=fit.cfg.backend).rgb.clamp(0, 1)  # fmt: skip
         torch.testing.assert_close(method.render_between(K, w2c, W, H, a + frac), want, atol=2e-4, rtol=0)
-    import pytest
-
-    from worldtree.infra.errors import SettingError
-
     with pytest.raises(SettingError, match="between_frames"):
         dataclasses.replace(method.cfg, between_frames=3)
 
