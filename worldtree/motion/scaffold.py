@@ -163,6 +163,26 @@ def subsample_frames(T: int, max_frames: int, device: torch.device | str | None 
     return torch.unique(torch.linspace(0, T - 1, max_frames, device=device).round().long())
 
 
+class _Curves:
+    """Trajectories prepared once for many :func:`curve_distance` queries: on the evenly spaced frames,
+    curve-major (one curve's frames contiguous, so gathering curves reads whole rows).
+
+    ``traj`` [T, N, 3], ``obs`` [T, N] bool or None (all observed)."""
+
+    def __init__(self, traj: torch.Tensor, obs: torch.Tensor | None, max_frames: int):
+        frames = subsample_frames(traj.shape[0], max_frames, traj.device)
+        self.frames = int(frames.numel())
+        self.xyz = traj[frames].permute(1, 0, 2).contiguous()  # [N, T', 3]
+        if obs is None:
+            self.obs = torch.ones(self.xyz.shape[:2], dtype=torch.bool, device=traj.device)
+        else:
+            self.obs = obs[frames].bool().T.contiguous()  # [N, T']
+        self.obs_f = self.obs.to(traj.dtype)
+
+    def __len__(self) -> int:
+        return int(self.xyz.shape[0])
+
+
 @torch.no_grad()
 def curve_distance(
     a: torch.Tensor,
@@ -186,36 +206,57 @@ def curve_distance(
 
     Returns:
         [P, Q] distances (scene units); ``inf`` where two curves are never observed in the same frame.
+
+    Pairs never observed in the same frame are not computed: dynamic tracks live a few frames each, so at 160
+    frames most pairs share none and the cost follows the co-observed pairs, not ``P x Q``.
     """
-    T, P = a.shape[:2]
-    Qn = b.shape[1]
-    out = torch.full((P, Qn), math.inf, dtype=a.dtype, device=a.device)
-    if P == 0 or Qn == 0 or T == 0:
+    if a.shape[0] == 0 or a.shape[1] == 0 or b.shape[1] == 0:
+        return torch.full((a.shape[1], b.shape[1]), math.inf, dtype=a.dtype, device=a.device)
+    return _curve_distance(
+        _Curves(a, a_obs, max_frames), _Curves(b, b_obs, max_frames), top_k, max_chunk
+    )
+
+
+def _curve_distance(
+    A: _Curves, B: _Curves, top_k: int, max_chunk: int, rows: torch.Tensor | None = None
+) -> torch.Tensor:
+    """:func:`curve_distance` of the prepared curves ``A`` (or its ``rows``) against all of ``B``: [P, Q]."""
+    xa, oa, fa = (A.xyz, A.obs, A.obs_f) if rows is None else (A.xyz[rows], A.obs[rows], A.obs_f[rows])
+    P, Qn, Tp = int(xa.shape[0]), len(B), A.frames
+    out = torch.full((P, Qn), math.inf, dtype=xa.dtype, device=xa.device)
+    if P == 0 or Qn == 0 or Tp == 0:
         return out
-    frames = subsample_frames(T, max_frames, a.device)
-    Tp = int(frames.numel())
-    a, b = a[frames], b[frames]
-    a_obs = (
-        torch.ones(a.shape[:2], dtype=torch.bool, device=a.device) if a_obs is None else a_obs[frames].bool()
-    )
-    b_obs = (
-        torch.ones(b.shape[:2], dtype=torch.bool, device=a.device) if b_obs is None else b_obs[frames].bool()
-    )
     k = min(top_k, Tp)
-    rows = max(1, max_chunk // max(1, Tp * Qn))
-    for s in range(0, P, rows):
-        e = min(P, s + rows)
-        # Exact differences rather than cdist's matrix-product form, which loses digits on close curves.
-        d = torch.linalg.vector_norm(a[:, s:e, None, :] - b[:, None, :, :], dim=-1)  # [T', r, Q]
-        co = a_obs[:, s:e, None] & b_obs[:, None, :]
-        d = d.masked_fill(~co, -1.0)  # below every real distance
-        top = torch.topk(d, k, dim=0, largest=True, sorted=True).values  # [k, r, Q] descending
-        n = co.sum(dim=0)
-        k_eff = torch.ceil(top_k * n.to(a.dtype) / Tp).long()
-        k_eff = torch.minimum(torch.minimum(k_eff, n), torch.full_like(n, k)).clamp(min=1)
-        val = torch.gather(top, 0, (k_eff - 1)[None]).squeeze(0)
-        out[s:e] = torch.where(n > 0, val, torch.full_like(val, math.inf))
+    block = max(1, max_chunk // max(1, Tp * Qn))
+    for s in range(0, P, block):
+        e = min(P, s + block)
+        # Co-observed frame counts of the block's pairs: sums of 0/1 products, exact in floating point.
+        n = (fa[s:e] @ B.obs_f.T).round().long()  # [r, Q]
+        pairs = torch.nonzero(n > 0)
+        if pairs.shape[0] > n.numel() // 2:
+            # Exact differences rather than cdist's matrix-product form, which loses digits on close curves.
+            d = torch.linalg.vector_norm(xa[s:e, None] - B.xyz[None], dim=-1)  # [r, Q, T']
+            d = d.masked_fill(~(oa[s:e, None] & B.obs[None]), -1.0)  # below every real distance
+            out[s:e] = _kth_largest(d, n, k, top_k, Tp)
+            continue
+        # Short tracks share few frames: most pairs are never co-observed (inf) and cost nothing here.
+        per = max(1, max_chunk // max(1, 3 * Tp))
+        for c in range(0, pairs.shape[0], per):
+            i, j = pairs[c : c + per].unbind(1)
+            d = torch.linalg.vector_norm(xa[s + i] - B.xyz[j], dim=-1)  # [S, T']
+            d = d.masked_fill(~(oa[s + i] & B.obs[j]), -1.0)
+            out[s + i, j] = _kth_largest(d, n[i, j], k, top_k, Tp)
     return out
+
+
+def _kth_largest(d: torch.Tensor, n: torch.Tensor, k: int, top_k: int, Tp: int) -> torch.Tensor:
+    """The ``k_eff``-th largest of ``d`` [..., T'] over frames (unobserved frames hold -1) given ``n`` [...]
+    co-observed frames; ``inf`` where ``n`` is 0 (:func:`curve_distance`'s rule)."""
+    top = torch.topk(d, k, dim=-1, largest=True, sorted=True).values  # [..., k] descending
+    k_eff = torch.ceil(top_k * n.to(d.dtype) / Tp).long()
+    k_eff = torch.minimum(torch.minimum(k_eff, n), torch.full_like(n, k)).clamp(min=1)
+    val = torch.gather(top, -1, (k_eff - 1)[..., None]).squeeze(-1)
+    return torch.where(n > 0, val, torch.full_like(val, math.inf))
 
 
 @torch.no_grad()
@@ -670,17 +711,14 @@ def build_scaffold(
     if cand.numel() == 0 or T == 0:
         return Scaffold.empty(T, unit, cfg, traj.dtype, traj.device)
     c_traj, c_obs = traj[:, cand], observed[:, cand]
-    frames = subsample_frames(T, cfg.curve_max_frames, traj.device)
-    f_traj, f_obs = c_traj[frames], c_obs[frames]
+    curves = _Curves(c_traj, c_obs, cfg.curve_max_frames)  # prepared once for the one-row queries below
 
     n_cand = int(cand.numel())
     n_rot = min(cfg.rotation_neighbours, n_cand)
     nearest: dict[int, tuple[torch.Tensor, torch.Tensor]] = {}  # node -> its n_rot nearest tracks
 
     def dist_to(i: int) -> torch.Tensor:
-        row = curve_distance(
-            f_traj[:, i : i + 1], f_traj, f_obs[:, i : i + 1], f_obs, cfg.curve_top_k, len(frames)
-        )[0]
+        row = _curve_distance(curves, curves, cfg.curve_top_k, 1 << 23, torch.tensor([i], device=traj.device))[0]
         d, j = torch.topk(row, n_rot, largest=False, sorted=True)
         nearest[i] = (j, d)
         return row

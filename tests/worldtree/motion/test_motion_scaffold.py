@@ -127,6 +127,31 @@ def test_curve_distance_matches_brute_force_and_closed_forms():
     assert fr.numel() <= 100 and fr[0] == 0 and fr[-1] == 249 and bool((fr[1:] > fr[:-1]).all())
 
 
+def short_tracks(T: int, N: int, span: int, seed: int):
+    """Curves observed on one short run of frames each (as dynamic tracks): (traj [T,N,3], obs [T,N])."""
+    g = torch.Generator().manual_seed(seed)
+    traj = torch.cumsum(torch.randn(T, N, 3, generator=g, dtype=f64) * 0.01, dim=0)
+    start = torch.randint(0, T - span + 1, (N,), generator=g)
+    t = torch.arange(T)[:, None]
+    return traj, (t >= start) & (t < start + span)
+
+
+def test_curve_distance_of_short_tracks_skips_only_pairs_that_share_no_frame():
+    # Spans of 3 of 30 frames: most pairs share no frame, so the pairwise path (not every row x column)
+    # computes the block; the brute force still decides every pair.
+    traj, obs = short_tracks(30, 40, 3, seed=5)
+    D = curve_distance(traj, traj, obs, obs, top_k=3)
+    ref = brute_curve_distance(traj.numpy(), traj.numpy(), obs.numpy(), obs.numpy(), 3)
+    np.testing.assert_allclose(D.numpy(), ref, atol=1e-12)
+    assert 0.1 < np.isfinite(ref).mean() < 0.5  # both kinds of pair are present
+    # Long spans take the every-pair path for the same block: the same rule, the same numbers.
+    traj2, obs2 = short_tracks(30, 40, 25, seed=5)
+    ref2 = brute_curve_distance(traj2.numpy(), traj2.numpy(), obs2.numpy(), obs2.numpy(), 3)
+    np.testing.assert_allclose(curve_distance(traj2, traj2, obs2, obs2, top_k=3).numpy(), ref2, atol=1e-12)
+    # One row per block (greedy_select's queries) equals the whole matrix.
+    assert torch.equal(curve_distance(traj, traj, obs, obs, top_k=3, max_chunk=10), D)
+
+
 def test_knn_graph_equals_brute_force():
     T, N = 6, 80
     g = torch.Generator().manual_seed(11)
