@@ -18,6 +18,8 @@ __all__ = [
     "align_sign",
     "angle",
     "angle_between",
+    "angle_between_components",
+    "angle_between_unit",
     "conjugate",
     "exp",
     "from_axis_angle",
@@ -29,6 +31,7 @@ __all__ = [
     "matrix_from_6d",
     "matrix_to_6d",
     "multiply",
+    "multiply_components",
     "normalize",
     "rotate",
     "slerp",
@@ -205,8 +208,48 @@ def angle(q: torch.Tensor) -> torch.Tensor:
 
 
 def angle_between(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-    """Geodesic angle [...] in [0, pi] between the rotations ``a`` and ``b`` [..., 4] (sign-independent)."""
-    return angle(multiply(conjugate(normalize(a)), normalize(b)))
+    """Geodesic angle [...] in [0, pi] between the rotations ``a`` and ``b`` [..., 4] (any norm;
+    sign-independent)."""
+    return angle_between_unit(normalize(a), normalize(b))
+
+
+def angle_between_unit(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """:func:`angle_between` of unit quaternions ``a``, ``b`` [..., 4] (not normalised here; same shape)."""
+    return angle_between_components(a.movedim(-1, 0).contiguous(), b.movedim(-1, 0).contiguous())
+
+
+def angle_between_components(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """:func:`angle_between` of unit quaternions stored component-major, ``a``, ``b`` [4, ...] (w, x, y, z
+    first; not normalised here) -> [...].
+
+    The angle of ``r = conj(a) b``, written out: ``r_w = a . b`` and ``r_v = a_w b_v - b_w a_v - a_v x b_v``,
+    then ``2 atan2(|r_v|, |r_w|)``, which needs no unit ``r`` (atan2 ignores a common positive factor) and
+    stays accurate near 0 and pi. The motion regularisers evaluate it on every node and frame of a scaffold:
+    on contiguous components each product is one pass over memory, where :func:`multiply` on the last axis
+    works on strided views and stacks the result."""
+    aw, ax, ay, az = a
+    bw, bx, by, bz = b
+    rw = aw * bw + ax * bx + ay * by + az * bz
+    rx = aw * bx - bw * ax - (ay * bz - az * by)
+    ry = aw * by - bw * ay - (az * bx - ax * bz)
+    rz = aw * bz - bw * az - (ax * by - ay * bx)
+    sq = rx * rx + ry * ry + rz * rz
+    rv = torch.sqrt(torch.clamp(sq, min=torch.finfo(sq.dtype).tiny))  # safe_norm's guard at r_v = 0
+    return 2.0 * torch.atan2(rv, rw.abs())
+
+
+def multiply_components(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """:func:`multiply` of quaternions stored component-major, ``a``, ``b`` [4, ...] -> [4, ...]."""
+    aw, ax, ay, az = a
+    bw, bx, by, bz = b
+    return torch.stack(
+        (
+            aw * bw - ax * bx - ay * by - az * bz,
+            aw * bx + ax * bw + ay * bz - az * by,
+            aw * by - ax * bz + ay * bw + az * bx,
+            aw * bz + ax * by - ay * bx + az * bw,
+        )
+    )
 
 
 def slerp(q0: torch.Tensor, q1: torch.Tensor, t: torch.Tensor | float) -> torch.Tensor:

@@ -126,9 +126,17 @@ def arap_loss(
     if graph.idx.shape[1] == 0 or pos.shape[1] == 0:
         zero = pos.sum() * 0.0 + quat.sum() * 0.0
         return zero, zero
+    return _arap_terms(pos, quat, Q.to_matrix(quat), graph, shifts, shift_weights)
+
+
+def _arap_terms(
+    pos: torch.Tensor, quat: torch.Tensor, R: torch.Tensor, graph: ArapGraph,
+    shifts: tuple[int, ...], shift_weights: tuple[float, ...],
+) -> tuple[torch.Tensor, torch.Tensor]:  # fmt: skip
+    """:func:`arap_loss` of a non-empty graph given ``R = Q.to_matrix(quat)`` [T, M, 3, 3], which
+    :func:`motion_losses` computes once for all its graphs."""
     w = graph.valid.to(pos.dtype)
     w = w / w.sum(dim=-1, keepdim=True).clamp(min=1e-12)  # rows with no valid edge contribute 0
-    R = Q.to_matrix(quat)
     args = (pos, R, graph.idx, w, tuple(shifts), tuple(float(x) for x in shift_weights), graph.detach_neighbours)
     ops = _compiled_ops(pos)
     terms = _ArapCompiled.apply(*args, ops) if ops is not None else _ArapTerms.apply(*args)
@@ -311,7 +319,8 @@ def velocity_losses(pos: torch.Tensor, quat: torch.Tensor) -> tuple[torch.Tensor
         z = pos.sum() * 0.0 + quat.sum() * 0.0
         return z, z
     v_xyz = safe_norm(pos[1:] - pos[:-1])
-    v_rot = Q.angle_between(quat[:-1], quat[1:])
+    qc = Q.normalize(quat).movedim(-1, 0).contiguous()  # [4, T, M]: normalised once, components contiguous
+    v_rot = Q.angle_between_components(qc[:, :-1], qc[:, 1:])
     return _mean(v_xyz), _mean(v_rot)
 
 
@@ -327,9 +336,10 @@ def acceleration_losses(pos: torch.Tensor, quat: torch.Tensor) -> tuple[torch.Te
         z = pos.sum() * 0.0 + quat.sum() * 0.0
         return z, z
     a_xyz = safe_norm(pos[2:] - 2.0 * pos[1:-1] + pos[:-2])
-    qn = Q.normalize(quat)
-    d = Q.multiply(qn[1:], Q.conjugate(qn[:-1]))  # [T-1, M, 4]
-    a_rot = Q.angle_between(d[:-1], d[1:])
+    qc = Q.normalize(quat).movedim(-1, 0).contiguous()  # [4, T, M]
+    conj = qc[:, :-1] * torch.tensor([1.0, -1.0, -1.0, -1.0], dtype=qc.dtype, device=qc.device)[:, None, None]
+    d = Q.multiply_components(qc[:, 1:], conj)  # [4, T-1, M]
+    a_rot = Q.angle_between_components(d[:, :-1], d[:, 1:])  # products of unit quaternions are unit
     return _mean(a_xyz), _mean(a_rot)
 
 
@@ -345,8 +355,11 @@ def motion_losses(
     cfg = cfg or MotionLossConfig()
     zero = pos.sum() * 0.0 + quat.sum() * 0.0
     coord, length = zero, zero
+    R = Q.to_matrix(quat) if any(g.idx.shape[1] and pos.shape[1] for g in graphs) else None
     for g in graphs:
-        gc, gl = arap_loss(pos, quat, g, cfg.arap_shifts, cfg.arap_shift_weights)
+        if R is None or g.idx.shape[1] == 0:
+            continue  # an empty graph adds 0 (``zero`` keeps both inputs in the graph)
+        gc, gl = _arap_terms(pos, quat, R, g, cfg.arap_shifts, cfg.arap_shift_weights)
         coord = coord + g.weight * gc
         length = length + g.weight * gl
     v_xyz, v_rot = velocity_losses(pos, quat)
