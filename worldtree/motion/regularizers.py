@@ -284,13 +284,14 @@ def _compiled_ops(pos: torch.Tensor):
 class _ArapCompiled(torch.autograd.Function):
     """:class:`_ArapTerms` computed by the compiled kernel (``arap_forward`` / ``arap_backward``): each edge's
     trajectory is read once, every sum in double and in a fixed order (the same values for any thread count),
-    nothing kept for the backward but the inputs. Takes ``R`` [T, M, 3, 3] as :class:`_ArapTerms` does."""
+    nothing kept for the backward but the inputs. Takes ``R`` [T, M, 3, 3] as :class:`_ArapTerms` does and
+    hands the kernel node-major copies ([M, T, 3], [M, T, 9]: each edge reads two contiguous trajectories)."""
 
     @staticmethod
     def forward(ctx, pos, R, idx, w, shifts, shift_weights, detach_neighbours, ops):
         T, M = pos.shape[:2]
-        p = pos.detach().contiguous()
-        r = R.detach().reshape(T, M, 9).contiguous()
+        p = pos.detach().transpose(0, 1).contiguous()
+        r = R.detach().reshape(T, M, 9).transpose(0, 1).contiguous()
         i = idx.to(torch.int64).contiguous()
         wc = w.detach().to(torch.float32).contiguous()
         threads = torch.get_num_threads()
@@ -307,9 +308,9 @@ class _ArapCompiled(torch.autograd.Function):
         g_pos, g_R = ops.arap_backward(
             p, r, i, wc, shifts, shift_weights, float(g_coord), float(g_len), detach, threads
         )
-        T, M = p.shape[:2]
-        g_R = None if detach or not ctx.needs_input_grad[1] else g_R.view(T, M, 3, 3)
-        return g_pos, g_R, None, None, None, None, None, None
+        M, T = p.shape[:2]
+        g_R = None if detach or not ctx.needs_input_grad[1] else g_R.view(M, T, 3, 3).transpose(0, 1)
+        return g_pos.transpose(0, 1), g_R, None, None, None, None, None, None
 
 
 def velocity_losses(pos: torch.Tensor, quat: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

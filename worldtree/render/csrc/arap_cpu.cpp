@@ -10,6 +10,10 @@
 // the regulariser about a third of a photometric step on a CPU; here each edge's trajectory is read once and
 // its values stay in a small per-thread buffer.
 //
+// Trajectories are node-major ([M, T, 3] positions, [M, T, 9] rotations): one edge reads two nodes' whole
+// trajectories as contiguous runs, where the frame-major [T, M, ...] layout would touch a new cache line per
+// frame and node (the scaffold has thousands of nodes, so consecutive frames of one node are far apart).
+//
 // Same results on any machine and thread count: every sum has a fixed order. The loss sums each node's edges
 // in double into a per-node slot, then the slots in node order. The backward is two passes: over nodes i (the
 // gradient of x_i: its own edges), then over nodes j (the gradient of x_j and R_j: the edges that have j as
@@ -38,8 +42,8 @@ struct ArapEdgeBuffers {
 };
 
 struct ArapInputs {
-  const float* pos;  // [T, M, 3]
-  const float* R;    // [T, M, 9], entry (a, b) at 3a + b
+  const float* pos;  // [M, T, 3]
+  const float* R;    // [M, T, 9], entry (a, b) at 3a + b
   int64_t T, M;
   std::vector<int64_t> shifts;
   std::vector<double> scales;  // ws / max((T - s) M, 1) per shift, 0 for shifts with T <= s
@@ -51,9 +55,9 @@ inline double guarded(double sq) { return sq < double(FLT_MIN) ? double(FLT_MIN)
 // d(t) = x_i(t) - x_j(t), c(t) = R_j(t)^T d(t), |c(t)| guarded.
 inline void edge_coordinates(const ArapInputs& in, int64_t i, int64_t j, ArapEdgeBuffers& b) {
   for (int64_t t = 0; t < in.T; ++t) {
-    const float* xi = in.pos + (t * in.M + i) * 3;
-    const float* xj = in.pos + (t * in.M + j) * 3;
-    const float* r = in.R + (t * in.M + j) * 9;
+    const float* xi = in.pos + (i * in.T + t) * 3;
+    const float* xj = in.pos + (j * in.T + t) * 3;
+    const float* r = in.R + (j * in.T + t) * 9;
     double d0 = double(xi[0]) - double(xj[0]), d1 = double(xi[1]) - double(xj[1]), d2 = double(xi[2]) - double(xj[2]);
     double* d = &b.d[3 * t];
     double* c = &b.c[3 * t];
@@ -124,11 +128,11 @@ inline void edge_grad_c(const ArapInputs& in, ArapEdgeBuffers& b, double w, doub
 ArapInputs arap_inputs(const at::Tensor& pos, const at::Tensor& R, const at::Tensor& idx, const at::Tensor& w,
                        const std::vector<int64_t>& shifts, const std::vector<double>& shift_weights) {
   TORCH_CHECK(pos.dim() == 3 && pos.size(2) == 3 && pos.is_contiguous() && pos.scalar_type() == at::kFloat,
-              "arap: pos must be a contiguous float32 [T, M, 3] tensor");
-  const int64_t T = pos.size(0), M = pos.size(1);
-  TORCH_CHECK(R.dim() == 3 && R.size(0) == T && R.size(1) == M && R.size(2) == 9 && R.is_contiguous() &&
+              "arap: pos must be a contiguous float32 [M, T, 3] tensor");
+  const int64_t M = pos.size(0), T = pos.size(1);
+  TORCH_CHECK(R.dim() == 3 && R.size(0) == M && R.size(1) == T && R.size(2) == 9 && R.is_contiguous() &&
                   R.scalar_type() == at::kFloat,
-              "arap: R must be a contiguous float32 [T, M, 9] tensor");
+              "arap: R must be a contiguous float32 [M, T, 9] tensor");
   TORCH_CHECK(idx.dim() == 2 && idx.size(0) == M && idx.is_contiguous() && idx.scalar_type() == at::kLong,
               "arap: idx must be a contiguous int64 [M, K] tensor");
   TORCH_CHECK(w.sizes() == idx.sizes() && w.is_contiguous() && w.scalar_type() == at::kFloat,
@@ -187,7 +191,7 @@ std::vector<at::Tensor> arap_forward(at::Tensor pos, at::Tensor R, at::Tensor id
   return {out_c, out_l};
 }
 
-// (g_pos [T, M, 3], g_R [T, M, 9]) for upstream gradients (g_coord, g_length); with detach_neighbours the
+// (g_pos [M, T, 3], g_R [M, T, 9]) for upstream gradients (g_coord, g_length); with detach_neighbours the
 // neighbours are constants (x_j and R_j get nothing from the edge) and g_R is all zeros.
 std::vector<at::Tensor> arap_backward(at::Tensor pos, at::Tensor R, at::Tensor idx, at::Tensor w,
                                       std::vector<int64_t> shifts, std::vector<double> shift_weights,
@@ -196,8 +200,8 @@ std::vector<at::Tensor> arap_backward(at::Tensor pos, at::Tensor R, at::Tensor i
   const int64_t T = in.T, M = in.M, K = idx.size(1);
   const int64_t* ix = idx.data_ptr<int64_t>();
   const float* wt = w.data_ptr<float>();
-  auto g_pos = at::zeros({T, M, 3}, pos.options());
-  auto g_R = at::zeros({T, M, 9}, pos.options());
+  auto g_pos = at::zeros({M, T, 3}, pos.options());
+  auto g_R = at::zeros({M, T, 9}, pos.options());
   float* gp = g_pos.data_ptr<float>();
   float* gr = g_R.data_ptr<float>();
   const int nt = int(std::max<int64_t>(threads, 1));
@@ -217,14 +221,14 @@ std::vector<at::Tensor> arap_backward(at::Tensor pos, at::Tensor R, at::Tensor i
         edge_coordinates(in, i, j, b);
         edge_grad_c(in, b, we, g_coord, g_length);
         for (int64_t t = 0; t < T; ++t) {
-          const float* r = in.R + (t * M + j) * 9;
+          const float* r = in.R + (j * T + t) * 9;
           const double* g = &b.gc[3 * t];
           for (int a = 0; a < 3; ++a)
             acc[3 * t + a] += double(r[3 * a]) * g[0] + double(r[3 * a + 1]) * g[1] + double(r[3 * a + 2]) * g[2];
         }
       }
       for (int64_t t = 0; t < T; ++t)
-        for (int a = 0; a < 3; ++a) gp[(t * M + i) * 3 + a] = float(acc[3 * t + a]);
+        for (int a = 0; a < 3; ++a) gp[(i * T + t) * 3 + a] = float(acc[3 * t + a]);
     }
   }
   if (detach_neighbours) return {g_pos, g_R};
@@ -256,7 +260,7 @@ std::vector<at::Tensor> arap_backward(at::Tensor pos, at::Tensor R, at::Tensor i
         edge_coordinates(in, e / K, j, b);
         edge_grad_c(in, b, we, g_coord, g_length);
         for (int64_t t = 0; t < T; ++t) {
-          const float* r = in.R + (t * M + j) * 9;
+          const float* r = in.R + (j * T + t) * 9;
           const double* g = &b.gc[3 * t];
           const double* d = &b.d[3 * t];
           for (int a = 0; a < 3; ++a) {
@@ -267,8 +271,8 @@ std::vector<at::Tensor> arap_backward(at::Tensor pos, at::Tensor R, at::Tensor i
       }
       if (!any) continue;
       for (int64_t t = 0; t < T; ++t) {
-        for (int a = 0; a < 3; ++a) gp[(t * M + j) * 3 + a] += float(acc_x[3 * t + a]);
-        for (int q = 0; q < 9; ++q) gr[(t * M + j) * 9 + q] = float(acc_r[9 * t + q]);
+        for (int a = 0; a < 3; ++a) gp[(j * T + t) * 3 + a] += float(acc_x[3 * t + a]);
+        for (int q = 0; q < 9; ++q) gr[(j * T + t) * 9 + q] = float(acc_r[9 * t + q]);
       }
     }
   }
