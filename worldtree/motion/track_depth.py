@@ -14,6 +14,9 @@ where ``X''`` is the second divided difference of three consecutive visible fram
 scene's length scale and ``zhat`` the depth prior, weakly weighted by ``w``: it settles what the cameras'
 motion leaves undetermined (a camera moving in step with the point gives a family of equally smooth
 trajectories). A point moving at constant velocity (or at rest) is recovered exactly as ``w`` goes to 0.
+
+:func:`trajectory_scale` is the same least squares with one unknown: depths known up to a common factor (an
+object's apparent size, by size constancy) and the factor that makes the path smoothest.
 """
 
 from __future__ import annotations
@@ -22,7 +25,7 @@ import torch
 
 from worldtree.motion.lift import camera_rays, sample_depth
 
-__all__ = ["ratio_map", "smooth_trajectory_depths"]
+__all__ = ["ratio_map", "smooth_trajectory_depths", "trajectory_scale"]
 
 
 def _rays(tracks: torch.Tensor, Ks: torch.Tensor, w2cs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -125,6 +128,58 @@ def smooth_trajectory_depths(
         z[ts[sel], col[sel]] = sol.T[sel]
         solved[chunk[good]] = True
     return z.to(depths.dtype), solved
+
+
+def trajectory_scale(
+    frames: torch.Tensor,
+    pixels: torch.Tensor,
+    rel_depth: torch.Tensor,
+    Ks: torch.Tensor,
+    w2cs: torch.Tensor,
+) -> tuple[float, float]:
+    """The one factor ``s`` that makes ``X_m = c_m + s q_m r_m`` smoothest, for a point whose depths are known
+    up to scale (``q_m``: e.g. an object's inverse apparent size, which size constancy makes proportional to
+    its depth).
+
+    With one unknown the least squares ``min_s sum ||A_m + s B_m||^2`` (``A`` the cameras' second divided
+    differences, ``B`` those of ``q r``) is closed form. It measures the scale only where the cameras
+    accelerate: a camera moving at constant velocity leaves every ``s`` equally smooth up to the point's own
+    acceleration, which ``s -> 0`` removes (the point glued to the camera). ``fit`` says how much of the
+    cameras' acceleration the scaled rays cancel, ``(A.B)^2 / (|A|^2 |B|^2)``: 1 when an exactly smooth
+    trajectory exists, near 0 when the answer is noise.
+
+    Args:
+        frames: ``[K]`` frame indices, strictly increasing (gaps allowed).
+        pixels: ``[K, 2]`` the point's pixel (u, v) in each of those frames.
+        rel_depth: ``[K]`` its depth along camera z up to one unknown factor (> 0).
+        Ks: ``[T, 3, 3]`` intrinsics (pixels). w2cs: ``[T, 4, 4]`` OpenCV world-to-camera poses.
+
+    Returns:
+        ``(s, fit)``: the depths are ``s * rel_depth``; ``s`` is NaN (and ``fit`` 0) with fewer than 3 frames,
+        no acceleration at all, or a non-positive optimum.
+    """
+    dt = torch.float64
+    K = int(frames.numel())
+    if K < 3 or bool((rel_depth <= 0).any()) or not bool(torch.isfinite(rel_depth).all()):
+        return float("nan"), 0.0
+    f = frames.long()
+    r, centres = _rays(pixels.to(dt)[:, None], Ks[f], w2cs[f])  # [K, 1, 3], [K, 3]
+    q = rel_depth.to(dt)[:, None] * r[:, 0]  # [K, 3]
+    t = f.to(dt)
+    a, b, c = t[:-2], t[1:-1], t[2:]
+    coef = torch.stack([2 / ((b - a) * (c - a)), -2 / ((b - a) * (c - b)), 2 / ((c - b) * (c - a))], -1)
+
+    def second(x: torch.Tensor) -> torch.Tensor:
+        return coef[:, :1] * x[:-2] + coef[:, 1:2] * x[1:-1] + coef[:, 2:] * x[2:]
+
+    A, B = second(centres), second(q)
+    ab, aa, bb = float((A * B).sum()), float((A * A).sum()), float((B * B).sum())
+    if aa <= 0.0 or bb <= 0.0:
+        return float("nan"), 0.0
+    s = -ab / bb
+    if not s > 0.0:
+        return float("nan"), 0.0
+    return s, ab * ab / (aa * bb)
 
 
 def ratio_map(

@@ -7,7 +7,7 @@ import math
 import pytest
 import torch
 
-from worldtree.motion.track_depth import ratio_map, smooth_trajectory_depths
+from worldtree.motion.track_depth import ratio_map, smooth_trajectory_depths, trajectory_scale
 
 H, W = 60, 80
 K = torch.tensor([[70.0, 0.0, 39.5], [0.0, 70.0, 29.5], [0.0, 0.0, 1.0]], dtype=torch.float64)
@@ -100,3 +100,75 @@ def test_ratio_map_spreads_the_nearest_tracks_ratio_over_the_mask_only():
     # Inverse-distance weights 1 / (d + 1) computed by hand at pixel (x=0, y=0): d = 0 and 7.
     w0, w1 = 1.0, 1.0 / 8.0
     assert float(two[0, 0, 0]) == pytest.approx((2.0 * w0 + 0.5 * w1) / (w0 + w1))
+
+
+def _relative(frames: torch.Tensor, X: torch.Tensor, w2cs: torch.Tensor, factor: float):
+    """Pixels ``[K, 2]`` of one world path ``X`` [T, 3] at ``frames`` and its depths divided by ``factor``."""
+    uv, depth = _observe(X[:, None], w2cs)
+    return uv[frames, 0], depth[frames, 0] / factor
+
+
+@pytest.mark.parametrize("frames", [list(range(20)), [0, 1, 3, 4, 7, 8, 9, 13, 14, 18]])
+def test_scale_of_a_constant_velocity_object_is_exact_where_the_cameras_turn(frames):
+    T = 20
+    w2cs = _rig(T)
+    t = torch.arange(T, dtype=torch.float64)[:, None]
+    X = torch.tensor([-0.2, 0.05, 1.5], dtype=torch.float64) + t * torch.tensor([0.02, -0.005, 0.01])
+    f = torch.tensor(frames)
+    uv, rel = _relative(f, X, w2cs, factor=0.37)
+    s, fit = trajectory_scale(f, uv, rel, K.expand(T, 3, 3), w2cs)
+    assert s == pytest.approx(0.37, rel=1e-9)
+    assert fit == pytest.approx(1.0, abs=1e-9)
+
+
+def test_scale_matches_a_brute_force_search_on_a_curved_noisy_path():
+    T = 20
+    w2cs = _rig(T)
+    t = torch.arange(T, dtype=torch.float64)
+    X = torch.stack([0.3 * torch.cos(0.4 * t), 0.1 * torch.sin(0.4 * t), 1.6 + 0.2 * torch.sin(0.4 * t)], -1)
+    f = torch.arange(T)
+    uv, rel = _relative(f, X, w2cs, factor=1.0)
+    rel = rel * (1 + 0.03 * torch.sin(7.0 * t))  # size-like relative depths, 3 % off
+    s, fit = trajectory_scale(f, uv, rel, K.expand(T, 3, 3), w2cs)
+    # brute force: the sum of squared second differences of c + s q r on a fine grid of s
+    Kinv = torch.linalg.inv(K)
+    R, tr = w2cs[:, :3, :3], w2cs[:, :3, 3]
+    c = -(R.transpose(1, 2) @ tr[..., None])[..., 0]
+    pix = torch.cat([uv, torch.ones(T, 1, dtype=uv.dtype)], 1)
+    rays = (R.transpose(1, 2) @ (Kinv @ pix[..., None]))[..., 0]
+    grid = torch.linspace(0.2, 3.0, 28001, dtype=torch.float64)
+    P = c[None] + grid[:, None, None] * (rel[:, None] * rays)[None]
+    cost = ((P[:, 2:] - 2 * P[:, 1:-1] + P[:, :-2]) ** 2).sum((1, 2))
+    assert s == pytest.approx(float(grid[cost.argmin()]), abs=2e-4)
+    assert 0.0 < fit < 1.0
+
+
+def test_cameras_at_constant_velocity_leave_the_scale_unmeasured():
+    T = 12
+    w2cs = torch.eye(4, dtype=torch.float64).repeat(T, 1, 1)
+    w2cs[:, 0, 3] = -0.1 * torch.arange(T, dtype=torch.float64)  # a straight row at constant speed
+    t = torch.arange(T, dtype=torch.float64)
+    X = torch.stack([0.3 * torch.sin(0.8 * t), 0.05 * t, 1.5 + 0.1 * torch.cos(0.8 * t)], -1)  # accelerating
+    f = torch.arange(T)
+    uv, rel = _relative(f, X, w2cs, factor=2.0)
+    s, fit = trajectory_scale(f, uv, rel, K.expand(T, 3, 3), w2cs)
+    assert fit < 1e-6  # whatever s says, nothing supports it
+
+
+@pytest.mark.parametrize("case", ["two_frames", "zero_depth", "nan_depth", "at_rest_cameras"])
+def test_scale_refuses_degenerate_input(case):
+    T = 6
+    w2cs = torch.eye(4, dtype=torch.float64).repeat(T, 1, 1)
+    if case != "at_rest_cameras":
+        w2cs[:, 0, 3] = -0.1 * torch.arange(T, dtype=torch.float64) ** 2
+    f = torch.arange(T)
+    uv = torch.full((T, 2), 30.0, dtype=torch.float64)
+    rel = torch.ones(T, dtype=torch.float64)
+    if case == "two_frames":
+        f, uv, rel = f[:2], uv[:2], rel[:2]
+    elif case == "zero_depth":
+        rel[3] = 0.0
+    elif case == "nan_depth":
+        rel[3] = float("nan")
+    s, fit = trajectory_scale(f, uv, rel, K.expand(T, 3, 3), w2cs)
+    assert math.isnan(s) and fit == 0.0
