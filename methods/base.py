@@ -158,7 +158,8 @@ class BaseConfig(CommonConfig):
         """:meth:`CommonConfig.ignored_settings` plus the Base method's: ``photometric.steps`` (filled in from
         ``steps``), ``sw.steps`` under ``ablate sw``, the density caps the Gaussian budget sets, the motion
         discovery settings (and ``refine_masks``) while it is off, the migration settings while it is off, the
-        trajectory-depth settings with imported depth (its prior weight while it is off), the temporal-std
+        trajectory-depth settings with imported depth (its prior weight while it is off; the fitted-import switch
+        without a fitted import), the temporal-std
         learning rate while temporal opacity is off."""
         out = super().ignored_settings()
         out["photometric.steps"] = "this method sets it from steps; --steps N or --set steps=N"
@@ -173,12 +174,20 @@ class BaseConfig(CommonConfig):
             why = "motion discovery is off; --set priors.motion.enabled=true"
             out.update(settings_of("priors.motion", self.priors.motion, why))
             out["refine_masks"] = why
-        if self.priors.depth_source != "classical":
-            why = "trajectory depth re-estimates classical depth only; imported depth is kept on moving objects"
+        fitted_import = self.scaffold.trajectory_depth_imported and self.priors.depth_import.fit_scale_shift
+        if self.priors.depth_source != "classical" and not fitted_import:
+            why = (
+                "trajectory depth re-estimates classical depth only; imported depth is kept on moving objects "
+                "(--set scaffold.trajectory_depth_imported=true re-estimates a fitted import too)"
+            )
             out["scaffold.trajectory_depth"] = why
             out["scaffold.trajectory_depth_prior"] = why
         elif not self.scaffold.trajectory_depth:
             out["scaffold.trajectory_depth_prior"] = "trajectory depth is off; --set scaffold.trajectory_depth=true"
+        if self.priors.depth_source == "classical" or not self.priors.depth_import.fit_scale_shift:
+            out["scaffold.trajectory_depth_imported"] = (
+                "applies to imported depth fitted to the classical one only (--depth-maps with --depth-fit)"
+            )
         if self.photometric.migrate_every <= 0:
             why = "static<->dynamic migration is off; --set photometric.migrate_every=N"
             for k in ("migrate_start", "migrate_stop", "migrate_frames", "migrate_residual", "migrate_min_views",
@@ -386,9 +395,14 @@ def _refines_masks(c: BaseConfig) -> bool:
 
 
 def _uses_trajectory_depth(c: BaseConfig, sources: dict[str, str]) -> bool:
-    """Whether the scaffold stage replaces the depth of moving pixels by the tracks' trajectory depth: only the
-    classical prior is a static-world estimate there; imported depth measures the moving objects."""
-    return c.scaffold.trajectory_depth and sources.get("depth") == "classical"
+    """Whether the scaffold stage replaces the depth of moving pixels by the tracks' trajectory depth: the
+    classical prior is a static-world estimate there; imported depth measures the moving objects, unless it was
+    fitted to the classical depth and ``scaffold.trajectory_depth_imported`` asks for the re-estimate."""
+    if not c.scaffold.trajectory_depth:
+        return False
+    if sources.get("depth") == "classical":
+        return True
+    return c.scaffold.trajectory_depth_imported and c.priors.depth_import.fit_scale_shift
 
 
 def _adjust(s: BaseState, enabled: bool) -> None:

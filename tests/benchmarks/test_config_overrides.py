@@ -333,6 +333,17 @@ def test_switching_a_feature_on_in_the_same_command_makes_its_settings_count():
         apply_overrides(cfg, ["priors.depth_source=/somewhere", "scaffold.trajectory_depth=false"])
     out = apply_overrides(cfg, ["scaffold.trajectory_depth_prior=0.01"])
     assert out.scaffold.trajectory_depth_prior == 0.01
+    # The fitted-import switch means nothing for classical depth or an unfitted import ...
+    with pytest.raises(UserError, match="imported depth fitted to the classical one only"):
+        apply_overrides(cfg, ["scaffold.trajectory_depth_imported=true"])
+    with pytest.raises(UserError, match="imported depth fitted to the classical one only"):
+        apply_overrides(cfg, ["priors.depth_source=/somewhere", "scaffold.trajectory_depth_imported=true"])
+    # ... and with a fitted import it makes the trajectory-depth settings count again.
+    fitted = ["priors.depth_source=/somewhere", "priors.depth_import.fit_scale_shift=true"]
+    with pytest.raises(UserError, match="classical depth only"):
+        apply_overrides(cfg, [*fitted, "scaffold.trajectory_depth_prior=0.01"])
+    out = apply_overrides(cfg, [*fitted, "scaffold.trajectory_depth_imported=true", "scaffold.trajectory_depth_prior=0.01"])
+    assert out.scaffold.trajectory_depth_imported and out.scaffold.trajectory_depth_prior == 0.01
     with pytest.raises(UserError, match="temporal opacity is off"):
         apply_overrides(cfg, ["dynamic_time_std=0", "photometric.lr_time_std=0.02"])
     assert apply_overrides(cfg, ["photometric.lr_time_std=0.02"]).photometric.lr_time_std == 0.02

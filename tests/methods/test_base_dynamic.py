@@ -91,3 +91,28 @@ def test_refill_imported_replaces_only_the_mask_with_the_refit():
     np.testing.assert_array_equal(seen["mask"], mask.numpy())
     assert torch.all(d[mask] == 1.25) and torch.all(c[mask] == 0.8)
     assert torch.equal(d[~mask], depth[~mask]) and torch.equal(c[~mask], conf[~mask])
+
+
+@pytest.mark.parametrize(
+    ("source", "fitted", "switch", "expected"),
+    [
+        ("classical", False, False, True),  # the static-world estimate is always re-estimated
+        ("imported:/d", False, True, False),  # a measurement (metric or exact depth) is kept
+        ("imported:/d", True, False, False),  # a fitted import is kept unless asked
+        ("imported:/d", True, True, True),
+    ],
+)
+def test_which_depth_the_trajectory_depth_re_estimates(source, fitted, switch, expected):
+    from methods.base import _uses_trajectory_depth
+
+    c = smoke_config()
+    c = dataclasses.replace(
+        c,
+        scaffold=dataclasses.replace(c.scaffold, trajectory_depth_imported=switch),
+        priors=dataclasses.replace(
+            c.priors, depth_import=dataclasses.replace(c.priors.depth_import, fit_scale_shift=fitted)
+        ),
+    )
+    assert _uses_trajectory_depth(c, {"depth": source}) is expected
+    off = dataclasses.replace(c, scaffold=dataclasses.replace(c.scaffold, trajectory_depth=False))
+    assert _uses_trajectory_depth(off, {"depth": source}) is False

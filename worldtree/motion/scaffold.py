@@ -86,6 +86,10 @@ class ScaffoldConfig:
     objects is a static-world estimate. Classical depth only: imported depth (a network's, or exact) is a
     measurement on the moving objects and is kept (with exact priors the re-estimate cost 3.4 dB mPSNR in
     tests/methods/test_base_beats_static.py)."""
+    trajectory_depth_imported: bool = False
+    """Also re-estimate imported depth that was fitted to the classical one (``priors.depth_import.fit_scale_shift``):
+    a network's relative depth, scaled per frame by the static world around the moving objects, is not a
+    measurement of their depth either. Off: the fitted import is kept on moving pixels."""
     trajectory_depth_prior: float = 3e-3
     """Weight of the depth prior against the trajectory's smoothness (``w`` of
     :func:`worldtree.motion.track_depth.smooth_trajectory_depths`). Not from the paper: on the demo scene's
