@@ -297,8 +297,8 @@ def split_scope(item: str) -> tuple[str | None, str]:
 def resolve_configs(args) -> list[tuple]:
     """``(spec, config)`` of every method of ``--methods``: the preset, ``--steps``/``--seed``/
     ``--downscale``, the ``--set KEY=VALUE`` assignments of the fields each method has, then its own ``--set
-    NAME:KEY=VALUE`` (and ``--NAME-steps``; these may override the common options for that method), and the
-    depth import options. Like ``wtbench run``: a ``--set`` key that no method has, a malformed or repeated
+    NAME:KEY=VALUE`` (and ``--NAME-steps``; these may override the common options for that method); the prior
+    folders and depth import options are set first, so that each ``--set`` is checked against them. Like ``wtbench run``: a ``--set`` key that no method has, a malformed or repeated
     one, one that has its own option, a value that does not parse or a setting outside its range
     (:mod:`worldtree.infra.config_ranges`) is a one-line :class:`UserError`, before any work."""
     from methods.config_overrides import apply_overrides, canonical_sets, split_assignment
@@ -346,6 +346,12 @@ def resolve_configs(args) -> list[tuple]:
         spec = get_method(name)
         cfg = spec.config(args.preset)
         cfg = dataclasses.replace(cfg, **{k: v for k, v in options.items() if v is not None})
+        if hasattr(cfg, "priors"):  # before the --set items: they are checked against the priors the run uses
+            sources = {"depth_source": args.depth_maps, "flow_source": args.flow, "masks_source": args.masks}
+            cfg = dataclasses.replace(cfg, priors=dataclasses.replace(
+                cfg.priors, **{k: str(v) for k, v in sources.items() if v is not None},
+                depth_import=dataclasses.replace(
+                    cfg.priors.depth_import, kind=args.depth_kind, fit_scale_shift=args.depth_fit)))  # fmt: skip
         mine = [item for item in common if _has_field(cfg, split_assignment(item)[0])]
         owned |= set(mine)
         if mine:
@@ -358,10 +364,6 @@ def resolve_configs(args) -> list[tuple]:
             except UserError as e:
                 raise UserError(f"{e} (method {name})") from None
             given |= {split_assignment(rest)[0]: how for rest, how in scoped[name].items()}
-        if hasattr(cfg, "priors"):
-            cfg = dataclasses.replace(
-                cfg, priors=dataclasses.replace(cfg.priors, depth_import=dataclasses.replace(
-                    cfg.priors.depth_import, kind=args.depth_kind, fit_scale_shift=args.depth_fit)))  # fmt: skip
         for k in ("steps", "downscale"):
             if getattr(cfg, k) < 1:
                 raise UserError(f"{given.get(k, f'setting {k}')}: must be at least 1")

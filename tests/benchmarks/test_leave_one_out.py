@@ -238,7 +238,7 @@ def _tiny_scene(root, width=32, height=18):
     return mod.write_tiny_scene(root, width=width, height=height, frames=5)
 
 
-def test_set_keys_and_ranges_are_checked_before_any_work(tmp_path):
+def test_set_keys_and_ranges_are_checked_before_any_work(tmp_path, monkeypatch):
     import pytest
 
     from benchmarks.evaluation import leave_one_out as loo
@@ -261,6 +261,9 @@ def test_set_keys_and_ranges_are_checked_before_any_work(tmp_path):
         (["--set", "base:steps=0"], "--set base:steps=0: must be at least 1"),
         (["--set", "static:steps=5", "--static-steps", "6"], "given more than once"),
         (["--set", "base:priors.flow_source=x", "--flow", str(tmp_path)], "also given by --flow"),
+        # checked against the priors this run imports: a setting for a fitted import needs --depth-fit
+        (["--set", "scaffold.trajectory_depth_imported=true", "--depth-maps", str(tmp_path)],
+         "fitted to the classical one only"),
     ]
     for extra, match in cases:
         argv = base + extra if extra[0] != "--frames" else [str(scene), *extra, "-o", str(out)]
@@ -268,6 +271,17 @@ def test_set_keys_and_ranges_are_checked_before_any_work(tmp_path):
             loo.main(argv)
         assert "\n" not in str(e.value)
         assert not out.exists()  # refused before anything is written
+    # ... and accepted with it (the import options are in the config the --set items are checked against)
+    seen = []
+    monkeypatch.setattr(loo, "_run_all", lambda args, plans, *rest: seen.extend(plans))
+    loo.main(
+        base + ["--depth-maps", str(tmp_path), "--depth-kind", "disparity", "--depth-fit"]
+        + ["--set", "scaffold.trajectory_depth_imported=true", "--set", "priors.depth_import.merge=fill"]
+    )
+    (_, static, _), (_, b, _) = seen
+    assert b.scaffold.trajectory_depth_imported and b.priors.depth_source == str(tmp_path)
+    assert b.priors.depth_import.fit_scale_shift and b.priors.depth_import.kind == "disparity"
+    assert not hasattr(static, "priors")
 
 
 def test_finished_results_are_keyed_by_their_whole_configuration(tmp_path, monkeypatch, capsys):
