@@ -98,7 +98,13 @@ def test_imported_priors_equal_the_exact_ones(exported, imported):
     assert rec["priors"]["depth"]["kind"] == "disparity"
     args = run_args(imported)
     assert args[args.index("--flow") + 1] == str((imported / "imported" / "flow").resolve())
-    assert "priors.depth_import.fit_scale_shift=true" in args and "priors.depth_import.merge=fill" in args
+    # relative disparity is imported but not suggested (below the classical depth on real footage) ...
+    assert "--depth-maps" not in args and not any("depth_import" in a for a in args)
+    assert rec["optional_why"]
+    # ... its options are kept apart, fitted and merged where stereo measures nothing
+    opt = run_args(imported, optional=True)
+    assert opt[opt.index("--depth-maps") + 1] == str((imported / "imported" / "disp").resolve())
+    assert "priors.depth_import.fit_scale_shift=true" in opt and "priors.depth_import.merge=fill" in opt
     H, W = CFG.height, CFG.width
     disp = read_depth(imported / "imported" / "disp", T, H, W, DepthImportConfig(kind="disparity"))
     np.testing.assert_allclose(disp, 3.0 / gt["depth"] + 0.1, rtol=1e-6)
@@ -114,7 +120,7 @@ def test_run_args_follow_a_moved_scene_and_stay_inside_it(imported, tmp_path):
 
     moved = tmp_path / "moved"
     shutil.copytree(imported, moved)
-    args = run_args(moved)
+    args = run_args(moved) + run_args(moved, optional=True)
     for opt in ("--depth-maps", "--flow", "--masks"):
         value = args[args.index(opt) + 1]
         assert value.startswith(str(moved.resolve())), (opt, value)
@@ -125,6 +131,10 @@ def test_run_args_follow_a_moved_scene_and_stay_inside_it(imported, tmp_path):
         (moved / "imported.json").write_text(json.dumps(rec))
         with pytest.raises(UserError, match="imported.json"):
             run_args(moved)
+    rec["wtbench_run_args_optional"] = "--depth-maps"  # not a list
+    (moved / "imported.json").write_text(json.dumps(rec))
+    with pytest.raises(UserError, match="wtbench_run_args_optional"):
+        run_args(moved, optional=True)
     (moved / "imported.json").write_text("{not json")
     with pytest.raises(UserError, match="imported.json"):
         run_args(moved)
