@@ -89,7 +89,8 @@ class ScaffoldConfig:
     trajectory_depth_imported: bool = False
     """Also re-estimate imported depth that was fitted to the classical one (``priors.depth_import.fit_scale_shift``):
     a network's relative depth, scaled per frame by the static world around the moving objects, is not a
-    measurement of their depth either. Off: the fitted import is kept on moving pixels."""
+    measurement of their depth either. Off: the fitted import is kept on moving pixels (on, it scored lower on
+    Balloon1's leave-one-out and did not gain on generated scenes: docs/priors.md)."""
     trajectory_depth_prior: float = 3e-3
     """Weight of the depth prior against the trajectory's smoothness (``w`` of
     :func:`worldtree.motion.track_depth.smooth_trajectory_depths`). Not from the paper: on the demo scene's
