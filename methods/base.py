@@ -154,13 +154,17 @@ class BaseConfig(CommonConfig):
         """Whether the photometric fit of these stages stops at a loss plateau."""
         return self.early_stop_on()
 
+    def reestimates_fitted_import(self) -> bool:
+        """Whether the trajectory depth also re-estimates an imported depth: one fitted to the classical depth
+        (``priors.depth_import.fit_scale_shift``) under ``scaffold.trajectory_depth_imported``."""
+        return self.scaffold.trajectory_depth_imported and self.priors.depth_import.fit_scale_shift
+
     def ignored_settings(self) -> dict[str, str]:
         """:meth:`CommonConfig.ignored_settings` plus the Base method's: ``photometric.steps`` (filled in from
         ``steps``), ``sw.steps`` under ``ablate sw``, the density caps the Gaussian budget sets, the motion
         discovery settings (and ``refine_masks``) while it is off, the migration settings while it is off, the
         trajectory-depth settings with imported depth (its prior weight while it is off; the fitted-import switch
-        without a fitted import), the temporal-std
-        learning rate while temporal opacity is off."""
+        without a fitted import), the temporal-std learning rate while temporal opacity is off."""
         out = super().ignored_settings()
         out["photometric.steps"] = "this method sets it from steps; --steps N or --set steps=N"
         if "sw" in self.ablate:
@@ -174,8 +178,7 @@ class BaseConfig(CommonConfig):
             why = "motion discovery is off; --set priors.motion.enabled=true"
             out.update(settings_of("priors.motion", self.priors.motion, why))
             out["refine_masks"] = why
-        fitted_import = self.scaffold.trajectory_depth_imported and self.priors.depth_import.fit_scale_shift
-        if self.priors.depth_source != "classical" and not fitted_import:
+        if self.priors.depth_source != "classical" and not self.reestimates_fitted_import():
             why = (
                 "trajectory depth re-estimates classical depth only; imported depth is kept on moving objects "
                 "(--set scaffold.trajectory_depth_imported=true re-estimates a fitted import too)"
@@ -402,7 +405,7 @@ def _uses_trajectory_depth(c: BaseConfig, sources: dict[str, str]) -> bool:
         return False
     if sources.get("depth") == "classical":
         return True
-    return c.scaffold.trajectory_depth_imported and c.priors.depth_import.fit_scale_shift
+    return c.reestimates_fitted_import()
 
 
 def _adjust(s: BaseState, enabled: bool) -> None:

@@ -38,6 +38,12 @@ def _rays(tracks: torch.Tensor, Ks: torch.Tensor, w2cs: torch.Tensor) -> tuple[t
     return cam @ R, centres  # row-vector form of R^T cam
 
 
+def _second_difference_weights(ba: torch.Tensor, cb: torch.Tensor, ca: torch.Tensor) -> torch.Tensor:
+    """Weights ``[..., 3]`` of ``X_a, X_b, X_c`` in the second divided difference at times ``a < b < c``, from
+    the gaps ``b - a``, ``c - b``, ``c - a``: ``2 [X_a / ((b-a)(c-a)) - X_b / ((b-a)(c-b)) + X_c / ((c-b)(c-a))]``."""
+    return torch.stack([2 / (ba * ca), -2 / (ba * cb), 2 / (cb * ca)], -1)
+
+
 _CHUNK = 256
 """Tracks solved together (one batched least squares; bounds the memory at ~10 MB)."""
 
@@ -61,8 +67,7 @@ def _solve_chunk(cols, vis, zhat, rays, centres, sw: float, inv_len: float):
     tri = (torch.arange(K - 2, device=dev)[:, None] + 2) < k[None]
     one = torch.ones_like(a)
     ba, cb, ca = (torch.where(tri, x, one) for x in (b - a, c - b, c - a))
-    # Second divided difference at (a, b, c): 2 [X_a / ((b-a)(c-a)) - X_b / ((b-a)(c-b)) + X_c / ((c-b)(c-a))]
-    coef = torch.stack([2 / (ba * ca), -2 / (ba * cb), 2 / (cb * ca)], -1) * tri[..., None]  # [K-2, B, 3]
+    coef = _second_difference_weights(ba, cb, ca) * tri[..., None]  # [K-2, B, 3]
     r = rays[ts, cols[None].expand(K, B)]  # [K, B, 3]
     cen = centres[ts]  # [K, B, 3]
     A = torch.zeros(B, K - 2, 3, K, dtype=dt, device=dev)
@@ -167,7 +172,7 @@ def trajectory_scale(
     q = rel_depth.to(dt)[:, None] * r[:, 0]  # [K, 3]
     t = f.to(dt)
     a, b, c = t[:-2], t[1:-1], t[2:]
-    coef = torch.stack([2 / ((b - a) * (c - a)), -2 / ((b - a) * (c - b)), 2 / ((c - b) * (c - a))], -1)
+    coef = _second_difference_weights(b - a, c - b, c - a)  # [K-2, 3]
 
     def second(x: torch.Tensor) -> torch.Tensor:
         return coef[:, :1] * x[:-2] + coef[:, 1:2] * x[1:-1] + coef[:, 2:] * x[2:]
