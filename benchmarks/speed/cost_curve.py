@@ -2,7 +2,7 @@
 
     python -m benchmarks.speed.cost_curve OUT [--frames 40,80,160] [--sizes 160x90,320x180,480x270]
         [--methods static,base,worldtree-d2,worldtree-auto] [--presets quick,paper] [--device auto]
-        [--max-minutes M] [--dry-run] [--report-only]
+        [--max-minutes M] [--dry-run] [--report-only] [--no-probe]
 
 For every frame count F and size WxH it generates a scene of the NVIDIA-LS layout (`nvls synth`: the
 12-camera rig, F time steps rendered at WxH, the demo's slow_fast motion; `nvls build` with the generator's
@@ -16,7 +16,10 @@ Per run it records the run's own figures from ``timing.json`` (``wall_time_s``, 
 as ``wtbench table`` counts them: docs/tables.md; per-stage wall and CPU seconds; Gaussian count), mPSNR and
 PSNR, and from outside the process: its wall time, CPU time (user + system of the process and every process
 it waited for: the tree's workers, the kernel build, evaluation and start-up included) and the largest RSS of
-any one of them, the load average when it started and ended, and the machine (``machine_info.describe``).
+any one of them, the load average when it started and ended, the machine (``machine_info.describe``) and the
+machine's speed just before and after the run (``speed_probe``: one fixed rasterizer forward + backward, 20,000
+Gaussians at 320x180, in ms; a shared machine's speed drifts by 1.4x between sessions at equal load, which the
+load average does not show, so a cell's times are read beside it; ``--no-probe`` leaves it out).
 A cell's record is kept in OUT/cells/<cell>.json, its output in OUT/logs/<cell>.log.
 
 Writes OUT/cost.csv, OUT/cost.md, OUT/cost.png (time and memory against frames x pixels, log-log, one line
@@ -302,6 +305,8 @@ def collect(cell: Cell, out: Path) -> dict[str, Any]:
         "proc_tree_peak_rss_mib",
         "load_start",
         "load_end",
+        "probe_ms_start",
+        "probe_ms_end",
         "started",
     ):
         row[k] = record.get(k, "")
@@ -427,11 +432,34 @@ def run_command(cell: Cell, out: Path, device: str) -> list[str]:
     return cmd + list(METHODS[cell.method_key][2])
 
 
+def _round_or_none(x: float, digits: int = 2) -> float | None:
+    return round(x, digits) if math.isfinite(x) else None
+
+
 def _load() -> str:
     return " ".join(f"{x:.2f}" for x in os.getloadavg()) if hasattr(os, "getloadavg") else ""
 
 
-def run_cell(cell: Cell, out: Path, device: str, machine: str) -> dict[str, Any]:
+PROBE_GAUSSIANS, PROBE_SIZE, PROBE_ITERS = 20_000, (320, 180), 10
+
+
+def speed_probe(backend: str = "auto") -> float:
+    """The machine's speed now: median ms of one rasterizer forward + backward (``benchmarks.speed.render``'s
+    step: 20,000 Gaussians at 320x180, torch's thread count), NaN when it cannot run. Same work every call, so
+    two cells' probes compare how fast the machine was for each."""
+    import torch
+
+    from benchmarks.speed.render import run_one
+
+    try:
+        w, h = PROBE_SIZE
+        return float(run_one(backend, PROBE_GAUSSIANS, w, h, torch.get_num_threads(), PROBE_ITERS)["ms_median"])
+    except Exception as e:  # a probe must never stop the sweep; the table shows the gap
+        print(f"warning: speed probe failed ({type(e).__name__}: {e}); left empty", file=sys.stderr, flush=True)
+        return math.nan
+
+
+def run_cell(cell: Cell, out: Path, device: str, machine: str, probe: bool = True) -> dict[str, Any]:
     """Run one cell (its scene made first) and keep the record of the run in OUT/cells/<cell>.json."""
     log = out / "logs" / f"{cell.name}.log"
     ensure_scene(out, cell.frames, cell.width, cell.height, out / "logs" / f"{cell.scene}.log")
@@ -439,6 +467,7 @@ def run_cell(cell: Cell, out: Path, device: str, machine: str) -> dict[str, Any]
     record: dict[str, Any] = {
         "command": " ".join(cmd),
         "machine": machine,
+        "probe_ms_start": _round_or_none(speed_probe()) if probe else None,
         "load_start": _load(),
         "started": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
         "train_downscale": train_downscale(cell),
@@ -450,6 +479,7 @@ def run_cell(cell: Cell, out: Path, device: str, machine: str) -> dict[str, Any]
         proc_cpu_s=round(cpu, 2),
         proc_maxrss_mib=round(rss, 1),
         proc_tree_peak_rss_mib=round(tree_rss, 1) if math.isfinite(tree_rss) else None,
+        probe_ms_end=_round_or_none(speed_probe()) if probe else None,
         status="done" if rc == 0 and cell.is_done(out) else f"failed (exit {rc})",
     )
     (out / "cells").mkdir(parents=True, exist_ok=True)
@@ -499,6 +529,7 @@ MD_COLUMNS = (
     ("mpsnr", "mPSNR", 2),
     ("psnr", "PSNR", 2),
     ("load", "Load start -> end", None),
+    ("probe", "Probe ms start -> end", None),
     ("status", "Status", None),
 )
 
@@ -514,6 +545,9 @@ def markdown_table(rows: Sequence[Mapping[str, Any]]) -> str:
             elif key == "load":
                 a, b = str(r.get("load_start") or ""), str(r.get("load_end") or "")
                 cells.append(f"{a.split(' ')[0]} -> {b.split(' ')[0]}" if a and b else "")
+            elif key == "probe":
+                a, b = _num(r.get("probe_ms_start")), _num(r.get("probe_ms_end"))
+                cells.append(f"{a:.1f} -> {b:.1f}" if math.isfinite(a) and math.isfinite(b) else "")
             elif digits is None:
                 cells.append(str(r.get(key, "")))
             else:
@@ -730,6 +764,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     )
     ap.add_argument("--dry-run", action="store_true", help="list the cells and what is done, run nothing")
     ap.add_argument("--report-only", action="store_true", help="write the table and plots from what is done")
+    ap.add_argument(
+        "--no-probe", dest="probe", action="store_false",
+        help="skip the machine-speed probe (a rasterizer step timed before and after each run)",
+    )
     args = ap.parse_args(argv)
     try:
         if args.max_minutes is not None and args.max_minutes <= 0:
@@ -789,7 +827,7 @@ def _sweep(cells: list[Cell], args: argparse.Namespace) -> int:
                 )
                 break
         print(f"[{i + 1}/{len(cells)}] {cell.name}: running (load {_load()})", flush=True)
-        record = run_cell(cell, out, args.device, machine)
+        record = run_cell(cell, out, args.device, machine, probe=args.probe)
         failed += record["status"] != "done"
         print(
             f"    {record['status']}: {record['proc_wall_s']:.0f} s wall, {record['proc_cpu_s']:.0f} s CPU, "

@@ -41,6 +41,7 @@ from worldtree.imageio import read_mask
 from worldtree.infra.atomic import atomic_write_json
 from worldtree.motion.track_depth import trajectory_scale
 from worldtree.scene import load_scene
+from worldtree.stages.cameras import project_points
 
 __all__ = ["measure_object", "object_pieces"]
 
@@ -125,21 +126,20 @@ def measure_scene(scene: Path, raw: Path, masks_dir: Path | None = None) -> list
     times = sc.times.numpy()
     centres = np.array([[np.asarray(o["world_from_object"][int(t)])[:3, 3] for t in times] for o in objs])
     centres = scale * centres @ R_al.T + t_al  # [O, T, 3] scene units
-    R, tr = w2cs[:, :3, :3].numpy(), w2cs[:, :3, 3].numpy()
-    cam = np.einsum("tij,otj->oti", R, centres) + tr[None]
-    uvw = np.einsum("tij,otj->oti", Ks.numpy(), cam)
-    uv = uvw[..., :2] / np.where(np.abs(uvw[..., 2:]) > 1e-12, uvw[..., 2:], 1e-12)
+    projected = [project_points(torch.from_numpy(centres[:, t]), Ks[t], w2cs[t]) for t in range(T)]
+    uv = torch.stack([p[0] for p in projected], 1).numpy()  # [O, T, 2]
+    z = torch.stack([p[1] for p in projected], 1).numpy()  # [O, T] camera depth
     seen: list[dict[int, tuple]] = [object_pieces(masks[t], uv[:, t]) for t in range(T)]
     rows = []
     for o, ob in enumerate(objs):
-        keep = [t for t in range(T) if o in seen[t] and not seen[t][o][2] and cam[o, t, 2] > 0]
+        keep = [t for t in range(T) if o in seen[t] and not seen[t][o][2] and z[o, t] > 0]
         row = {"scene": scene.name, "object": ob.get("kind", str(o)), "frames_total": T}
         if len(keep) < 4:
             rows.append(row | {"frames": float(len(keep))})
             continue
         cents = np.array([seen[t][o][0] for t in keep])
         areas = np.array([seen[t][o][1] for t in keep])
-        rows.append(row | measure_object(np.array(keep), cents, areas, cam[o, keep, 2], Ks, w2cs))
+        rows.append(row | measure_object(np.array(keep), cents, areas, z[o, keep], Ks, w2cs))
     return rows
 
 

@@ -151,7 +151,14 @@ def test_table_csv_slopes_and_plots_from_run_folders(tmp_path, capsys):
     (out / "cells").mkdir()
     (out / "cells" / f"{cells[0].name}.json").write_text(
         json.dumps(
-            {"proc_wall_s": 260.0, "proc_cpu_s": 150.0, "load_start": "3.00 2.0 1.0", "load_end": "4.00 3 2"}
+            {
+                "proc_wall_s": 260.0,
+                "proc_cpu_s": 150.0,
+                "load_start": "3.00 2.0 1.0",
+                "load_end": "4.00 3 2",
+                "probe_ms_start": 11.5,
+                "probe_ms_end": 16.25,
+            }
         )
     )
     rows = cc.report(cells, out)
@@ -167,7 +174,8 @@ def test_table_csv_slopes_and_plots_from_run_folders(tmp_path, capsys):
     tree_row = next(r for r in rows if r["method"] == "worldtree-d2" and r["work"] == cells[-1].work)
     assert tree_row["stage_cpu_s:tree"] == pytest.approx(10.0 * 8**1.5)
     md = (out / "cost.md").read_text()
-    assert md.count("\n| ") == 8 and "| 3.00 -> 4.00 |" in md
+    assert md.count("\n| ") == 8 and "| 3.00 -> 4.00 | 11.5 -> 16.2 |" in md
+    assert float(first["probe_ms_end"]) == 16.25
     fits = {(f["method"], f["cost"]): f for f in cc.slopes(rows)}
     assert fits[("base", "cpu_time_s")]["slope"] == pytest.approx(1.0, abs=0.01)
     assert fits[("worldtree-d2", "stage_cpu_s:tree")]["slope"] == pytest.approx(1.5, abs=1e-6)
@@ -194,10 +202,11 @@ def test_finished_cells_are_skipped_and_the_budget_stops(tmp_path, monkeypatch, 
     fake_run(out, cells[0], 10.0)
     (out / "cells").mkdir()
     (out / "cells" / f"{cells[0].name}.json").write_text(json.dumps({"proc_wall_s": 120.0}))
-    ran = []
+    ran, probes = [], []
 
-    def fake_cell(cell, out_, device, machine):
+    def fake_cell(cell, out_, device, machine, probe=True):
         ran.append(cell.name)
+        probes.append(probe)
         fake_run(out_, cell, 20.0)
         return {
             "status": "done",
@@ -223,6 +232,7 @@ def test_finished_cells_are_skipped_and_the_budget_stops(tmp_path, monkeypatch, 
     assert cc.main([*args, "--max-minutes", "5"]) == 0
     assert ran == ["nvls_f80_160x90-static-quick"]  # the finished 40-frame cell is not run again
     assert cc.main(args) == 0 and ran == ["nvls_f80_160x90-static-quick"]
+    assert probes == [True]  # the machine-speed probe is on unless --no-probe
     capsys.readouterr()
     assert cc.main([*args, "--dry-run"]) == 0
     assert capsys.readouterr().out.splitlines()[-1] == "2 cells, 2 done"
@@ -278,3 +288,17 @@ def test_estimate_scales_the_largest_finished_cell_at_least_linearly():
     rows[1]["proc_wall_s"] = 432.0  # slope 2
     assert cc.estimate_wall_s(cells[2], rows) == pytest.approx(432.0 * 4)
     assert math.isnan(cc.estimate_wall_s(cells[2], [{**rows[0], "status": "pending"}]))
+
+
+def test_speed_probe_times_the_fixed_render_step(monkeypatch):
+    """The probe is the render benchmark's step at its fixed size, in ms; a failure is NaN, not a stopped sweep."""
+    ms = cc.speed_probe(backend="reference")
+    assert math.isfinite(ms) and ms > 0
+    seen = {}
+
+    def fake_run_one(backend, n, width, height, threads, iters):
+        seen.update(n=n, size=(width, height))
+        raise RuntimeError("no kernel")
+
+    monkeypatch.setattr("benchmarks.speed.render.run_one", fake_run_one)
+    assert math.isnan(cc.speed_probe()) and seen == {"n": 20_000, "size": (320, 180)}
