@@ -78,7 +78,7 @@ def run_one(backend: str, n: int, width: int, height: int, threads: int, iters: 
         "ms_min": 1000 * times[0],
         "cpu_ms_median": 1000 * cpu[len(cpu) // 2],
         "visible": int(out.visible.sum()),
-        "coverage": float(out.alpha.mean()),
+        "coverage": float(out.alpha.detach().mean()),
         "peak_rss_mb": peak_kb / 1024,
     }
 
