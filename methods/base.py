@@ -52,6 +52,7 @@ from worldtree.infra.heap import release_freed_memory
 from worldtree.infra.timing import StageClock
 from worldtree.infra.torchfile import load_torch, save_torch
 from worldtree.motion.lift import lift_tracks, sample_depth
+from worldtree.motion.object_depth import ObjectDepthConfig, object_depths
 from worldtree.motion.scaffold import Scaffold, ScaffoldConfig, SkinCache, build_scaffold
 from worldtree.motion.track_completion import complete_trajectories
 from worldtree.motion.track_depth import ratio_map, smooth_trajectory_depths
@@ -111,6 +112,8 @@ class BaseConfig(CommonConfig):
     """Scaffold construction."""
     scaffold_fit: ScaffoldFitConfig = field(default_factory=ScaffoldFitConfig)
     """Geometric scaffold fit."""
+    object_depth: ObjectDepthConfig = field(default_factory=ObjectDepthConfig)
+    """Outlined moving objects placed by their size and path (imported masks with the classical depth)."""
     photometric: PhotometricConfig = field(default_factory=PhotometricConfig)
     """Joint fit (its ``steps`` field is replaced by ``steps`` above)."""
     test_pose: PoseRefineConfig = field(default_factory=PoseRefineConfig)
@@ -191,6 +194,13 @@ class BaseConfig(CommonConfig):
             out["scaffold.trajectory_depth_imported"] = (
                 "applies to imported depth fitted to the classical one only (--depth-maps with --depth-fit)"
             )
+        if self.priors.masks_source is None or self.priors.depth_source != "classical":
+            why = (
+                "objects are placed by size and path only with imported masks (--masks) and the classical depth"
+            )
+            out.update(settings_of("object_depth", self.object_depth, why, skip=()))
+        elif not self.object_depth.enabled:
+            out.update(settings_of("object_depth", self.object_depth, "--set object_depth.enabled=true"))
         if self.photometric.migrate_every <= 0:
             why = "static<->dynamic migration is off; --set photometric.migrate_every=N"
             for k in ("migrate_start", "migrate_stop", "migrate_frames", "migrate_residual", "migrate_min_views",
@@ -376,6 +386,11 @@ def prior_use(c: BaseConfig, sources: dict[str, str]) -> dict[str, dict[str, Any
         depth["photometric"] = f"scale-and-shift-invariant depth L1, photometric.lambda_depth {ph.lambda_depth}"
     masks = {"sw": f"moving pixels (dilated {c.sw.dilate_px} px) left out of the static warm-up"} if sw else {}
     masks["scaffold"] = "pixels the dynamic Gaussians are lifted from"
+    if _uses_object_depth(c, sources):
+        masks["scaffold"] += (
+            f"; each outlined object's size and path set its depth where the path fit >= {c.object_depth.min_fit}"
+        )
+        depth["scaffold"] += "; on outlined objects whose path fits, replaced by their size and path"
     if refine:
         masks["motion"] = "refined with the warm-up model's residual"
     tracks = {"ba": f"static tracks, ba.lambda_reproj {c.ba.lambda_reproj}"} if ba else {}
@@ -406,6 +421,25 @@ def _uses_trajectory_depth(c: BaseConfig, sources: dict[str, str]) -> bool:
     if sources.get("depth") == "classical":
         return True
     return c.reestimates_fitted_import()
+
+
+def _uses_object_depth(c: BaseConfig, sources: dict[str, str]) -> bool:
+    """Whether outlined objects are placed by size and path: the masks are imported (the classical ones cut
+    an object into parts, whose areas say nothing) and the depth is the classical one, which fills moving
+    pixels from their static surroundings."""
+    return (
+        c.object_depth.enabled
+        and sources.get("masks", "classical") != "classical"
+        and sources.get("depth", "classical") == "classical"
+    )
+
+
+def _object_depth(s: BaseState) -> torch.Tensor:
+    """The depth prior ``[T, H, W]`` with the placed objects' pixels set by :func:`object_depths`;
+    ``info["object_depth"]``."""
+    z, objects = object_depths(s.P["epi_mask"].bool(), s.scene.Ks, s.w2cs, s.cfg.object_depth)
+    s.info["object_depth"] = {"objects": objects, "placed": sum(o["placed"] for o in objects)}
+    return torch.where(z > 0, z.to(s.depth.dtype), s.depth)
 
 
 def _adjust(s: BaseState, enabled: bool) -> None:
@@ -613,6 +647,8 @@ def stage_scaffold(s: BaseState) -> None:
     vis = P["track_vis"][:, dyn_ids]
     if dyn_ids.numel() and _uses_trajectory_depth(c, s.priors.sources):
         depth = s.depth = _trajectory_depth(s, tracks, vis, scale)
+    if _uses_object_depth(c, s.priors.sources):
+        depth = s.depth = _object_depth(s)
     saved = s.checkpoint_dir / "scaffold.pt" if s.checkpoint_dir is not None else None
     if dyn_ids.numel() == 0:
         scf = Scaffold.empty(sc.num_frames, c.scaffold.unit_ratio * scale, c.scaffold, device=s.device)

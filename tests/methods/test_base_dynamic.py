@@ -116,3 +116,23 @@ def test_which_depth_the_trajectory_depth_re_estimates(source, fitted, switch, e
     assert _uses_trajectory_depth(c, {"depth": source}) is expected
     off = dataclasses.replace(c, scaffold=dataclasses.replace(c.scaffold, trajectory_depth=False))
     assert _uses_trajectory_depth(off, {"depth": source}) is False
+
+
+@pytest.mark.parametrize(
+    ("masks", "depth", "enabled", "expected"),
+    [
+        ("imported:/m", "classical", True, True),  # outlines and a fill from the static surroundings
+        ("classical", "classical", True, False),  # the classical masks cut objects into parts
+        ("imported:/m", "imported:/d", True, False),  # imported depth measures the moving objects itself
+        ("imported:/m", "classical", False, False),
+    ],
+)
+def test_which_runs_place_outlined_objects_by_size_and_path(masks, depth, enabled, expected):
+    from methods.base import _uses_object_depth, prior_use
+
+    c = smoke_config()
+    c = dataclasses.replace(c, object_depth=dataclasses.replace(c.object_depth, enabled=enabled))
+    sources = {"masks": masks, "depth": depth}
+    assert _uses_object_depth(c, sources) is expected
+    said = prior_use(c, sources)["depth"]["used_in"]["scaffold"]
+    assert ("size and path" in said) is expected

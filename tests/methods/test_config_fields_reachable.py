@@ -27,6 +27,7 @@ GATES = {
     "early_stop.": ["early_stop.enabled=true"],
     "auto_split.": ["depth=auto"],
     "holdout.": ["holdout.enabled=true"],
+    "object_depth.": ["priors.masks_source=masks"],
 }
 
 
