@@ -439,7 +439,11 @@ def _object_depth(s: BaseState) -> torch.Tensor:
     ``info["object_depth"]``."""
     z, objects = object_depths(s.P["epi_mask"].bool(), s.scene.Ks, s.w2cs, s.cfg.object_depth)
     s.info["object_depth"] = {"objects": objects, "placed": sum(o["placed"] for o in objects)}
-    return torch.where(z > 0, z.to(s.depth.dtype), s.depth)
+    placed = z > 0
+    # A placed object's depth is a measurement now: what reads the prior's confidence (a tree child's hold on
+    # its parent's depth, `lambda_parent_depth`) follows it there as it follows an imported depth.
+    s.P = {**s.P, "depth_conf": torch.where(placed, torch.ones_like(s.P["depth_conf"]), s.P["depth_conf"])}
+    return torch.where(placed, z.to(s.depth.dtype), s.depth)
 
 
 def _adjust(s: BaseState, enabled: bool) -> None:

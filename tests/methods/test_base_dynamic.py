@@ -136,3 +136,32 @@ def test_which_runs_place_outlined_objects_by_size_and_path(masks, depth, enable
     assert _uses_object_depth(c, sources) is expected
     said = prior_use(c, sources)["depth"]["used_in"]["scaffold"]
     assert ("size and path" in said) is expected
+
+
+def test_a_placed_object_sets_the_depth_prior_and_its_confidence_there_only():
+    """The size-and-path depth replaces the prior on the placed object's pixels and marks them measured (what a
+    tree child's hold on its parent's depth reads); every other pixel keeps its depth and confidence."""
+    import types
+
+    from methods.base import _object_depth
+    from tests.worldtree.motion.ball_scene import RADIUS, K, draw, rig
+
+    T = 20
+    w2cs = rig(T)
+    t = torch.arange(T, dtype=torch.float64)[:, None]
+    centre = torch.tensor([-0.3, 0.0, 1.6], dtype=torch.float64) + t * torch.tensor([0.03, 0.004, 0.02])
+    masks, z, uv = draw(centre[:, None], w2cs)
+    depth = torch.full(masks.shape, 3.0)  # the fill: the background's depth
+    conf = torch.where(masks, torch.zeros(()), torch.full((), 0.7))
+    s = types.SimpleNamespace(
+        P={"epi_mask": masks, "depth_conf": conf.clone()}, depth=depth.clone(), w2cs=w2cs.float(), info={},
+        scene=types.SimpleNamespace(Ks=K.float().expand(T, 3, 3)), cfg=smoke_config(),
+    )  # fmt: skip
+    out = _object_depth(s)
+    assert s.info["object_depth"]["placed"] == 1
+    k = 7
+    u, v = int(round(uv[k, 0, 0])), int(round(uv[k, 0, 1]))
+    assert float(out[k, v, u]) == pytest.approx(z[k, 0] - RADIUS, rel=0.05)
+    assert torch.equal(out[~masks], depth[~masks]) and torch.equal(s.P["depth_conf"][~masks], conf[~masks])
+    placed = out != depth
+    assert placed.any() and bool((s.P["depth_conf"][placed] == 1).all())

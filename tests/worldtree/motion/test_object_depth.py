@@ -8,49 +8,16 @@ import numpy as np
 import pytest
 import torch
 
+from tests.worldtree.motion.ball_scene import RADIUS, H, K, W, draw, rig
 from worldtree.motion.object_depth import ObjectDepthConfig, Piece, link_pieces, mask_pieces, object_depths
-
-H, W = 90, 160
-F = 120.0
-K = torch.tensor([[F, 0.0, 79.5], [0.0, F, 44.5], [0.0, 0.0, 1.0]], dtype=torch.float64)
-RADIUS = 0.12
-
-
-def _rig(T: int) -> torch.Tensor:
-    """``[T, 4, 4]`` cameras of a two-row rig visited in a ping-pong order, looking along +z: they accelerate
-    at every frame, which is what measures an object's depth scale."""
-    out = []
-    for t in range(T):
-        k = t % 10
-        cam = k if k < 6 else 10 - k
-        w2c = torch.eye(4, dtype=torch.float64)
-        w2c[:3, 3] = -torch.tensor([0.1 * cam - 0.25, 0.06 * (t % 2), 0.0], dtype=torch.float64)
-        out.append(w2c)
-    return torch.stack(out)
-
-
-def _draw(centres: torch.Tensor, w2cs: torch.Tensor) -> tuple[torch.Tensor, np.ndarray, np.ndarray]:
-    """Outline masks ``[T, H, W]`` of balls of ``RADIUS`` at world ``centres`` [T, O, 3] (each a disc of
-    radius ``F R / z`` at its projected centre), their centres' camera depths [T, O] and pixels [T, O, 2]."""
-    T = centres.shape[0]
-    cam = centres @ w2cs[:, :3, :3].transpose(1, 2) + w2cs[:, None, :3, 3]
-    z = cam[..., 2]
-    uv = cam[..., :2] / z[..., None] * F + K[:2, 2]
-    v, u = np.mgrid[0:H, 0:W]
-    masks = np.zeros((T, H, W), bool)
-    for t in range(T):
-        for o in range(centres.shape[1]):
-            r = F * RADIUS / float(z[t, o])
-            masks[t] |= (u - float(uv[t, o, 0])) ** 2 + (v - float(uv[t, o, 1])) ** 2 <= r * r
-    return torch.from_numpy(masks), z.numpy(), uv.numpy()
 
 
 def test_a_ball_on_a_straight_line_is_placed_at_its_depth():
     T = 20
-    w2cs = _rig(T)
+    w2cs = rig(T)
     t = torch.arange(T, dtype=torch.float64)[:, None]
     centre = torch.tensor([-0.3, 0.0, 1.6], dtype=torch.float64) + t * torch.tensor([0.03, 0.004, 0.02])
-    masks, z, uv = _draw(centre[:, None], w2cs)
+    masks, z, uv = draw(centre[:, None], w2cs)
     depth, objects = object_depths(masks, K.expand(T, 3, 3), w2cs, ObjectDepthConfig())
     assert len(objects) == 1 and objects[0]["placed"] and objects[0]["fit"] > 0.95  # pixel outlines: not exactly 1
     for k in range(T):
@@ -62,13 +29,13 @@ def test_a_ball_on_a_straight_line_is_placed_at_its_depth():
 
 def test_an_object_that_turns_faster_than_the_cameras_is_not_placed():
     T = 20
-    w2cs = _rig(T)
+    w2cs = rig(T)
     t = torch.arange(T, dtype=torch.float64)
     # a small loop every 3 frames: its own acceleration is larger than the cameras'
     centre = torch.stack(
         [0.25 * torch.cos(2.1 * t), 0.12 * torch.sin(2.1 * t), 1.7 + 0.2 * torch.sin(1.3 * t)], -1
     )
-    masks, _, _ = _draw(centre[:, None], w2cs)
+    masks, _, _ = draw(centre[:, None], w2cs)
     depth, objects = object_depths(masks, K.expand(T, 3, 3), w2cs, ObjectDepthConfig())
     assert objects and not any(o["placed"] for o in objects)
     assert (depth == 0).all()
@@ -81,7 +48,7 @@ def test_two_balls_that_cross_keep_their_own_chains():
     t = torch.arange(T, dtype=torch.float64)
     a = torch.stack([-0.5 + 0.06 * t, torch.zeros(T), torch.full((T,), 2.0)], -1)
     b = torch.stack([0.4 - 0.05 * t, torch.full((T,), 0.02), torch.full((T,), 1.4)], -1)
-    masks, z, _ = _draw(torch.stack([a, b], 1), w2cs)
+    masks, z, _ = draw(torch.stack([a, b], 1), w2cs)
     cfg = ObjectDepthConfig()
     pieces = [mask_pieces(m, cfg.min_area)[1] for m in masks.numpy()]
     merged = [k for k, p in enumerate(pieces) if len(p) == 1]
