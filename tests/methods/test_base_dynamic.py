@@ -5,14 +5,16 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import types
 
 import numpy as np
 import pytest
 import torch
 
-from methods.base import BaseMethod, refill_imported, smoke_config
+from methods.base import BaseMethod, _object_depth, refill_imported, smoke_config
 from nvidia_ls.build import BuildConfig, build_scene
 from nvidia_ls.synth import SynthConfig, write_raw_scene
+from tests.worldtree.motion.ball_scene import RADIUS, K, draw, rig, straight_path
 from worldtree.imageio import read_mask, write_image
 from worldtree.infra.device import pick_device
 from worldtree.priors import PriorsConfig
@@ -141,16 +143,9 @@ def test_which_runs_place_outlined_objects_by_size_and_path(masks, depth, enable
 def test_a_placed_object_sets_the_depth_prior_and_its_confidence_there_only():
     """The size-and-path depth replaces the prior on the placed object's pixels and marks them measured (what a
     tree child's hold on its parent's depth reads); every other pixel keeps its depth and confidence."""
-    import types
-
-    from methods.base import _object_depth
-    from tests.worldtree.motion.ball_scene import RADIUS, K, draw, rig
-
     T = 20
     w2cs = rig(T)
-    t = torch.arange(T, dtype=torch.float64)[:, None]
-    centre = torch.tensor([-0.3, 0.0, 1.6], dtype=torch.float64) + t * torch.tensor([0.03, 0.004, 0.02])
-    masks, z, uv = draw(centre[:, None], w2cs)
+    masks, z, uv = draw(straight_path(T), w2cs)
     depth = torch.full(masks.shape, 3.0)  # the fill: the background's depth
     conf = torch.where(masks, torch.zeros(()), torch.full((), 0.7))
     s = types.SimpleNamespace(

@@ -24,6 +24,14 @@ def rig(T: int) -> torch.Tensor:
     return torch.stack(out)
 
 
+def straight_path(T: int) -> torch.Tensor:
+    """World centres ``[T, 1, 3]`` of one ball moving at constant velocity in front of :func:`rig` (towards
+    +x and away from it): the case whose depth size and path pin."""
+    t = torch.arange(T, dtype=torch.float64)[:, None]
+    start = torch.tensor([-0.3, 0.0, 1.6], dtype=torch.float64)
+    return (start + t * torch.tensor([0.03, 0.004, 0.02], dtype=torch.float64))[:, None]
+
+
 def draw(centres: torch.Tensor, w2cs: torch.Tensor) -> tuple[torch.Tensor, np.ndarray, np.ndarray]:
     """Outline masks ``[T, H, W]`` of balls of ``RADIUS`` at world ``centres`` [T, O, 3] (each a disc of
     radius ``F R / z`` at its projected centre), their centres' camera depths [T, O] and pixels [T, O, 2]."""

@@ -8,16 +8,14 @@ import numpy as np
 import pytest
 import torch
 
-from tests.worldtree.motion.ball_scene import RADIUS, H, K, W, draw, rig
+from tests.worldtree.motion.ball_scene import RADIUS, H, K, W, draw, rig, straight_path
 from worldtree.motion.object_depth import ObjectDepthConfig, Piece, link_pieces, mask_pieces, object_depths
 
 
 def test_a_ball_on_a_straight_line_is_placed_at_its_depth():
     T = 20
     w2cs = rig(T)
-    t = torch.arange(T, dtype=torch.float64)[:, None]
-    centre = torch.tensor([-0.3, 0.0, 1.6], dtype=torch.float64) + t * torch.tensor([0.03, 0.004, 0.02])
-    masks, z, uv = draw(centre[:, None], w2cs)
+    masks, z, uv = draw(straight_path(T), w2cs)
     depth, objects = object_depths(masks, K.expand(T, 3, 3), w2cs, ObjectDepthConfig())
     assert len(objects) == 1 and objects[0]["placed"] and objects[0]["fit"] > 0.95  # pixel outlines: not exactly 1
     for k in range(T):
