@@ -454,7 +454,6 @@ def _write_priors(
     W, H = size
     record_priors: dict = {}
     args: list[str] = []
-    optional: list[str] = []  # options that use an imported prior measured no better than the classical one
     if depth_files:
         sub = "disp" if src.depth_kind == "disparity" else "depth"
         ddir = _mkdir(tmp / IMPORTED / sub)
@@ -471,17 +470,15 @@ def _write_priors(
         record_priors["depth"] = {"path": f"{IMPORTED}/{sub}", "kind": src.depth_kind,
                                   "source": str(src.depth_dir.resolve()),
                                   "scaled_by": world_scale if src.depth_kind == "depth" else 1.0}  # fmt: skip
-        depth_args = ["--depth-maps", f"{IMPORTED}/{sub}", "--set", f"priors.depth_import.kind={src.depth_kind}"]
-        if src.depth_kind == "disparity":  # relative (MiDaS-like): scale and shift are unknown
-            # Fitted to stereo, and used only where stereo measures nothing (moving objects): on
-            # Balloon1 MiDaS is 11-16% off the static background where stereo is 1-2% off.
-            depth_args += ["--set", "priors.depth_import.fit_scale_shift=true"]
-            depth_args += ["--set", "priors.depth_import.merge=fill"]
-            # Not suggested: even so it scored below the classical depth at all ten of Balloon1's
-            # leave-one-out frames (docs/priors.md); kept for whoever wants to try it.
-            optional += depth_args
-        else:
-            args += depth_args
+        args += ["--depth-maps", f"{IMPORTED}/{sub}", "--set", f"priors.depth_import.kind={src.depth_kind}"]
+        if src.depth_kind == "disparity":  # relative (MiDaS-like): its scale is unknown
+            # Used only where stereo measures nothing (moving objects, unconfident pixels: on Balloon1 MiDaS is
+            # 11-16% off the static background where stereo is 1-2% off), scaled per frame to the stereo
+            # without a shift: one wall's narrow range of depth fixes no shift, and the one a line fits
+            # there puts a nearer moving object far too far (docs/priors.md, "A scale without a shift").
+            args += ["--set", "priors.depth_import.fit_scale_shift=true",
+                     "--set", "priors.depth_import.fit_shift=false",
+                     "--set", "priors.depth_import.merge=fill"]  # fmt: skip
     if src.flow:
         fdir = _mkdir(tmp / IMPORTED / "flow")
         sizes = set()
@@ -505,9 +502,6 @@ def _write_priors(
         args += ["--masks", f"{IMPORTED}/masks"]
     if record_priors:
         doc = {"priors": record_priors, "wtbench_run_args": args}
-        if optional:
-            doc["wtbench_run_args_optional"] = optional
-            doc["optional_why"] = OPTIONAL_WHY
         atomic_write_json(tmp / "imported.json", doc)
     return record_priors
 
@@ -574,18 +568,8 @@ def _mkdir(p: Path) -> Path:
 PATH_OPTIONS = ("--depth-maps", "--flow", "--masks")
 
 
-OPTIONAL_WHY = (
-    "relative (MiDaS-like) disparity, fitted per frame to the classical depth and used on moving and "
-    "unconfident pixels, scored below the classical depth at all ten of Balloon1's leave-one-out frames "
-    "(-0.34 dB mean; docs/priors.md)"
-)
-"""Why ``imported.json``'s optional options are not among those ``nvls import`` suggests."""
-
-
-def run_args(scene: str | Path, optional: bool = False) -> list[str]:
-    """The ``wtbench run`` options that use a scene's imported priors (from ``imported.json``; [] if none);
-    with ``optional``, those of the priors imported but not suggested (``wtbench_run_args_optional``: relative
-    disparity, see :data:`OPTIONAL_WHY`).
+def run_args(scene: str | Path) -> list[str]:
+    """The ``wtbench run`` options that use a scene's imported priors (from ``imported.json``; [] if none).
 
     Folder values are stored relative to the scene and returned as absolute paths inside it; a value that is
     absolute or leads outside the scene is a one-line :class:`UserError` naming ``imported.json``.
@@ -603,7 +587,7 @@ def run_args(scene: str | Path, optional: bool = False) -> list[str]:
         raise UserError(
             f"{path}: not readable JSON ({e}); import the scene again with `nvls import`"
         ) from None
-    key = "wtbench_run_args_optional" if optional else "wtbench_run_args"
+    key = "wtbench_run_args"
     args = doc.get(key, []) if isinstance(doc, dict) else None
     if not isinstance(args, list) or not all(isinstance(a, str) for a in args):
         raise UserError(f"{path}: '{key}' must be a list of strings; import the scene again")

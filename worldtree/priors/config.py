@@ -216,6 +216,13 @@ class DepthImportConfig:
     """16-bit PNG values are divided by this (1000 = millimetres to metres)."""
     fit_scale_shift: bool = False
     """Fit a per-frame scale and shift to the classical depth (in the file's own space: depth or disparity)."""
+    fit_shift: bool = True
+    """With ``fit_scale_shift``: also fit the shift (a line ``a x + b``); false fits the scale alone (a line
+    through the origin: disparity 0 at infinity, depth 0 at the camera). The static pixels a frame is fitted
+    on often span a narrow range of depth (one wall) where a relative network's error is a large part of the
+    spread; the least-squares slope is then flattened (regression dilution) and a moving object nearer than
+    that range, an extrapolation, lands too far. Fixing the shift at 0 takes the slope from the mean ratio
+    instead (docs/priors.md, "A scale without a shift")."""
     fit_global_scale: bool = True
     """Without ``fit_scale_shift``: multiply the imported depth by the one factor that makes it agree with the
     scene's cameras (``worldtree.priors.depth_scale``: two-view triangulation of the flow's static matches).

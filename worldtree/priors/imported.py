@@ -177,12 +177,31 @@ def fit_scale_shift(pred: np.ndarray, target: np.ndarray, weight: np.ndarray) ->
     return float(a), float(my - a * mx)
 
 
+def fit_scale(pred: np.ndarray, target: np.ndarray, weight: np.ndarray) -> tuple[float, float]:
+    """Weighted least-squares ``a`` minimising ``sum w (a pred - target)^2`` (a line through the origin),
+    returned as ``(a, 0.0)``; (1, 0) if degenerate (no weight or every weighted ``pred`` 0)."""
+    w = weight.astype(np.float64).ravel()
+    x = pred.astype(np.float64).ravel()
+    y = target.astype(np.float64).ravel()
+    sxx = (w * x * x).sum()
+    if not (w.sum() > 0 and sxx > 0):
+        return 1.0, 0.0
+    return float((w * x * y).sum() / sxx), 0.0
+
+
 def fit_scale_shift_robust(
-    pred: np.ndarray, target: np.ndarray, weight: np.ndarray, trim: float | None, rounds: int = 3
+    pred: np.ndarray,
+    target: np.ndarray,
+    weight: np.ndarray,
+    trim: float | None,
+    rounds: int = 3,
+    shift: bool = True,
 ) -> tuple[float, float]:
-    """:func:`fit_scale_shift`, then ``rounds`` refits without the pixels whose residual exceeds ``trim``
-    robust standard deviations (1.4826 x the weighted median absolute residual); ``trim=None``: plain fit."""
-    a, b = fit_scale_shift(pred, target, weight)
+    """:func:`fit_scale_shift` (``shift=False``: :func:`fit_scale`, ``b = 0``), then ``rounds`` refits without
+    the pixels whose residual exceeds ``trim`` robust standard deviations (1.4826 x the weighted median
+    absolute residual); ``trim=None``: plain fit."""
+    line = fit_scale_shift if shift else fit_scale
+    a, b = line(pred, target, weight)
     if trim is None:
         return a, b
     x = pred.astype(np.float64).ravel()
@@ -200,7 +219,7 @@ def fit_scale_shift_robust(
         if keep.sum() < 3 or keep.sum() == use.sum():
             break
         use = keep
-        a, b = fit_scale_shift(x[use], y[use], w[use])
+        a, b = line(x[use], y[use], w[use])
     return a, b
 
 
@@ -236,7 +255,8 @@ def imported_to_depth(
 ) -> np.ndarray:
     """Turn imported maps ``[T,H,W]`` into depth ``[T,H,W]``.
 
-    With ``fit_scale_shift`` each frame is fitted to ``ref_depth`` (weights ``ref_conf``, rebalanced over the
+    With ``fit_scale_shift`` each frame is fitted to ``ref_depth`` (a scale and shift, or under
+    ``cfg.fit_shift=False`` a scale alone; weights ``ref_conf``, rebalanced over the
     imported values' range by ``cfg.fit_balance_bins``) in the file's own space (disparity against
     1/ref_depth, depth against ref_depth) before any inversion; pixels where ``exclude`` [T,H,W] (bool) is set
     take no part in the fit (moving objects: the reference is the static world's depth, wrong there).
@@ -253,7 +273,7 @@ def imported_to_depth(
             if exclude is not None:
                 w = w * ~exclude[t]
             w = balanced_weights(x, w, cfg.fit_balance_bins)
-            a, b = fit_scale_shift_robust(x, target, w, cfg.fit_trim)
+            a, b = fit_scale_shift_robust(x, target, w, cfg.fit_trim, shift=cfg.fit_shift)
             x = a * x + b
         if cfg.kind == "disparity":
             pos = x > 1e-9

@@ -13,6 +13,7 @@ from worldtree.priors import DepthConfig, PriorsConfig, compute_priors
 from worldtree.priors.config import DepthImportConfig
 from worldtree.priors.imported import (
     balanced_weights,
+    fit_scale,
     fit_scale_shift,
     fit_scale_shift_robust,
     imported_to_depth,
@@ -70,6 +71,46 @@ def test_refit_without_moving_pixels_recovers_their_depth():
     without = imported_to_depth(disp, cfg, ref, np.ones_like(ref), exclude=near)
     np.testing.assert_allclose(without[near], 2.0, rtol=1e-6)
     assert abs(np.median(with_obj[near]) / 2.0 - 1) > 0.1
+
+
+def test_scale_fit_is_the_least_squares_line_through_the_origin():
+    rng = np.random.default_rng(3)
+    x = rng.uniform(0.5, 2.0, 500)
+    y = 1.7 * x + rng.normal(0, 0.05, x.size)
+    w = rng.uniform(0.1, 1.0, x.size)
+    a, b = fit_scale(x, y, w)
+    # Independent: weighted least squares with one column by numpy's solver.
+    ref = np.linalg.lstsq((np.sqrt(w) * x)[:, None], np.sqrt(w) * y, rcond=None)[0][0]
+    assert b == 0.0 and a == pytest.approx(ref, rel=1e-12)
+    assert fit_scale(x, y, np.zeros_like(w)) == (1.0, 0.0)
+    assert fit_scale(np.zeros_like(x), y, w) == (1.0, 0.0)
+    # Trimmed: 10 % gross errors on one side leave the scale where the clean points put it.
+    y_bad = y.copy()
+    y_bad[:50] += 3.0
+    a_r, b_r = fit_scale_shift_robust(x, y_bad, w, trim=2.5, shift=False)
+    assert b_r == 0.0 and abs(a_r - 1.7) < 0.01
+    assert abs(fit_scale(x, y_bad, w)[0] - 1.7) > 0.1
+
+
+def test_scale_without_shift_places_a_near_object_where_a_noisy_wall_flattens_the_line():
+    """The static pixels span one wall (depth 8..12) and the network's disparity errs by 10 % per pixel
+    (no shift): least squares with a shift flattens the slope (regression dilution) and puts an object at
+    depth 3, nearer than anything fitted, about 40 % too far; a scale alone, the mean ratio, puts it within
+    a few per cent."""
+    rng = np.random.default_rng(0)
+    H, W = 60, 90
+    obj = np.zeros((1, H, W), bool)
+    obj[0, 10:30, 20:40] = True
+    z = np.where(obj, 3.0, np.tile(np.linspace(8.0, 12.0, W), (H, 1))[None])
+    disp = 2.5 / z * (1.0 + rng.normal(0.0, 0.1, z.shape))
+    ref = np.where(obj, 10.0, z)
+    ratio = {}
+    for shift in (True, False):
+        cfg = DepthImportConfig(kind="disparity", fit_scale_shift=True, fit_shift=shift, fit_trim=2.5)
+        d = imported_to_depth(disp, cfg, ref, np.ones_like(ref), exclude=obj)
+        ratio[shift] = float(np.median(d[obj]) / 3.0)
+    assert ratio[True] > 1.25
+    assert abs(ratio[False] - 1.0) < 0.06
 
 
 @pytest.fixture(scope="module")
