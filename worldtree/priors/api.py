@@ -249,7 +249,9 @@ def _depth(imgs, Ks, w2cs, scene, cfg: PriorsConfig, cache, fp, progress, notes=
         )
         key = hash_key("depth-imported", _path_digest(cfg.depth_source), di, ref_key)
     d = imported.imported_to_depth(raw, di, ref, ref_conf)
-    fit = (", scale/shift" if di.fit_shift else ", scale") + " fitted to classical" if di.fit_scale_shift else ""
+    fit = ""
+    if di.fit_scale_shift:
+        fit = ", scale/shift fitted to classical" if di.fit_shift else ", scale fitted to classical"
     src = f"imported:{cfg.depth_source} ({di.kind}{fit})"
     if di.merge == "fill":
         keep = ref_conf >= di.fill_min_conf
