@@ -585,6 +585,15 @@ def stage_motion(s: BaseState) -> None:
         s.P = {**s.P, "depth": depth, "depth_conf": conf}
         s.depth = depth * s.ba.depth_scale.float().to(dev)[:, None, None]
         s.info["motion_refine"]["depth_refitted"] = True
+    elif s.info["priors"].get("depth") == "classical":
+        # The classical depth is a static-world estimate and measures nothing on moving pixels (the priors give
+        # their own masks confidence 0); the refined masks cover more of each object, where the plane sweep's
+        # matches across times gave confidences that readers of the prior (a tree child's depth hold, the
+        # auto split) would take for measurements.
+        mk = torch.from_numpy(mask).to(dev)
+        conf = s.P["depth_conf"]
+        s.info["motion_refine"]["depth_conf_cleared"] = float((conf[mk] > 0).float().mean()) if mk.any() else 0.0
+        s.P = {**s.P, "depth_conf": torch.where(mk, torch.zeros_like(conf), conf)}
     s.P = {
         **s.P,
         "epi_mask": torch.from_numpy(mask).to(dev),

@@ -680,7 +680,7 @@ def train_node(payload: dict, ctx: NodeContext) -> dict:
     measured = None
     if cfg.auto is not None:
         sl = slice(iv.start, iv.end + 1)
-        assessment = assess_fit(fit, data["masks"][sl], cfg.min_len, cfg.auto)
+        assessment = assess_fit(fit, data["masks"][sl], cfg.min_len, cfg.auto, data["depth_conf"][sl])
         stats["auto_split"] = assessment.decision.to_dict()
         measured = assessment.to_payload()
     return node_output(state, fit.profile.profile(), stats, measured)
@@ -801,7 +801,7 @@ def _grow(s: WorldTreeState, no_ancestors: bool) -> None:
     tcfg = c.tree_config()
     root_decision = root_measured = None
     if tcfg.auto is not None:  # --depth auto: does the trained root need children?
-        assessment = assess_fit(s.fit, s.P["epi_mask"].bool(), tcfg.min_len, tcfg.auto)
+        assessment = assess_fit(s.fit, s.P["epi_mask"].bool(), tcfg.min_len, tcfg.auto, s.P["depth_conf"])
         root_decision, root_measured = assessment.decision.to_dict(), assessment.to_payload()
     if (
         tcfg.max_depth == 0

@@ -160,3 +160,39 @@ def test_a_placed_object_sets_the_depth_prior_and_its_confidence_there_only():
     assert torch.equal(out[~masks], depth[~masks]) and torch.equal(s.P["depth_conf"][~masks], conf[~masks])
     placed = out != depth
     assert placed.any() and bool((s.P["depth_conf"][placed] == 1).all())
+
+
+def test_refined_masks_carry_no_classical_depth_confidence(moving_scene, tmp_path, monkeypatch):
+    # The classical depth is a static-world estimate: after the motion stage refines the dynamic masks, the
+    # prior's confidence is 0 on every refined-mask pixel (what a tree child's depth hold and the auto split
+    # read) and the plane sweep's own value everywhere else.
+    # The refined masks are widened by a band of the image so that they certainly cover pixels the plane sweep
+    # matched (the smoke schedule's own refinement may not).
+    import methods.base as base_module
+
+    refine_with_residual = base_module.refine_with_residual
+
+    def widened(*args, **kwargs):
+        out = refine_with_residual(*args, **kwargs)
+        band = np.zeros_like(out.mask)
+        band[:, :, : out.mask.shape[2] // 4] = True
+        return dataclasses.replace(out, mask=out.mask | band)
+
+    monkeypatch.setattr(base_module, "refine_with_residual", widened)
+    scene_dir, _ = moving_scene
+    torch.manual_seed(0)
+    cfg = dataclasses.replace(smoke_config(), priors_cache=False)
+    method = BaseMethod(cfg, load_scene(scene_dir), pick_device("cpu"))
+    method.fit(TrainContext(checkpoint_dir=tmp_path / "ckpt", progress=False))
+    s = method.state
+    assert s.info["priors"]["depth"] == "classical"
+    refine = s.info.get("motion_refine")
+    assert refine is not None, "the smoke preset refines the classical masks"
+    mask = s.P["epi_mask"].bool()
+    assert mask.any()
+    assert float(s.P["depth_conf"][mask].abs().max()) == 0.0
+    before = torch.as_tensor(s.priors.depth_conf).to(mask.device)
+    assert torch.equal(s.P["depth_conf"][~mask], before[~mask].to(s.P["depth_conf"].dtype))
+    # The record says how much of the refined masks the plane sweep had marked as measured.
+    assert 0.0 < refine["depth_conf_cleared"] <= 1.0  # the sweep did mark some of them (else this proves nothing)
+    assert abs(refine["depth_conf_cleared"] - float((before[mask] > 0).float().mean())) < 1e-6

@@ -45,7 +45,11 @@ def runs(tmp_path_factory, write_tiny_scene):
     _wtbench("--method", "worldtree", *common, "--ablate", "tpt")
     _wtbench("--method", "base", *common)
     _wtbench("--method", "worldtree", *common, "--depth", "auto")
+    # The same without the depth-confidence test, which classical priors fail (nothing measures the moving
+    # pixels' depth), so that the tree's growth itself is exercised.
+    _wtbench("--method", "worldtree", *common, "--depth", "auto", "--set", "auto_split.min_depth_conf=0")
     folder = out / "tiny26"
+    (grown,) = (p for p in (folder / "worldtree").glob("smoke-depthauto-set*"))
     return {
         "scene": scene,
         "default": folder / "worldtree" / "smoke",
@@ -53,6 +57,7 @@ def runs(tmp_path_factory, write_tiny_scene):
         "tpt": folder / "worldtree" / "smoke-notpt",
         "base": folder / "base" / "smoke",
         "auto": folder / "worldtree" / "smoke-depthauto",
+        "auto_grown": grown,
     }
 
 
@@ -252,10 +257,19 @@ def test_frozen_ancestor_memo_trains_the_same_node(runs, tmp_path, monkeypatch):
     assert torch.equal(memo.scaffold.pos, plain.scaffold.pos)
 
 
-def test_depth_auto_grows_the_tree_its_decisions_say(runs):
+def test_depth_auto_keeps_the_root_where_no_prior_measures_the_moving_depth(runs):
+    # Classical priors fill the moving pixels' depth from their surroundings (confidence 0 there).
     st = _stats(runs["auto"])
-    cfg = json.loads((runs["auto"] / "config.json").read_text())
+    assert st["tree"]["nodes"] == [1]
+    d = st["tree"]["auto"]["1"]
+    assert not d["split"] and d["dynamic_depth_conf"] == 0.0 and d["reason"].startswith("depth unmeasured")
+
+
+def test_depth_auto_grows_the_tree_its_decisions_say(runs):
+    st = _stats(runs["auto_grown"])
+    cfg = json.loads((runs["auto_grown"] / "config.json").read_text())
     assert cfg["config"]["depth"] == "auto" and cfg["config"]["auto_depth"] is True
+    assert cfg["config"]["auto_split"]["min_depth_conf"] == 0.0
     auto = {int(j): d for j, d in st["tree"]["auto"].items()}
     nodes = set(map(int, st["tree"]["nodes"]))
     assert 1 in auto and nodes == set(auto)  # every node has a recorded decision
@@ -264,6 +278,7 @@ def test_depth_auto_grows_the_tree_its_decisions_say(runs):
         # Children exactly where the decision applied (a one-sided split trains one of them).
         assert d["applied"] == (2 * j in nodes or 2 * j + 1 in nodes), j
         moves = d["motion_px"] >= d["motion_min_px"]  # the scaffold's motion was measured for every node
+        assert d["dynamic_depth_conf"] is not None  # measured, not tested (min_depth_conf 0)
         assert d["split"] == (
             d["excess"] >= 0.01 and d["dynamic_fraction"] >= 0.002 and d["frames"] >= 12 and moves
         )

@@ -28,7 +28,14 @@ The node is split when all of these hold (otherwise ``reason`` names the first t
 3. ``motion_px >= min_motion_frac * max(H, W)`` (default 10 % of the image's larger side, 16 px at 160x90)
    when the motion was measured: content that moves less than that over the interval is held by one
    scaffold and canonical space whatever its residual;
-4. ``excess >= max(min(min_excess, min_excess_rel * static_error), min_excess_floor)`` (defaults 0.01, i.e.
+4. ``dynamic_depth_conf >= min_depth_conf`` (default 0.5) when the depth prior's confidence was given: the
+   mean confidence of the depth prior over the node's dynamic pixels, i.e. whether the moving content's depth
+   is measured (imported or exact depth, objects placed by their outlines) or only filled from its static
+   surroundings (the classical depth, confidence 0 there). A child sees each time from one camera; where
+   nothing measures the moving content's depth it cannot place it better than its parent did, and measured
+   over generated families and the real Balloon1 its children did not beat the root
+   (docs/worldtree_method.md, "The tree against its root");
+5. ``excess >= max(min(min_excess, min_excess_rel * static_error), min_excess_floor)`` (defaults 0.01, i.e.
    2.6 grey levels of 255 on average over the moving pixels; half the static pixels' own error; never under
    0.002, half a grey level): the moving regions are fit clearly worse than the static ones. The relative
    part keeps scenes of smooth texture, whose static pixels fit to well under 0.01, from being judged by a bar
@@ -37,9 +44,9 @@ The node is split when all of these hold (otherwise ``reason`` names the first t
 Intervals where the model already follows the motion stay leaves, so branches of one tree differ. Every
 quantity is recorded with the decision (``SplitDecision.to_dict``) for ``timing.json``.
 
-Which children a split trains (one-sided split, :func:`decide_child`). Before a child is trained, tests 2-4
+Which children a split trains (one-sided split, :func:`decide_child`). Before a child is trained, tests 2-5
 are applied to the *parent's* fit restricted to the child's frames: the parent's residual on those frames
-(from its per-frame sums, :func:`residual_sums`) and the motion of the parent's scaffold over those frames
+(from its per-frame sums, :func:`residual_sums`, and the depth confidence's, :func:`depth_conf_sums`) and the motion of the parent's scaffold over those frames
 (same measure and threshold as above). A child whose frames the parent already holds (near-static, or moving
 less than the threshold, or fit as well as the static pixels) is not trained: the parent goes on rendering its
 frames (:meth:`worldtree.tree.tpt.TemporalPartitionTree.own_frames`). When neither child needs training, the
@@ -61,8 +68,8 @@ import torch
 from worldtree.tree.tpt import can_split
 
 __all__ = ["AutoSplitConfig", "ChildDecision", "FitAssessment", "SplitDecision", "assess_fit", "decide_child",
-           "decide_fit_split", "decide_split", "residual_stats", "residual_sums", "scaffold_motion_px",
-           "stats_of_sums"]  # fmt: skip
+           "decide_fit_split", "decide_split", "depth_conf_sums", "residual_stats", "residual_sums",
+           "scaffold_motion_px", "stats_of_sums"]  # fmt: skip
 
 
 @dataclass(frozen=True)
@@ -82,10 +89,15 @@ class AutoSplitConfig:
     min_motion_frac: float = 0.10
     """Split only when the scaffold's motion over the interval (``motion_px``) reaches this fraction of the
     image's larger side (when the motion was measured)."""
+    min_depth_conf: float = 0.5
+    """Split only when the depth prior's mean confidence over the node's dynamic pixels reaches this (when the
+    confidence was given; 0: no such test): children need the moving content's depth measured."""
     max_depth: int = 6
     """Safety bound on the depth ``auto`` may reach (the minimum interval usually stops it first)."""
 
     def __post_init__(self) -> None:
+        if not 0 <= self.min_depth_conf <= 1:
+            raise ValueError(f"AutoSplitConfig.min_depth_conf {self.min_depth_conf}: choose a value in [0, 1]")
         if (
             not self.min_excess >= 0
             or not self.min_excess_rel >= 0
@@ -117,6 +129,8 @@ class SplitDecision:
     """Scaffold motion over the interval in pixels (:func:`scaffold_motion_px`); None when not measured."""
     motion_min_px: float | None = None
     """The motion threshold applied (``min_motion_frac * max(H, W)``); None when not measured."""
+    dynamic_depth_conf: float | None = None
+    """Mean depth-prior confidence over the dynamic pixels (test 4); None when not given."""
     test_cpu_s: float | None = None
     """CPU seconds (this process, all threads) the test itself took on a trained fit (its renders of the node's
     frames and the motion measure; :func:`decide_fit_split`); None when the residual was given."""
@@ -142,6 +156,8 @@ class ChildDecision:
     motion_px: float
     """The parent's scaffold motion over the child's frames (pixels)."""
     motion_min_px: float
+    dynamic_depth_conf: float | None = None
+    """Mean depth-prior confidence over the child's dynamic pixels; None when the parent did not record it."""
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -168,6 +184,26 @@ def residual_sums(residual: torch.Tensor, dynamic: torch.Tensor) -> torch.Tensor
     return torch.stack(
         [(r * dyn).sum((1, 2)), dyn.sum((1, 2)).double(), (r * sta).sum((1, 2)), sta.sum((1, 2)).double()], -1
     )
+
+
+@torch.no_grad()
+def depth_conf_sums(conf: torch.Tensor, dynamic: torch.Tensor) -> torch.Tensor:
+    """``[T]`` float64 per-frame sums of the depth prior's confidence ``conf`` ``[T, H, W]`` (in [0, 1];
+    non-finite entries count 0) over the ``dynamic`` ``[T, H, W]`` pixels; divided by the dynamic pixel
+    counts of :func:`residual_sums` they give the mean confidence of any run of frames."""
+    if conf.shape != dynamic.shape or conf.dim() != 3:
+        raise ValueError(f"confidence {tuple(conf.shape)} and mask {tuple(dynamic.shape)} must both be [T, H, W]")
+    c = torch.nan_to_num(conf.double(), nan=0.0, posinf=0.0, neginf=0.0).clamp(0.0, 1.0)
+    return (c * dynamic.bool().to(c.device)).sum((1, 2))
+
+
+def _mean_conf(conf_sums: torch.Tensor | None, sums: torch.Tensor) -> float | None:
+    """Mean confidence over the dynamic pixels of the frames of ``sums`` ``[T, 4]`` (None without sums; 0
+    without dynamic pixels)."""
+    if conf_sums is None:
+        return None
+    n = float(sums.double().reshape(-1, 4)[:, 1].sum())
+    return float(conf_sums.double().sum()) / n if n > 0 else 0.0
 
 
 def stats_of_sums(sums: torch.Tensor) -> dict[str, float]:
@@ -248,8 +284,9 @@ def scaffold_motion_px(
 
 
 def _needs_model(st: dict[str, float], motion_px: float | None, min_motion: float,
-                 cfg: AutoSplitConfig) -> tuple[bool, str]:  # fmt: skip
-    """Tests 2-4 of the criterion (module docstring) on pooled residual statistics and a motion."""
+                 cfg: AutoSplitConfig, depth_conf: float | None = None) -> tuple[bool, str]:  # fmt: skip
+    """Tests 2-5 of the criterion (module docstring) on pooled residual statistics, a motion and the mean depth
+    confidence over the dynamic pixels (None: not tested)."""
     if st["dynamic_fraction"] < cfg.min_dynamic_fraction:
         return (
             False,
@@ -257,6 +294,11 @@ def _needs_model(st: dict[str, float], motion_px: float | None, min_motion: floa
         )
     if motion_px is not None and not motion_px >= min_motion:
         return False, f"near-static: scaffold motion {motion_px:.3g} px < {min_motion:.3g} px"
+    if depth_conf is not None and cfg.min_depth_conf > 0 and not depth_conf >= cfg.min_depth_conf:
+        return False, (
+            f"depth unmeasured: mean depth confidence {depth_conf:.3g} on the moving pixels < "
+            f"{cfg.min_depth_conf:g}"
+        )
     need = max(min(cfg.min_excess, cfg.min_excess_rel * st["static_error"]), cfg.min_excess_floor)
     if not st["excess"] >= need:
         return False, f"motion fit: excess {st['excess']:.4g} < {need:.4g}"
@@ -269,18 +311,23 @@ def decide_split(
     min_len: int,
     cfg: AutoSplitConfig = AutoSplitConfig(),
     motion_px: float | None = None,
+    depth_conf: torch.Tensor | None = None,
 ) -> SplitDecision:
     """Apply the criterion to a trained node's residual ``[T, H, W]``, dynamic mask ``[T, H, W]`` and, when
-    given, its scaffold motion ``motion_px`` (:func:`scaffold_motion_px`; None skips that test)."""
-    st = residual_stats(residual, dynamic)
+    given, its scaffold motion ``motion_px`` (:func:`scaffold_motion_px`) and the depth prior's confidence
+    ``depth_conf`` ``[T, H, W]`` in [0, 1] (None skips that test)."""
+    sums = residual_sums(residual, dynamic)
+    st = stats_of_sums(sums)
+    conf = _mean_conf(depth_conf_sums(depth_conf, dynamic) if depth_conf is not None else None, sums)
     frames = int(residual.shape[0])
     min_motion = cfg.min_motion_frac * max(int(residual.shape[1]), int(residual.shape[2]))
     if not can_split(frames, min_len):
         split, reason = False, f"interval: {frames} frames < min_len {min_len}"
     else:
-        split, reason = _needs_model(st, motion_px, min_motion, cfg)
+        split, reason = _needs_model(st, motion_px, min_motion, cfg, conf)
     return SplitDecision(split, reason, frames, st["dynamic_error"], st["static_error"], st["excess"],
-                         st["dynamic_fraction"], motion_px, None if motion_px is None else min_motion)  # fmt: skip
+                         st["dynamic_fraction"], motion_px, None if motion_px is None else min_motion,
+                         conf)  # fmt: skip
 
 
 @dataclass
@@ -295,30 +342,40 @@ class FitAssessment:
     """``[T, 3, 3]`` the fit's intrinsics (the motion of a run of frames is measured through them)."""
     image_size: tuple[int, int]
     """``(H, W)`` of the residual (the motion threshold is a fraction of the larger side)."""
+    conf_sums: torch.Tensor | None = None
+    """``[T]`` per-frame depth-confidence sums over the dynamic pixels (:func:`depth_conf_sums`); None when
+    the confidence was not given."""
 
     def to_payload(self) -> dict:
         """Plain tensors and numbers (a tree node's output file)."""
-        return {"sums": self.sums.detach().cpu().double(), "Ks": self.Ks.detach().cpu().float(),
-                "image_size": [int(self.image_size[0]), int(self.image_size[1])]}  # fmt: skip
+        out = {"sums": self.sums.detach().cpu().double(), "Ks": self.Ks.detach().cpu().float(),
+               "image_size": [int(self.image_size[0]), int(self.image_size[1])]}  # fmt: skip
+        if self.conf_sums is not None:
+            out["conf_sums"] = self.conf_sums.detach().cpu().double()
+        return out
 
 
-def assess_fit(fit, dynamic: torch.Tensor, min_len: int, cfg: AutoSplitConfig) -> FitAssessment:
-    """:func:`decide_fit_split` plus the per-frame residual sums its children's decisions use (one render of
-    each of the fit's frames serves both)."""
+def assess_fit(fit, dynamic: torch.Tensor, min_len: int, cfg: AutoSplitConfig,
+               depth_conf: torch.Tensor | None = None) -> FitAssessment:  # fmt: skip
+    """:func:`decide_fit_split` plus the per-frame sums its children's decisions use (one render of each of
+    the fit's frames serves both)."""
     cpu0 = time.process_time()
     motion = scaffold_motion_px(fit.scaffold.pos, fit.Ks, fit.cameras())
     residual = fit.residuals()
-    decision = decide_split(residual, dynamic, min_len, cfg, motion_px=motion)
+    decision = decide_split(residual, dynamic, min_len, cfg, motion_px=motion, depth_conf=depth_conf)
     sums = residual_sums(residual, dynamic)
+    conf_sums = depth_conf_sums(depth_conf, dynamic) if depth_conf is not None else None
     decision = dataclasses.replace(decision, test_cpu_s=time.process_time() - cpu0)
-    return FitAssessment(decision, sums, fit.Ks, (int(residual.shape[1]), int(residual.shape[2])))
+    return FitAssessment(decision, sums, fit.Ks, (int(residual.shape[1]), int(residual.shape[2])), conf_sums)
 
 
-def decide_fit_split(fit, dynamic: torch.Tensor, min_len: int, cfg: AutoSplitConfig) -> SplitDecision:
+def decide_fit_split(fit, dynamic: torch.Tensor, min_len: int, cfg: AutoSplitConfig,
+                     depth_conf: torch.Tensor | None = None) -> SplitDecision:  # fmt: skip
     """:func:`decide_split` for a trained photometric fit (``worldtree.stages.photometric.PhotometricFit`` or a
-    tree node's fit): its residuals on its own frames, ``dynamic`` ``[T, H, W]`` masks of those frames, and
-    the motion of its own scaffold seen by its own cameras. Records the test's own CPU time (``test_cpu_s``)."""
-    return assess_fit(fit, dynamic, min_len, cfg).decision
+    tree node's fit): its residuals on its own frames, ``dynamic`` ``[T, H, W]`` masks of those frames, the
+    motion of its own scaffold seen by its own cameras and, when given, the depth prior's confidence ``[T, H,
+    W]`` on those frames. Records the test's own CPU time (``test_cpu_s``)."""
+    return assess_fit(fit, dynamic, min_len, cfg, depth_conf).decision
 
 
 def decide_child(
@@ -336,11 +393,12 @@ def decide_child(
         parent_w2cs: ``[T_p, 4, 4]`` the parent's cameras.
         parent_start: the parent's first global frame.
         measured: the parent's :meth:`FitAssessment.to_payload` (``sums`` ``[T_p, 4]``, ``Ks`` ``[T_p, 3, 3]``,
-            ``image_size``).
+            ``image_size``, and ``conf_sums`` ``[T_p]`` when the depth confidence was measured).
         child: the child's global frames ``(start, end)`` inclusive, inside the parent's.
 
-    Tests 2-4 of the criterion on those frames (module docstring): the parent's residual sums pooled over them
-    and its scaffold's motion over them (:func:`scaffold_motion_px`, the same threshold).
+    Tests 2-5 of the criterion on those frames (module docstring): the parent's residual sums pooled over them,
+    its scaffold's motion over them (:func:`scaffold_motion_px`, the same threshold) and the depth confidence
+    over their dynamic pixels.
     """
     a, b = int(child[0]) - int(parent_start), int(child[1]) - int(parent_start)
     T = int(parent_pos.shape[0])
@@ -349,8 +407,10 @@ def decide_child(
     sl = slice(a, b + 1)
     motion = scaffold_motion_px(parent_pos[sl], measured["Ks"][sl], parent_w2cs[sl])
     st = stats_of_sums(measured["sums"][sl])
+    cs = measured.get("conf_sums")
+    conf = _mean_conf(cs[sl] if cs is not None else None, measured["sums"][sl])
     min_motion = cfg.min_motion_frac * max(int(x) for x in measured["image_size"])
-    train, why = _needs_model(st, motion, min_motion, cfg)
+    train, why = _needs_model(st, motion, min_motion, cfg, conf)
     reason = ("trained: " if train else "not trained: ") + why + " on the parent's fit"
     return ChildDecision(train, reason, [int(child[0]), int(child[1])], st["dynamic_error"], st["static_error"],
-                         st["excess"], st["dynamic_fraction"], motion, min_motion)  # fmt: skip
+                         st["excess"], st["dynamic_fraction"], motion, min_motion, conf)  # fmt: skip

@@ -19,6 +19,7 @@ from worldtree.tree.adaptive import (
     decide_child,
     decide_fit_split,
     decide_split,
+    depth_conf_sums,
     residual_stats,
     residual_sums,
     scaffold_motion_px,
@@ -300,3 +301,66 @@ def test_excess_bar_is_relative_to_the_static_error_with_a_floor(static_err, dyn
     d = decide_split(residual, mask, min_len=12, motion_px=100.0)
     assert d.split == split, d.reason
     assert abs(d.excess - (dynamic_err - static_err)) < 1e-6
+
+
+def test_unmeasured_moving_depth_keeps_the_node_a_leaf():
+    # Two incompatible motions split when the depth prior measures the moving pixels; where it only fills them
+    # (confidence 0 there, as the classical depth) the node stays a leaf, whatever the static pixels' confidence.
+    objects = [(4, 4, 1), (14, 40, -1)]
+    v = _video(objects)
+    residual, mask = _one_motion_fit(v), _dynamic_mask(v)
+    motion = scaffold_motion_px(_scaffold(objects), K1, POSE)
+    measured = torch.where(mask, torch.tensor(1.0), torch.tensor(0.0))
+    filled = torch.where(mask, torch.tensor(0.0), torch.tensor(1.0))
+    d = decide_split(residual, mask, min_len=12, motion_px=motion, depth_conf=measured)
+    assert d.split and d.dynamic_depth_conf == 1.0, d.reason
+    d = decide_split(residual, mask, min_len=12, motion_px=motion, depth_conf=filled)
+    assert not d.split and d.reason.startswith("depth unmeasured") and d.dynamic_depth_conf == 0.0
+    # The bar is the mean over the moving pixels: 0.6 on every one passes 0.5, 0.4 does not; 0 turns it off.
+    assert decide_split(residual, mask, 12, motion_px=motion, depth_conf=torch.full_like(residual, 0.6)).split
+    assert not decide_split(residual, mask, 12, motion_px=motion, depth_conf=torch.full_like(residual, 0.4)).split
+    off = AutoSplitConfig(min_depth_conf=0.0)
+    assert decide_split(residual, mask, 12, off, motion_px=motion, depth_conf=filled).split
+    # Without a confidence the test is skipped (the decision of the earlier criterion).
+    assert decide_split(residual, mask, 12, motion_px=motion).dynamic_depth_conf is None
+    with pytest.raises(ValueError):
+        AutoSplitConfig(min_depth_conf=1.5)
+
+
+def test_depth_conf_sums_pool_to_the_mean_over_any_run_of_frames():
+    g = torch.Generator().manual_seed(5)
+    conf = torch.rand(6, 5, 7, generator=g)
+    conf[1, 2, 3] = float("nan")  # counts 0
+    m = torch.rand(6, 5, 7, generator=g) > 0.6
+    cs = depth_conf_sums(conf, m)
+    assert cs.shape == (6,) and cs.dtype == torch.float64
+    clean = torch.nan_to_num(conf, nan=0.0).double()
+    sums = residual_sums(torch.zeros(6, 5, 7), m)
+    for a, b in [(0, 6), (1, 4), (5, 6)]:
+        brute = float(clean[a:b][m[a:b]].mean())  # over the dynamic pixels of those frames
+        assert abs(float(cs[a:b].sum()) / float(sums[a:b, 1].sum()) - brute) < 1e-12
+    with pytest.raises(ValueError):
+        depth_conf_sums(conf[0], m[0])
+
+
+def test_decide_child_reads_the_parents_depth_confidence():
+    # The moving half's pixels are measured on frames 8-11 only: the child of frames 8-15 averages 0.5 (trained);
+    # with nothing measured it is not; the parent's record without a confidence decides as before.
+    pos, mask, residual = _half_still_half_moving(3.0)
+    conf = torch.zeros(T, H, W)
+    conf[8:12] = 1.0
+    sums = residual_sums(residual, mask)
+    measured = {"sums": sums, "Ks": K1, "image_size": [H, W], "conf_sums": depth_conf_sums(conf, mask)}
+    cfg = AutoSplitConfig()
+    fast = decide_child(pos, POSE, 0, measured, (8, 15), cfg)
+    assert fast.train and abs(fast.dynamic_depth_conf - 0.5) < 1e-12
+    filled = {**measured, "conf_sums": depth_conf_sums(torch.zeros(T, H, W), mask)}
+    d = decide_child(pos, POSE, 0, filled, (8, 15), cfg)
+    assert not d.train and d.reason.startswith("not trained: depth unmeasured") and d.dynamic_depth_conf == 0.0
+    legacy = {k: v for k, v in measured.items() if k != "conf_sums"}
+    d = decide_child(pos, POSE, 0, legacy, (8, 15), cfg)
+    assert d.train and d.dynamic_depth_conf is None
+    fit = _StubFit(residual, pos)
+    payload = assess_fit(fit, mask, 12, cfg, depth_conf=conf).to_payload()
+    assert torch.equal(payload["conf_sums"], depth_conf_sums(conf, mask))
+    assert "conf_sums" not in assess_fit(fit, mask, 12, cfg).to_payload()
