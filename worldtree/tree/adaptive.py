@@ -33,8 +33,9 @@ The node is split when all of these hold (otherwise ``reason`` names the first t
    is measured (imported or exact depth, objects placed by their outlines) or only filled from its static
    surroundings (the classical depth, confidence 0 there). A child sees each time from one camera; where
    nothing measures the moving content's depth it cannot place it better than its parent did, and measured
-   on generated 12- and 40-frame videos and the real Balloon1 its children did not beat the root
-   (docs/worldtree_method.md, "The tree against its root"; at 160 frames, children of 40-80 frames did);
+   on generated 12- and 40-frame videos and the real Balloon1 its children of 5-20 frames did not beat the
+   root (docs/worldtree_method.md, "The tree against its root"). Children of ``depth_test_below`` (40) frames
+   or more are exempt: at 160 frames, children of 40-80 frames gained without a measured depth;
 5. ``excess >= max(min(min_excess, min_excess_rel * static_error), min_excess_floor)`` (defaults 0.01, i.e.
    2.6 grey levels of 255 on average over the moving pixels; half the static pixels' own error; never under
    0.002, half a grey level): the moving regions are fit clearly worse than the static ones. The relative
@@ -91,13 +92,18 @@ class AutoSplitConfig:
     image's larger side (when the motion was measured)."""
     min_depth_conf: float = 0.5
     """Split only when the depth prior's mean confidence over the node's dynamic pixels reaches this (when the
-    confidence was given; 0: no such test): children need the moving content's depth measured."""
+    confidence was given; 0: no such test): short children need the moving content's depth measured."""
+    depth_test_below: int = 40
+    """The depth test applies to children of fewer frames than this (a node's halves; a would-be child's own
+    length); longer children are exempt."""
     max_depth: int = 6
     """Safety bound on the depth ``auto`` may reach (the minimum interval usually stops it first)."""
 
     def __post_init__(self) -> None:
         if not 0 <= self.min_depth_conf <= 1:
             raise ValueError(f"AutoSplitConfig.min_depth_conf {self.min_depth_conf}: choose a value in [0, 1]")
+        if self.depth_test_below < 0:
+            raise ValueError(f"AutoSplitConfig.depth_test_below {self.depth_test_below}: choose a count >= 0")
         if (
             not self.min_excess >= 0
             or not self.min_excess_rel >= 0
@@ -283,10 +289,10 @@ def scaffold_motion_px(
     return float(torch.quantile(per_node, float(quantile)))
 
 
-def _needs_model(st: dict[str, float], motion_px: float | None, min_motion: float,
-                 cfg: AutoSplitConfig, depth_conf: float | None = None) -> tuple[bool, str]:  # fmt: skip
+def _needs_model(st: dict[str, float], motion_px: float | None, min_motion: float, cfg: AutoSplitConfig,
+                 depth_conf: float | None = None, child_frames: int = 0) -> tuple[bool, str]:  # fmt: skip
     """Tests 2-5 of the criterion (module docstring) on pooled residual statistics, a motion and the mean depth
-    confidence over the dynamic pixels (None: not tested)."""
+    confidence over the dynamic pixels (None: not tested) of a would-be child of ``child_frames`` frames."""
     if st["dynamic_fraction"] < cfg.min_dynamic_fraction:
         return (
             False,
@@ -294,7 +300,8 @@ def _needs_model(st: dict[str, float], motion_px: float | None, min_motion: floa
         )
     if motion_px is not None and not motion_px >= min_motion:
         return False, f"near-static: scaffold motion {motion_px:.3g} px < {min_motion:.3g} px"
-    if depth_conf is not None and cfg.min_depth_conf > 0 and not depth_conf >= cfg.min_depth_conf:
+    tested = depth_conf is not None and cfg.min_depth_conf > 0 and child_frames < cfg.depth_test_below
+    if tested and not depth_conf >= cfg.min_depth_conf:
         return False, (
             f"depth unmeasured: mean depth confidence {depth_conf:.3g} on the moving pixels < "
             f"{cfg.min_depth_conf:g}"
@@ -324,7 +331,7 @@ def decide_split(
     if not can_split(frames, min_len):
         split, reason = False, f"interval: {frames} frames < min_len {min_len}"
     else:
-        split, reason = _needs_model(st, motion_px, min_motion, cfg, conf)
+        split, reason = _needs_model(st, motion_px, min_motion, cfg, conf, child_frames=frames // 2)
     return SplitDecision(split, reason, frames, st["dynamic_error"], st["static_error"], st["excess"],
                          st["dynamic_fraction"], motion_px, None if motion_px is None else min_motion,
                          conf)  # fmt: skip
@@ -410,7 +417,7 @@ def decide_child(
     cs = measured.get("conf_sums")
     conf = _mean_conf(cs[sl] if cs is not None else None, measured["sums"][sl])
     min_motion = cfg.min_motion_frac * max(int(x) for x in measured["image_size"])
-    train, why = _needs_model(st, motion, min_motion, cfg, conf)
+    train, why = _needs_model(st, motion, min_motion, cfg, conf, child_frames=b - a + 1)
     reason = ("trained: " if train else "not trained: ") + why + " on the parent's fit"
     return ChildDecision(train, reason, [int(child[0]), int(child[1])], st["dynamic_error"], st["static_error"],
                          st["excess"], st["dynamic_fraction"], motion, min_motion, conf)  # fmt: skip

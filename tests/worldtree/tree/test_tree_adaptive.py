@@ -323,8 +323,15 @@ def test_unmeasured_moving_depth_keeps_the_node_a_leaf():
     assert decide_split(residual, mask, 12, off, motion_px=motion, depth_conf=filled).split
     # Without a confidence the test is skipped (the decision of the earlier criterion).
     assert decide_split(residual, mask, 12, motion_px=motion).dynamic_depth_conf is None
+    # Long children are exempt: with halves of 8 frames a bar of 8 frames lifts the test, one of 9 keeps it.
+    assert decide_split(residual, mask, 12, AutoSplitConfig(depth_test_below=8), motion_px=motion,
+                        depth_conf=filled).split  # fmt: skip
+    assert not decide_split(residual, mask, 12, AutoSplitConfig(depth_test_below=9), motion_px=motion,
+                            depth_conf=filled).split  # fmt: skip
     with pytest.raises(ValueError):
         AutoSplitConfig(min_depth_conf=1.5)
+    with pytest.raises(ValueError):
+        AutoSplitConfig(depth_test_below=-1)
 
 
 def test_depth_conf_sums_pool_to_the_mean_over_any_run_of_frames():
@@ -357,6 +364,9 @@ def test_decide_child_reads_the_parents_depth_confidence():
     filled = {**measured, "conf_sums": depth_conf_sums(torch.zeros(T, H, W), mask)}
     d = decide_child(pos, POSE, 0, filled, (8, 15), cfg)
     assert not d.train and d.reason.startswith("not trained: depth unmeasured") and d.dynamic_depth_conf == 0.0
+    # A child of 8 frames is exempt under a bar of 8, not under one of 9.
+    assert decide_child(pos, POSE, 0, filled, (8, 15), dataclasses.replace(cfg, depth_test_below=8)).train
+    assert not decide_child(pos, POSE, 0, filled, (8, 15), dataclasses.replace(cfg, depth_test_below=9)).train
     legacy = {k: v for k, v in measured.items() if k != "conf_sums"}
     d = decide_child(pos, POSE, 0, legacy, (8, 15), cfg)
     assert d.train and d.dynamic_depth_conf is None
