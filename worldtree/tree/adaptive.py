@@ -101,7 +101,9 @@ class AutoSplitConfig:
 
     def __post_init__(self) -> None:
         if not 0 <= self.min_depth_conf <= 1:
-            raise ValueError(f"AutoSplitConfig.min_depth_conf {self.min_depth_conf}: choose a value in [0, 1]")
+            raise ValueError(
+                f"AutoSplitConfig.min_depth_conf {self.min_depth_conf}: choose a value in [0, 1]"
+            )
         if self.depth_test_below < 0:
             raise ValueError(f"AutoSplitConfig.depth_test_below {self.depth_test_below}: choose a count >= 0")
         if (
@@ -198,7 +200,9 @@ def depth_conf_sums(conf: torch.Tensor, dynamic: torch.Tensor) -> torch.Tensor:
     non-finite entries count 0) over the ``dynamic`` ``[T, H, W]`` pixels; divided by the dynamic pixel
     counts of :func:`residual_sums` they give the mean confidence of any run of frames."""
     if conf.shape != dynamic.shape or conf.dim() != 3:
-        raise ValueError(f"confidence {tuple(conf.shape)} and mask {tuple(dynamic.shape)} must both be [T, H, W]")
+        raise ValueError(
+            f"confidence {tuple(conf.shape)} and mask {tuple(dynamic.shape)} must both be [T, H, W]"
+        )
     c = torch.nan_to_num(conf.double(), nan=0.0, posinf=0.0, neginf=0.0).clamp(0.0, 1.0)
     return (c * dynamic.bool().to(c.device)).sum((1, 2))
 
@@ -323,11 +327,19 @@ def decide_split(
     """Apply the criterion to a trained node's residual ``[T, H, W]``, dynamic mask ``[T, H, W]`` and, when
     given, its scaffold motion ``motion_px`` (:func:`scaffold_motion_px`) and the depth prior's confidence
     ``depth_conf`` ``[T, H, W]`` in [0, 1] (None skips that test)."""
-    sums = residual_sums(residual, dynamic)
+    conf_sums = depth_conf_sums(depth_conf, dynamic) if depth_conf is not None else None
+    size = (int(residual.shape[1]), int(residual.shape[2]))
+    return _decide_sums(residual_sums(residual, dynamic), conf_sums, size, min_len, cfg, motion_px)
+
+
+def _decide_sums(sums: torch.Tensor, conf_sums: torch.Tensor | None, image_size: tuple[int, int], min_len: int,
+                 cfg: AutoSplitConfig, motion_px: float | None) -> SplitDecision:  # fmt: skip
+    """:func:`decide_split` from the node's per-frame sums ``[T, 4]`` (:func:`residual_sums`) and ``[T]``
+    (:func:`depth_conf_sums`, or None) at image size ``(H, W)``."""
     st = stats_of_sums(sums)
-    conf = _mean_conf(depth_conf_sums(depth_conf, dynamic) if depth_conf is not None else None, sums)
-    frames = int(residual.shape[0])
-    min_motion = cfg.min_motion_frac * max(int(residual.shape[1]), int(residual.shape[2]))
+    conf = _mean_conf(conf_sums, sums)
+    frames = int(sums.shape[0])
+    min_motion = cfg.min_motion_frac * max(image_size)
     if not can_split(frames, min_len):
         split, reason = False, f"interval: {frames} frames < min_len {min_len}"
     else:
@@ -369,11 +381,12 @@ def assess_fit(fit, dynamic: torch.Tensor, min_len: int, cfg: AutoSplitConfig,
     cpu0 = time.process_time()
     motion = scaffold_motion_px(fit.scaffold.pos, fit.Ks, fit.cameras())
     residual = fit.residuals()
-    decision = decide_split(residual, dynamic, min_len, cfg, motion_px=motion, depth_conf=depth_conf)
     sums = residual_sums(residual, dynamic)
     conf_sums = depth_conf_sums(depth_conf, dynamic) if depth_conf is not None else None
+    size = (int(residual.shape[1]), int(residual.shape[2]))
+    decision = _decide_sums(sums, conf_sums, size, min_len, cfg, motion)
     decision = dataclasses.replace(decision, test_cpu_s=time.process_time() - cpu0)
-    return FitAssessment(decision, sums, fit.Ks, (int(residual.shape[1]), int(residual.shape[2])), conf_sums)
+    return FitAssessment(decision, sums, fit.Ks, size, conf_sums)
 
 
 def decide_fit_split(fit, dynamic: torch.Tensor, min_len: int, cfg: AutoSplitConfig,
