@@ -885,7 +885,7 @@ def _write_context(s: WorldTreeState, tree_dir: Path, no_ancestors: bool) -> Non
         budget=c.budget if c.budget_on() else None,
         inherit_opacity=c.inherit_opacity,
         early_stop=c.early_stop if c.early_stop_on() else None,
-        steps_per_frame=c.steps / sc.num_frames if c.node_steps_per_frame_on() else None,
+        steps_per_frame=c.photometric_steps(sc.num_frames) / sc.num_frames if c.node_steps_per_frame_on() else None,
         node_static_lr=c.node_static_lr,
         ancestor_lr=c.ancestor_lr,
         holdout=c.holdout if c.holdout_on() else None,

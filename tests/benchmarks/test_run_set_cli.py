@@ -207,3 +207,15 @@ def test_quick_presets_train_a_short_video_at_full_size(scene):
     off = dataclasses.replace(req, sets=["full_size_pixels=0"])
     cfg, _ = resolve_config(spec, off)
     assert training_size(cfg, scene, off).downscale == 2
+
+
+def test_explicit_steps_are_exact_on_a_long_video():
+    # The quick preset raises its steps on long videos (steps_per_frame); --steps N asks for N steps, so it turns
+    # that off, unless --set gives steps_per_frame as well.
+    spec = get_method("base")
+    req = RunRequest(scene=Path("."), method="base", preset="quick")
+    assert resolve_config(spec, req)[0].photometric_steps(160) == 2400
+    cfg, _ = resolve_config(spec, dataclasses.replace(req, overrides={"steps": 100}))
+    assert cfg.steps_per_frame == 0.0 and cfg.photometric_steps(160) == 100
+    cfg, _ = resolve_config(spec, dataclasses.replace(req, overrides={"steps": 100}, sets=["steps_per_frame=2"]))
+    assert cfg.photometric_steps(160) == 320

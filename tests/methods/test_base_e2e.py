@@ -166,3 +166,26 @@ def test_prior_use_follows_ablations_and_weights():
     imported = prior_use(cfg, {**classical, "depth": "imported:/x (disparity)"})
     assert imported["depth"]["source"] == "imported:/x (disparity)"
     assert "trajectory depth" not in imported["depth"]["used_in"]["scaffold"]
+
+
+def test_steps_per_frame_raises_the_photometric_steps(tiny_scene, tmp_path):
+    # 6 frames at 5 steps per frame: 30 steps, above the smoke preset's 20.
+    torch.set_num_threads(1)
+    res = execute(
+        RunRequest(scene=tiny_scene, method="base", runs_dir=tmp_path / "runs", preset="smoke",
+                   sets=["steps_per_frame=5"], progress=False)
+    )  # fmt: skip
+    ad = json.loads(res.folder.timing_json.read_text())["method_stats"]["adaptive"]
+    assert ad["steps_max"] == ad["steps_taken"] == 30
+
+
+@pytest.mark.parametrize(
+    ("preset", "frames", "steps"),
+    [("quick", 12, 600), ("quick", 40, 600), ("quick", 41, 615), ("quick", 160, 2400), ("paper", 160, 4000)],
+)
+def test_photometric_steps_keep_the_visits_per_frame(preset, frames, steps):
+    # The quick preset's 600 steps on 40 frames are 15 visits a frame; longer videos keep that rate, shorter
+    # ones keep 600. The paper preset's schedule is fixed.
+    cfg = get_method("base").config(preset)
+    assert cfg.photometric_steps(frames) == steps
+    assert dataclasses.replace(cfg, steps_per_frame=0.0).photometric_steps(frames) == cfg.steps
