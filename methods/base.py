@@ -91,6 +91,12 @@ from worldtree.strategy import DensifyStrategy
 from worldtree.trainer import Progress, TrainContext, Trainer, TrainerConfig, TrainSummary
 
 
+def steps_for_frames(per_frame: float, frames: int) -> int:
+    """``ceil(per_frame * frames)`` steps for ``frames`` training frames at ``per_frame`` steps each, at least 1."""
+    # A hair below the product before rounding up, so that e.g. 15.0 * 40 stays 600 in floating point.
+    return max(1, math.ceil(float(per_frame) * int(frames) - 1e-9))
+
+
 @dataclass
 class BaseConfig(CommonConfig):
     """Base method settings (defaults: the ``paper`` preset). ``steps`` is the photometric fit's."""
@@ -157,8 +163,7 @@ class BaseConfig(CommonConfig):
         """Steps of the photometric fit on a video of ``frames`` training frames (``steps``, raised by
         ``steps_per_frame``)."""
         if self.steps_per_frame > 0:
-            # A hair below the product before rounding up, so that e.g. 15.0 * 40 stays 600 in floating point.
-            return max(int(self.steps), math.ceil(self.steps_per_frame * int(frames) - 1e-9))
+            return max(int(self.steps), steps_for_frames(self.steps_per_frame, frames))
         return int(self.steps)
 
     def root_budget_on(self) -> bool:
@@ -779,7 +784,7 @@ def _adaptive_setup(s: BaseState, fit: PhotometricFit) -> PlateauDetector | None
     # Never before density control and camera optimisation have had their turn.
     pc = fit.cfg
     settle = max(pc.static_strategy.refine_stop, pc.dynamic_strategy.refine_stop, pc.camera_start_step)
-    return c.early_stop.detector(fit.T, min(settle, c.photometric_steps(fit.T)))
+    return c.early_stop.detector(fit.T, min(settle, pc.steps))
 
 
 def stage_prune(s: BaseState) -> None:

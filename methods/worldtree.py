@@ -49,6 +49,7 @@ from methods.base import (
     paper_config,
     quick_config,
     smoke_config,
+    steps_for_frames,
 )
 from methods.model_folder import read_model_json
 from methods.plugin import Grid, GridPoint, MethodOption
@@ -297,8 +298,7 @@ class NodeTrainConfig:
         ``steps_per_frame`` (at least 1)."""
         steps = self.steps_at(depth)
         if self.steps_per_frame is not None:
-            # A hair below the product before rounding up, so that e.g. 15.0 * 10 stays 150 in floating point.
-            steps = min(steps, max(1, math.ceil(self.steps_per_frame * int(frames) - 1e-9)))
+            steps = min(steps, steps_for_frames(self.steps_per_frame, frames))
         return steps
 
 
