@@ -166,6 +166,10 @@ class BaseConfig(CommonConfig):
             return max(int(self.steps), steps_for_frames(self.steps_per_frame, frames))
         return int(self.steps)
 
+    def with_exact_steps(self) -> BaseConfig:
+        """``steps`` exactly: ``steps_per_frame`` off (it would raise the count on a long video)."""
+        return dataclasses.replace(self, steps_per_frame=0.0) if self.steps_per_frame else self
+
     def root_budget_on(self) -> bool:
         """Whether these stages (the Base model, a tree's root) fit under the Gaussian budget and prune."""
         return self.budget_on()

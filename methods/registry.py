@@ -70,6 +70,12 @@ class CommonConfig:
             return 1
         return self.downscale
 
+    def with_exact_steps(self):
+        """This config when the user asked for exactly ``steps`` main-stage steps (``--steps N``): a config
+        whose step count grows with the video's length turns that off here (Base: ``steps_per_frame``).
+        Default: unchanged."""
+        return self
+
     def adaptive_default(self) -> bool:
         """Whether ``budget`` / ``early_stop`` with ``enabled=None`` are on (WorldTree: with ``--depth auto``)."""
         return False

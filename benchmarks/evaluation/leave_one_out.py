@@ -346,6 +346,8 @@ def resolve_configs(args) -> list[tuple]:
         spec = get_method(name)
         cfg = spec.config(args.preset)
         cfg = dataclasses.replace(cfg, **{k: v for k, v in options.items() if v is not None})
+        if args.steps is not None:
+            cfg = cfg.with_exact_steps()  # as `wtbench run --steps N`: exactly N on a video of any length
         if hasattr(cfg, "priors"):  # before the --set items: they are checked against the priors the run uses
             sources = {"depth_source": args.depth_maps, "flow_source": args.flow, "masks_source": args.masks}
             cfg = dataclasses.replace(cfg, priors=dataclasses.replace(
@@ -359,6 +361,8 @@ def resolve_configs(args) -> list[tuple]:
         given = {split_assignment(item)[0]: f"--set {item}" for item in mine}
         given |= {k: f"--{k} {v}" for k, v in options.items() if v is not None}
         if scoped[name]:
+            if any(split_assignment(rest)[0] == "steps" for rest in scoped[name]):
+                cfg = cfg.with_exact_steps()  # --NAME-steps N: exactly N (a scoped steps_per_frame still wins)
             try:
                 cfg = apply_overrides(cfg, list(scoped[name]))
             except UserError as e:

@@ -493,15 +493,14 @@ def resolve_config(spec, req: RunRequest) -> tuple[Any, list[str]]:
     ``--set`` assignments with the imported priors (as ``priors.<field>=<absolute path>``). Returns the config
     and every assignment applied (they name the run folder). A ``--set`` key also given by its own option
     (``--steps``, ``--depth``, ``--masks``...) is refused rather than silently preferring one; ``--steps N``
-    also sets ``steps_per_frame`` to 0 where the method has it (exactly N steps, unless ``--set`` sets it)."""
+    asks for exactly N (the config's ``with_exact_steps``; a ``--set`` applied after it still wins)."""
     cfg = spec.config(req.preset)
     for k in req.overrides:
         if k not in TUNABLE:
             raise UserError(f"override {k!r} is not one of {', '.join(TUNABLE)}")
     cfg = dataclasses.replace(cfg, **req.overrides, **method_option_fields(spec, req.options))
-    if "steps" in req.overrides and getattr(cfg, "steps_per_frame", 0):
-        # --steps N means N steps: a preset's steps per frame would raise it on a long video.
-        cfg = dataclasses.replace(cfg, steps_per_frame=0.0)
+    if "steps" in req.overrides:
+        cfg = cfg.with_exact_steps()  # --steps N means N, on a video of any length
     prior_sets = _prior_sets(cfg, spec.name, req.priors)
     flags = {k: option_flag(k) for k in (*req.overrides, *req.options)}
     flags |= {f"priors.{PRIOR_OPTIONS[k][0]}": option_flag(k) for k in req.priors}

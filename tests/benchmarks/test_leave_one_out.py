@@ -343,6 +343,31 @@ def test_one_methods_settings(tmp_path, monkeypatch):
     assert (seen["static"].steps, seen["base"].steps, seen["static"].seed, seen["base"].seed) == (5, 9, 3, 3)
 
 
+def test_given_steps_are_exact_on_a_long_video(tmp_path, monkeypatch):
+    """As in ``wtbench run``: ``--steps N`` / ``--NAME-steps N`` ask for exactly N photometric steps, where the
+    quick preset would raise them to 15 a frame on a long video; a ``--set`` of ``steps_per_frame`` still wins."""
+    from benchmarks.evaluation import leave_one_out as loo
+
+    scene = _tiny_scene(tmp_path / "scene")
+    seen = {}
+
+    def fake_run_one(args, spec, cfg, scene, k, device, prior_dirs, out_, score_scene=None):
+        seen[spec.name] = cfg
+        return {"k": k, "method": spec.name, "psnr": 1.0, "train_s": 0.0,
+                "psnr_train_neighbours": {"prev": 1.0, "next": 1.0}}  # fmt: skip
+
+    monkeypatch.setattr(loo, "run_one", fake_run_one)
+    argv = [str(scene), "--frames", "2", "--methods", "base", "--preset", "quick"]
+    loo.main([*argv, "-o", str(tmp_path / "a")])
+    assert seen["base"].photometric_steps(160) == 2400  # the preset's 15 a frame
+    loo.main([*argv, "-o", str(tmp_path / "b"), "--steps", "100"])
+    assert seen["base"].photometric_steps(160) == 100
+    loo.main([*argv, "-o", str(tmp_path / "c"), "--base-steps", "90"])
+    assert seen["base"].photometric_steps(160) == 90
+    loo.main([*argv, "-o", str(tmp_path / "d"), "--steps", "100", "--set", "base:steps_per_frame=2"])
+    assert seen["base"].photometric_steps(160) == 320
+
+
 def test_priors_are_part_of_the_key(tmp_path, monkeypatch):
     import numpy as np
 

@@ -219,3 +219,11 @@ def test_explicit_steps_are_exact_on_a_long_video():
     assert cfg.steps_per_frame == 0.0 and cfg.photometric_steps(160) == 100
     cfg, _ = resolve_config(spec, dataclasses.replace(req, overrides={"steps": 100}, sets=["steps_per_frame=2"]))
     assert cfg.photometric_steps(160) == 320
+
+
+def test_exact_steps_leave_a_config_without_a_per_frame_rule_alone():
+    # The runner asks every config for exact steps; one with no per-frame rule (static) comes back unchanged.
+    spec = get_method("static")
+    req = RunRequest(scene=Path("."), method="static", preset="quick", overrides={"steps": 7})
+    cfg, _ = resolve_config(spec, req)
+    assert cfg == dataclasses.replace(spec.config("quick"), steps=7)
