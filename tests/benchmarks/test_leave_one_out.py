@@ -322,12 +322,8 @@ def test_finished_results_are_keyed_by_their_whole_configuration(tmp_path, monke
     assert not list(out.glob(f"{loo.TMP_PREFIX}*"))
 
 
-def test_one_methods_settings(tmp_path, monkeypatch):
-    """``--set NAME:KEY=VALUE`` and ``--NAME-steps N`` (what ``--static-steps`` was) change one method's config,
-    over the common options; an unscoped ``--set`` changes every method that has the key."""
-    from benchmarks.evaluation import leave_one_out as loo
-
-    scene = _tiny_scene(tmp_path / "scene")
+def _configs_seen(monkeypatch, loo) -> dict:
+    """``{method: config}`` of the last held-out run of each method; the runs themselves are faked."""
     seen = {}
 
     def fake_run_one(args, spec, cfg, scene, k, device, prior_dirs, out_, score_scene=None):
@@ -336,6 +332,16 @@ def test_one_methods_settings(tmp_path, monkeypatch):
                 "psnr_train_neighbours": {"prev": 1.0, "next": 1.0}}  # fmt: skip
 
     monkeypatch.setattr(loo, "run_one", fake_run_one)
+    return seen
+
+
+def test_one_methods_settings(tmp_path, monkeypatch):
+    """``--set NAME:KEY=VALUE`` and ``--NAME-steps N`` (what ``--static-steps`` was) change one method's config,
+    over the common options; an unscoped ``--set`` changes every method that has the key."""
+    from benchmarks.evaluation import leave_one_out as loo
+
+    scene = _tiny_scene(tmp_path / "scene")
+    seen = _configs_seen(monkeypatch, loo)
     argv = [str(scene), "--frames", "2", "--methods", "static,base", "--preset", "quick", "--steps", "5"]
     loo.main([*argv, "-o", str(tmp_path / "a"), "--static-steps", "7", "--set", "base:dynamic_max_init=99"])
     assert (seen["static"].steps, seen["base"].steps, seen["base"].dynamic_max_init) == (7, 5, 99)
@@ -349,14 +355,7 @@ def test_given_steps_are_exact_on_a_long_video(tmp_path, monkeypatch):
     from benchmarks.evaluation import leave_one_out as loo
 
     scene = _tiny_scene(tmp_path / "scene")
-    seen = {}
-
-    def fake_run_one(args, spec, cfg, scene, k, device, prior_dirs, out_, score_scene=None):
-        seen[spec.name] = cfg
-        return {"k": k, "method": spec.name, "psnr": 1.0, "train_s": 0.0,
-                "psnr_train_neighbours": {"prev": 1.0, "next": 1.0}}  # fmt: skip
-
-    monkeypatch.setattr(loo, "run_one", fake_run_one)
+    seen = _configs_seen(monkeypatch, loo)
     argv = [str(scene), "--frames", "2", "--methods", "base", "--preset", "quick"]
     loo.main([*argv, "-o", str(tmp_path / "a")])
     assert seen["base"].photometric_steps(160) == 2400  # the preset's 15 a frame
