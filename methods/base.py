@@ -39,6 +39,7 @@ import numpy as np
 import torch
 
 from methods.model_folder import read_model_json
+from methods.plugin import SharedRoot
 from methods.registry import QUICK_FULL_SIZE_PIXELS, CommonConfig, MethodSpec, register_method, settings_of
 from methods.stages import Ablation, Stage, run_stages, with_ablations
 from methods.static3dgs import scene_extent
@@ -855,6 +856,15 @@ BASE_STAGES: tuple[Stage, ...] = (
     Stage("prune", stage_prune),
     Stage("test_pose", stage_test_pose),
 )
+#: The stages before the test pose, which another run may lend (``wtbench run --root-from``): a WorldTree run's
+#: root is this model, so the two methods lend each other.
+ROOT_STAGES = SharedRoot(
+    checkpoints=("ba.pt", "sw", "motion.npz", "scaffold.pt", "photometric"),
+    stages=("ba", "sw", "motion", "scaffold", "photometric"),
+    methods=("base", "worldtree"),
+    root_ablations=("ba", "sw"),
+    ledger=STAGE_LEDGER,
+)
 #: What each ablation of the Base method does to :data:`BASE_STAGES`.
 BASE_ABLATIONS: dict[str, Ablation] = {
     "ba": Ablation("ba", Stage("ba", stage_ba_ablated)),
@@ -1150,5 +1160,6 @@ register_method(
             "smoke": smoke_config,
         },
         build=BaseMethod,
+        shared_root=ROOT_STAGES,
     )
 )

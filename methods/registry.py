@@ -22,7 +22,7 @@ from typing import Any, Protocol
 
 import torch
 
-from methods.plugin import Grid, MethodOption
+from methods.plugin import Grid, MethodOption, SharedRoot
 from worldtree.budget import BudgetConfig
 from worldtree.gaussian_frame import GaussianFrame, RenderMode
 from worldtree.infra.config_ranges import in_range
@@ -244,6 +244,9 @@ class MethodSpec:
     order (:class:`methods.plugin.MethodOption`); ``--set`` reaches every field."""
     grids: Mapping[str, Grid] = field(default_factory=dict)
     """Named sweep grids of the method (``wtbench sweep --grid NAME``; :class:`methods.plugin.Grid`)."""
+    shared_root: SharedRoot | None = None
+    """The first stages another run may lend (``wtbench run --root-from``; :class:`methods.plugin.SharedRoot`);
+    None: the method trains everything itself."""
 
     @property
     def ablations(self) -> tuple[str, ...]:

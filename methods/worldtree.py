@@ -42,6 +42,7 @@ import torch
 from methods.base import (
     BASE_ABLATIONS,
     BASE_STAGES,
+    ROOT_STAGES,
     BaseConfig,
     BaseMethod,
     BaseState,
@@ -91,6 +92,14 @@ __all__ = ["ABLATIONS", "NodeFit", "NodeTrainConfig", "WorldTreeConfig", "WorldT
 
 ABLATIONS = ("ba", "sw", "tpt", "sac")
 """Ablation names of ``--ablate`` (the paper's ablation table columns)."""
+
+
+#: Settings of the children only (a tree that does not grow never reads them).
+NODE_FIELDS = ("chain_length", "split", "layer_steps", "min_len", "inherit_caps", "inherit_opacity",
+               "ancestors_optimised", "max_workers", "sequential", "node_steps_per_frame", "node_static_lr",
+               "ancestor_lr", "lambda_parent_depth")  # fmt: skip
+#: Every setting read only from the tree stage on: two runs that differ in these alone train the same root.
+TREE_FIELDS = ("depth", "auto_depth", "auto_split", "holdout", *NODE_FIELDS)
 
 
 @dataclass
@@ -228,10 +237,7 @@ class WorldTreeConfig(BaseConfig):
             out["inherit_caps"] = "the Gaussian budget replaces the caps; --set budget.enabled=false"
         if self.tree_depth == 0:
             why = "no tree grows (depth 0 or --ablate tpt)"
-            tree = ("chain_length", "split", "layer_steps", "min_len", "inherit_caps", "inherit_opacity",
-                    "ancestors_optimised", "max_workers", "sequential", "node_steps_per_frame", "node_static_lr",
-                    "ancestor_lr", "lambda_parent_depth")  # fmt: skip
-            out.update({k: why for k in tree})
+            out.update({k: why for k in NODE_FIELDS})
         return out
 
     def tree_config(self) -> TreeConfig:
@@ -1141,5 +1147,6 @@ register_method(
         build=WorldTreeMethod,
         options=OPTIONS,
         grids=GRIDS,
+        shared_root=dataclasses.replace(ROOT_STAGES, free_fields=TREE_FIELDS),
     )
 )

@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # Does the tree beat its root? (issue #27, docs/worldtree_method.md "The tree against its root"): the `tree`
 # grid (the root alone, depths 1 and 2, --depth auto) over the generated family of scripts/tree_family.sh,
-# each scene with its exact priors, then one table per scene and one over all of them.
+# each scene with its exact priors (the root trained once per scene: --share-root), then one table per scene and
+# one over all of them.
 #
 #   bash scripts/tree_sweep.sh FAMILY_OUT RUNS_OUT [NAMES] [-- extra wtbench sweep options]
 #
@@ -23,7 +24,7 @@ mkdir -p "$out"
 for name in "${scenes[@]}"; do
   scene="$fam/scenes/$name"
   [ -f "$scene/cameras.json" ] || { echo "error: $scene is not a scene; run scripts/tree_family.sh $fam first" >&2; exit 2; }
-  wtbench sweep --grid tree --scenes "$scene" --preset quick --device cpu -o "$out" \
+  wtbench sweep --grid tree --share-root --scenes "$scene" --preset quick --device cpu -o "$out" \
     --masks "$scene/gt_priors/masks" --tracks "$scene/gt_priors/tracks.npz" --depth-maps "$scene/gt_priors/depth" "$@"
 done
 wtbench table "$out" -o "$out/table.csv"

@@ -39,6 +39,10 @@ def register(app: typer.Typer) -> None:
         tensorboard: bool = typer.Option(False, "--tensorboard", help="Log scalars for TensorBoard."),
         force: bool = typer.Option(False, "--force", help="Delete an existing run folder and start again."),
         tag: str | None = typer.Option(None, "--tag", help="Run-folder name instead of preset+overrides."),
+        root_from: Path | None = typer.Option(
+            None, "--root-from", help="A run folder of this scene whose first stages (WorldTree: the root) this "
+            "run takes instead of training them; its settings must match except the tree's (docs/running.md).",
+        ),
         list_: bool = typer.Option(
             False, "--list", help="List the registered methods and presets, then exit."
         ),
@@ -57,6 +61,7 @@ def register(app: typer.Typer) -> None:
         run = RunOptions.from_cli(
             method, masks, tracks, depth_maps, flow, steps, seed, downscale, set_, runs_dir=runs_dir,
             preset=preset, device=device, lpips_weights=lpips_weights, tensorboard=tensorboard, tag=tag,
+            root_from=root_from.resolve() if root_from is not None else None,
         )  # fmt: skip
         req = run.request(scene, method_options, force=force)
         with warnings.catch_warnings():

@@ -64,6 +64,8 @@ class RunOptions:
     lpips_weights: Path | None = None
     tensorboard: bool = False
     tag: str | None = None
+    root_from: Path | None = None
+    """``--root-from``: a run folder lending this run its first stages (a sweep sets it per run)."""
 
     @classmethod
     def from_cli(cls, method: str, masks, tracks, depth_maps, flow, steps=None, seed=None, downscale=None,
@@ -76,21 +78,24 @@ class RunOptions:
         return cls(method, overrides={k: v for k, v in given if v is not None}, sets=list(sets or []),
                    priors=priors, **kw)  # fmt: skip
 
-    def request(self, scene: Path, options: dict | None = None, overrides: dict | None = None, **kw: Any):
+    def request(self, scene: Path, options: dict | None = None, overrides: dict | None = None,
+                root_from: Path | None = None, **kw: Any):  # fmt: skip
         """The :class:`~benchmarks.runner.runs.RunRequest` of ``scene`` with the method ``options`` and extra
-        ``overrides`` (a sweep's grid point); ``kw``: its other fields (``force``, ``progress``...)."""
+        ``overrides`` (a sweep's grid point), grown on ``root_from``'s root (default: this object's);
+        ``kw``: its other fields (``force``, ``progress``...)."""
         from benchmarks.runner.runs import RunRequest
 
         ovr = {**self.overrides, **(overrides or {})}
         opts = dict(options or {})
+        lender = root_from if root_from is not None else self.root_from
         return RunRequest(
             scene=scene, method=self.method, runs_dir=self.runs_dir, preset=self.preset, device=self.device,
             overrides=ovr, options=opts, sets=list(self.sets), priors=dict(self.priors),
-            lpips_weights=self.lpips_weights, tensorboard=self.tensorboard, tag=self.tag,
-            command=self.command_line(scene, opts, ovr), **kw,
+            lpips_weights=self.lpips_weights, tensorboard=self.tensorboard, tag=self.tag, root_from=lender,
+            command=self.command_line(scene, opts, ovr, lender), **kw,
         )  # fmt: skip
 
-    def command_line(self, scene: Path, options: dict, overrides: dict) -> str:
+    def command_line(self, scene: Path, options: dict, overrides: dict, root_from: Path | None = None) -> str:
         """The command in canonical form (every resolved option), so that it can be pasted to repeat the run
         however it was invoked (shell, script, sweep, or in-process)."""
         from benchmarks.runner.runs import option_flag
@@ -118,4 +123,6 @@ class RunOptions:
             parts.append("--tensorboard")
         if self.tag is not None:
             parts += ["--tag", self.tag]
+        if root_from is not None:
+            parts += ["--root-from", str(root_from)]
         return shlex.join(parts)

@@ -78,6 +78,12 @@ def register(app: typer.Typer) -> None:
             help="Show each run's state under RUNS_DIR (done, running, queued, failed) and exit.",
         ),
         list_: bool = typer.Option(False, "--list", help="List every method's grids, then exit."),
+        share_root: bool = typer.Option(
+            False,
+            "--share-root",
+            help="Train each root once per scene: a run whose first stages another run of the grid trains "
+            "alike (WorldTree: the same settings but the tree's) takes them from it (`wtbench run --root-from`).",
+        ),
     ) -> None:
         from benchmarks.runner.sweep import resolve_grid
         from benchmarks.runner.sweep_executors import (
@@ -109,7 +115,8 @@ def register(app: typer.Typer) -> None:
             mem=slurm_mem,
             extra=parse_slurm_args(slurm_arg or []),
         )
-        sweep(scenes, grid, run, dry_run, ExecutorConfig(kind=executor, max_parallel=max_parallel, slurm=slurm))
+        sweep(scenes, grid, run, dry_run, ExecutorConfig(kind=executor, max_parallel=max_parallel, slurm=slurm),
+              share_root=share_root)  # fmt: skip
 
 
 def list_grids() -> None:
@@ -140,17 +147,20 @@ def show_status(runs_dir: Path) -> None:
     print(f"{len(states)} runs: " + ", ".join(counts))
 
 
-def sweep(scenes, grid: str, run: RunOptions, dry_run: bool = False, executor=None) -> None:
+def sweep(scenes, grid: str, run: RunOptions, dry_run: bool = False, executor=None, share_root: bool = False) -> None:
     """Resolve scenes and grid, run them, print a summary and write RUNS_DIR/sweep-<grid>.json. ``run`` (the
     options `wtbench run` would get; its ``sets`` and ``priors`` go to every run) is checked against the
     method's config once, before the first run. ``executor``
     (:class:`benchmarks.runner.sweep_executors.ExecutorConfig`; None: in this process) says where runs execute: one
-    local run at a time without GPUs runs in this process, anything else as submitit jobs."""
+    local run at a time without GPUs runs in this process, anything else as submitit jobs. ``share_root``:
+    each run whose root an earlier run of the same scene trains alike takes it from there
+    (:func:`benchmarks.runner.shared_root.plan_lenders`); as jobs, the lending runs go first, then the rest."""
     import dataclasses
     import warnings
 
     from benchmarks.commands.run_options import one_line_warning
     from benchmarks.runner.runs import execute, resolve_config, run_folder_of
+    from benchmarks.runner.shared_root import sweep_lender
     from benchmarks.runner.sweep import find_scenes, grid_points, run_sweep, write_report
     from benchmarks.runner.sweep_executors import JOBS_DIR, Task, resolve_kind, run_tasks
     from methods.config_overrides import split_assignment
@@ -173,22 +183,31 @@ def sweep(scenes, grid: str, run: RunOptions, dry_run: bool = False, executor=No
     if sets or priors:
         # A bad key or path would fail every run of the grid alike: refuse it once, up front.
         resolve_config(get_method(method), run.request(Path(".")))
+    lenders = _root_lenders(found, points, run) if share_root else {}
+    shared = get_method(method).shared_root
     if dry_run:
         for s in found:
             for p in points:
                 extra = f"  set {sets}" if sets else ""
                 extra += f"  priors {priors}" if priors else ""
+                lender = lenders.get((s.name, p.label))
+                extra += f"  root from {lender}" if lender is not None else ""
                 print(f"{s.name}: {p.label}  {p.options or p.overrides}{extra}")
         return
 
     def make_request(scene: Path, pt):
-        return run.request(scene, pt.options, pt.overrides)
+        lender = lenders.get((scene.name, pt.label))
+        if lender is not None:
+            req = run.request(scene, pt.options, pt.overrides)
+            lender = sweep_lender(lender, run_folder_of(req).root, shared)
+        return run.request(scene, pt.options, pt.overrides, root_from=lender)
 
     check_output_folder(runs_dir, "-o")
     report = runs_dir / f"sweep-{grid}.json"
     kind = resolve_kind(executor.kind) if executor is not None else "local"
     in_process = kind == "local" and (executor is None or _local_in_process(executor, device))
     report_cfg = _report_config(method, run.preset, device, overrides, sets, priors, found)
+    report_cfg["share_root"] = share_root
     report_cfg["executor"] = kind if not in_process else "in-process"
     report_cfg["executor_config"] = dataclasses.asdict(executor) if not in_process else None
     # One sweep per report: a second `wtbench sweep` of the same grid into the same RUNS_DIR stops at once
@@ -198,16 +217,22 @@ def sweep(scenes, grid: str, run: RunOptions, dry_run: bool = False, executor=No
         if in_process:
             outcomes = run_sweep(found, points, make_request, execute)
         else:
-            tasks = []
-            for s in found:
-                for p in points:
-                    req = make_request(s, p)
-                    req.progress = False  # job logs are files: no progress bar redrawn in them
-                    try:
-                        tasks.append(Task(s.name, p.label, req, run_folder_of(req)))
-                    except UserError as e:  # this run's config is refused; the others still run
-                        tasks.append(Task(s.name, p.label, req, None, error=str(e)))
-            outcomes = run_tasks(tasks, dataclasses.replace(executor, kind=kind), runs_dir / JOBS_DIR)
+            # Lending runs first (every run when nothing is shared), then the runs that borrow their roots.
+            outcomes = []
+            for borrowing in (False, True):
+                tasks = []
+                for s in found:
+                    for p in points:
+                        if ((s.name, p.label) in lenders) != borrowing:
+                            continue
+                        req = make_request(s, p)
+                        req.progress = False  # job logs are files: no progress bar redrawn in them
+                        try:
+                            tasks.append(Task(s.name, p.label, req, run_folder_of(req)))
+                        except UserError as e:  # this run's config is refused; the others still run
+                            tasks.append(Task(s.name, p.label, req, None, error=str(e)))
+                if tasks:
+                    outcomes += run_tasks(tasks, dataclasses.replace(executor, kind=kind), runs_dir / JOBS_DIR)
         write_report(report, grid, outcomes, report_cfg)
     counts = {s: sum(o.status == s for o in outcomes) for s in ("done", "skipped", "failed", "elsewhere")}
     print(
@@ -220,6 +245,35 @@ def sweep(scenes, grid: str, run: RunOptions, dry_run: bool = False, executor=No
     print(f"report: {report}; tables: wtbench table {runs_dir} -o table.csv")
     if counts["failed"]:
         raise typer.Exit(1)
+
+
+def _root_lenders(found, points, run: RunOptions) -> dict[tuple[str, str], Path]:
+    """``(scene name, point label) -> run folder`` lending that run of the sweep its first stages
+    (``--share-root``); runs absent train their own. A run whose config is refused lends and borrows nothing
+    (it fails on its own)."""
+    from benchmarks.runner.runs import config_record_of, run_folder_of
+    from benchmarks.runner.shared_root import plan_lenders
+    from methods.registry import get_method
+    from worldtree.infra.errors import UserError
+
+    shared = get_method(run.method).shared_root
+    if shared is None:
+        raise UserError(f"--share-root: method {run.method!r} trains every stage itself; drop --share-root")
+    out: dict[tuple[str, str], Path] = {}
+    for s in found:
+        records, folders = [], []
+        for p in points:
+            req = run.request(s, p.options, p.overrides)
+            try:
+                records.append(config_record_of(req))
+                folders.append(run_folder_of(req).root)
+            except UserError:
+                records.append({"method": None})  # lends to no one, takes from no one
+                folders.append(None)
+        for k, j in enumerate(plan_lenders(shared, records)):
+            if j is not None and folders[k] is not None:
+                out[(s.name, points[k].label)] = folders[j]
+    return out
 
 
 def _report_config(method, preset, device, overrides, sets, priors, scenes) -> dict:

@@ -272,7 +272,8 @@ def cost_metrics(timing: Mapping[str, Any] | None, model_info: Mapping[str, Any]
     sessions (``stages_cpu_s`` less ``eval`` and ``kernel_build``) plus those of the tree's worker processes
     (``method_stats.tree.layers[].nodes_cpu_s`` of the layers run in ``parallel`` mode: a ``sequential`` or
     ``in-process`` layer ran in the run's process and is counted there); unlike wall time it hardly changes when other jobs share the
-    machine, so fronts measured on a busy machine compare. NaN for run folders without ``stages_cpu_s``.
+    machine, so fronts measured on a busy machine compare. A run grown on another run's root (``--root-from``)
+    adds to both the seconds those stages took there (``root_from``), so it costs what it would have alone. NaN for run folders without ``stages_cpu_s``.
     Sizes: the first of ``num_*``/``n_*`` keys found in timing.json, its ``method_stats``, then
     model.json.
     """
@@ -294,6 +295,7 @@ def cost_metrics(timing: Mapping[str, Any] | None, model_info: Mapping[str, Any]
         wall = float(sum(finite)) if finite else math.nan
     if math.isnan(wall):
         wall = _number(timing.get("total_s"))
+    wall += _lent_seconds(timing, "stages_s")
     mem = _number(timing.get("cuda_peak_allocated_mib"))
     if math.isnan(mem):
         mem = _number(timing.get("peak_rss_mib"))
@@ -303,6 +305,16 @@ def cost_metrics(timing: Mapping[str, Any] | None, model_info: Mapping[str, Any]
     for metric, keys in _SIZE_KEYS.items():
         out[metric] = _first(places, keys)
     return out
+
+
+def _lent_seconds(timing: Mapping[str, Any], key: str) -> float:
+    """Seconds (``key``: ``stages_s`` or ``stages_cpu_s``) that the stages lent by ``--root-from`` took in the
+    lending run (``timing.json``'s ``root_from``; 0 for a run that trained its own root)."""
+    lent = timing.get("root_from")
+    vals = lent.get(key) if isinstance(lent, Mapping) else None
+    if not isinstance(vals, Mapping):
+        return 0.0
+    return float(sum(v for v in map(_number, vals.values()) if math.isfinite(v)))
 
 
 def _cpu_seconds(timing: Mapping[str, Any]) -> float:
@@ -321,7 +333,7 @@ def _cpu_seconds(timing: Mapping[str, Any]) -> float:
         nodes = layer.get("nodes_cpu_s")
         if isinstance(nodes, Mapping):
             total += sum(v for v in map(_number, nodes.values()) if math.isfinite(v))
-    return total
+    return total + _lent_seconds(timing, "stages_cpu_s")
 
 
 def stage_times(timing: Mapping[str, Any] | None) -> dict[str, float]:

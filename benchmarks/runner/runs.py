@@ -6,7 +6,9 @@ Layout (``RUNS_DIR/<scene>/<method>/<tag>/``, ``tag`` = preset plus overrides, e
     config.json     resolved typed config, preset, overrides, options, sets, imported priors, seed, scene,
                     tool version
     command.txt     the command line that made the run
-    checkpoints/    periodic atomic checkpoints (model + optimiser + density-control state + RNG states)
+    checkpoints/    periodic atomic checkpoints (model + optimiser + density-control state + RNG states);
+                    root_from.json in a run grown on another run's root (--root-from,
+                    benchmarks.runner.shared_root)
     model/          final model: gaussians.pt (GaussianSet.load), gaussians.ply, model.json
     renders/        the test camera at every test time, named like the ground truth (v001_tXXX.png)
     metrics.csv     per-frame scores and a 'mean' row (benchmarks.evaluation.evaluate), metrics.json beside it
@@ -223,6 +225,9 @@ class RunRequest:
     ``priors.<...>_source`` field (a method without ``priors`` refuses them)."""
     tag: str | None = None
     """Run-folder name; default: preset plus overrides."""
+    root_from: Path | None = None
+    """A run folder whose first stages this run takes instead of training them (``--root-from``;
+    :mod:`benchmarks.runner.shared_root`)."""
     progress: bool = True
     """Show training progress."""
     command: str = ""
@@ -300,6 +305,11 @@ def execute(req: RunRequest) -> RunResult:
     device = pick_device(req.device)
     check_output_folder(req.runs_dir, "--out")
     check_run_folder(folder, req.force)
+    lent = None
+    if req.root_from is not None and not (folder.is_done() and not req.force):
+        from benchmarks.runner.shared_root import check_root_from
+
+        lent = check_root_from(req.root_from, folder.root, spec, _config_record(spec, cfg, req), device.type)
     timer = StageClock()  # the run's clock, from the start of this session
 
     def build_method():
@@ -326,7 +336,7 @@ def execute(req: RunRequest) -> RunResult:
     # method first, so that their errors (a damaged scene, too few frames) come before the folder exists.
     method = None if (folder.is_done() and not req.force) else build_method()
     with FolderLock(folder.root, "run folder"):
-        return _execute_locked(req, spec, cfg, folder, root, view, device, timer, method, build_method)
+        return _execute_locked(req, spec, cfg, folder, root, view, device, timer, method, build_method, lent)
 
 
 def training_size(cfg, root: Path, req: RunRequest):
@@ -366,9 +376,11 @@ def _kernel_target(device: torch.device) -> str | None:
     return loaded_target()
 
 
-def _execute_locked(req, spec, cfg, folder, root, view, device, timer, method, build_method) -> RunResult:
+def _execute_locked(req, spec, cfg, folder, root, view, device, timer, method, build_method, lent) -> RunResult:
     """The part of :func:`execute` that runs with the run folder locked. ``method`` is the built method, or
-    None when the run looked finished before locking (``build_method()`` builds it if it no longer is)."""
+    None when the run looked finished before locking (``build_method()`` builds it if it no longer is);
+    ``lent``: the checked root of ``--root-from`` (None without)."""
+    from benchmarks.runner.shared_root import lend_root, root_from_record
     from worldtree.trainer import TrainContext
 
     record = _config_record(spec, cfg, req)
@@ -385,6 +397,10 @@ def _execute_locked(req, spec, cfg, folder, root, view, device, timer, method, b
     atomic_write_json(folder.config_json, record)
     atomic_write_text(folder.command_txt, req.command + "\n")
     timer.attach(folder.timing_ledger)  # earlier sessions of this run, if it was interrupted
+    if lent is not None:
+        linked = lend_root(lent, folder.checkpoints, spec.shared_root.checkpoints)
+        if linked:
+            print(f"root from {lent.source}: {', '.join(linked)}", file=sys.stderr)
 
     if device.type == "cuda":
         torch.cuda.reset_peak_memory_stats(device)
@@ -421,12 +437,22 @@ def _execute_locked(req, spec, cfg, folder, root, view, device, timer, method, b
         "deterministic": torch.are_deterministic_algorithms_enabled(),
         "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY"),
         "method_stats": stats,
+        "root_from": root_from_record(folder.checkpoints),
     }
     atomic_write_json(folder.timing_json, timing)
     atomic_write_json(
         folder.done, {"finished": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()), "mean": mean}
     )
     return RunResult(folder, skipped=False, mean=mean)
+
+
+def config_record_of(req: RunRequest) -> dict[str, Any]:
+    """The config.json record :func:`execute` would write for ``req`` (nothing is written)."""
+    from methods.registry import get_method
+
+    spec = get_method(req.method)
+    cfg, _ = resolve_config(spec, req)
+    return _config_record(spec, training_size(cfg, Path(req.scene), req), req)
 
 
 def run_folder_of(req: RunRequest) -> RunFolder:

@@ -123,3 +123,60 @@ def test_cli_refuses_a_grid_the_method_does_not_have(tmp_path, write_tiny_scene)
         and out.stderr.strip() == "error: --grid depth: method 'static' has the grids seeds"
     )
     assert not (tmp_path / "runs").exists()
+
+
+def _dry_run(scene_dir: Path, runs: Path, *args: str) -> list[str]:
+    out = subprocess.run(
+        [sys.executable, "-m", "benchmarks.cli", "sweep", "--scenes", str(scene_dir), "--method", "worldtree",
+         "--preset", "smoke", "--device", "cpu", "-o", str(runs), "--share-root", "--dry-run", *args],
+        capture_output=True, text=True,
+    )  # fmt: skip
+    assert out.returncode == 0, out.stderr
+    return out.stdout.splitlines()
+
+
+def test_share_root_lends_each_root_to_the_runs_that_train_it_alike(tmp_path, write_tiny_scene):
+    """The paper's ablation grid has three roots (BA/SW off-off, on-off, on-on), each trained once and lent to
+    the two rows with the same BA/SW; the tree grid trains one root for its four depths; seeds share none."""
+    write_tiny_scene(tmp_path / "scenes" / "tiny", frames=6)
+    runs = tmp_path / "runs"
+    lines = _dry_run(tmp_path / "scenes", runs, "--grid", "paper-ablation")
+    assert len(lines) == 9
+    for group in (lines[0:3], lines[3:6], lines[6:9]):
+        own = group[0].split(":")[1].split("{")[0].strip()
+        assert "root from" not in group[0], group[0]
+        tag = {"BA- SW- TPT- SAC-": "smoke-noba-nosw-notpt", "BA+ SW- TPT- SAC-": "smoke-nosw-notpt",
+               "BA+ SW+ TPT- SAC-": "smoke-notpt"}[own]  # fmt: skip
+        for line in group[1:]:
+            assert line.endswith(f"root from {runs / 'tiny' / 'worldtree' / tag}"), line
+    lines = _dry_run(tmp_path / "scenes", runs, "--grid", "tree")
+    assert "root from" not in lines[0] and all(line.endswith("smoke-depth0") for line in lines[1:])
+    assert not any("root from" in line for line in _dry_run(tmp_path / "scenes", runs, "--grid", "seeds"))
+    assert not runs.exists()
+
+
+def test_a_sweep_sharing_roots_trains_each_once(tmp_path, write_tiny_scene):
+    """In process: depth 0 trains its root, depths 1, 2 and auto take it (recorded, and counted in their time),
+    and a second sweep skips them all."""
+    from benchmarks.reporting.results import cost_metrics
+
+    scene = write_tiny_scene(tmp_path / "scenes" / "tiny", frames=6)
+    runs = tmp_path / "runs"
+    cmd = [sys.executable, "-m", "benchmarks.cli", "sweep", "--scenes", str(scene.parent), "--grid", "tree",
+           "--method", "worldtree", "--preset", "smoke", "--device", "cpu", "-o", str(runs), "--share-root"]  # fmt: skip
+    out = subprocess.run([*cmd, "--steps", "20"], capture_output=True, text=True)
+    assert out.returncode == 0, out.stderr
+    assert "4 done" in out.stdout
+    folder = runs / "tiny" / "worldtree"
+    root = folder / "smoke-steps20-depth0"
+    assert not (root / "checkpoints" / "root_from.json").exists()
+    for d in (1, 2, "auto"):
+        run = folder / f"smoke-steps20-depth{d}"
+        timing = json.loads((run / "timing.json").read_text())
+        assert timing["root_from"]["run"] == str(root.resolve()), d
+        assert timing["train"]["steps_this_session"] == 0  # the root's fit was lent, finished
+        assert f"--root-from {root}" in (run / "command.txt").read_text()
+        assert cost_metrics(timing, None)["cpu_time_s"] > sum(timing["root_from"]["stages_cpu_s"].values()) > 0
+    assert json.loads((runs / "sweep-tree.json").read_text())["config"]["share_root"] is True
+    again = subprocess.run([*cmd, "--steps", "20"], capture_output=True, text=True)
+    assert again.returncode == 0 and "0 done, 4 already finished" in again.stdout, again.stderr

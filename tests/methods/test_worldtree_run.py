@@ -49,6 +49,10 @@ def runs(tmp_path_factory, write_tiny_scene):
     # pixels' depth), so that the tree's growth itself is exercised.
     _wtbench("--method", "worldtree", *common, "--depth", "auto", "--set", "auto_split.min_depth_conf=0")
     folder = out / "tiny26"
+    # The default tree grown on the `--ablate tpt` run's root, and Base on the default run's root.
+    _wtbench("--method", "worldtree", *common, "--root-from", str(folder / "worldtree" / "smoke-notpt"),
+             "--tag", "grown")  # fmt: skip
+    _wtbench("--method", "base", *common, "--root-from", str(folder / "worldtree" / "smoke"), "--tag", "grown")
     (grown,) = (p for p in (folder / "worldtree").glob("smoke-depthauto-set*"))
     return {
         "scene": scene,
@@ -58,6 +62,8 @@ def runs(tmp_path_factory, write_tiny_scene):
         "base": folder / "base" / "smoke",
         "auto": folder / "worldtree" / "smoke-depthauto",
         "auto_grown": grown,
+        "tree_on_tpt": folder / "worldtree" / "grown",
+        "base_on_tree": folder / "base" / "grown",
     }
 
 
@@ -150,6 +156,71 @@ def test_ablate_tpt_is_the_base_method(runs):
         a = read_image(p).astype(np.int16)
         b = read_image(runs["tpt"] / "renders" / p.name).astype(np.int16)
         assert np.abs(a - b).max() <= 1, p.name
+
+
+def _same_renders(a: Path, b: Path) -> int:
+    """Largest grey-level difference between the test renders of two run folders (which must match by name)."""
+    names = sorted(p.name for p in (a / "renders").glob("*.png"))
+    assert names == sorted(p.name for p in (b / "renders").glob("*.png")) and names
+    return max(int(np.abs(read_image(a / "renders" / n).astype(np.int16) -
+                          read_image(b / "renders" / n).astype(np.int16)).max()) for n in names)  # fmt: skip
+
+
+@pytest.mark.parametrize(("grown", "alone", "lender"), [("tree_on_tpt", "default", "tpt"),
+                                                        ("base_on_tree", "base", "default")])  # fmt: skip
+def test_a_run_grown_on_another_runs_root_is_the_run_trained_alone(runs, grown, alone, lender):
+    """`--root-from`: the lent checkpoints are the lender's files (hard links), the run trains none of those
+    stages, and its renders are those of the same configuration trained from scratch."""
+    g, a, src = runs[grown], runs[alone], runs[lender]
+    assert (g / "DONE").is_file()
+    for ck in sorted((src / "checkpoints" / "photometric").glob("ckpt_*.pt")):
+        assert (g / "checkpoints" / "photometric" / ck.name).stat().st_ino == ck.stat().st_ino
+    timing = json.loads((g / "timing.json").read_text())
+    lent = timing["root_from"]
+    assert Path(lent["run"]) == src.resolve() and "photometric" in lent["items"]
+    ledger = json.loads((src / "checkpoints" / "stage_timing.json").read_text())
+    assert lent["stages_s"]["photometric"] == ledger["stages_s"]["photometric"] > 0
+    assert timing["train"]["steps_this_session"] == 0  # the root's fit resumed at its end
+    assert _same_renders(g, a) == 0
+    assert json.loads((g / "metrics.json").read_text())["mean"] == json.loads((a / "metrics.json").read_text())["mean"]
+
+
+def _flat_tensors(obj, prefix=""):
+    """Every tensor of a nested checkpoint dict, by dotted key."""
+    if isinstance(obj, torch.Tensor):
+        return {prefix: obj}
+    if isinstance(obj, dict):
+        out = {}
+        for k, v in obj.items():
+            out.update(_flat_tensors(v, f"{prefix}.{k}"))
+        return out
+    return {}
+
+
+def test_every_tree_configuration_trains_the_same_root(runs):
+    """What `--root-from` relies on (methods.worldtree.TREE_FIELDS): the tree's settings and the tpt/sac
+    ablations leave the root's fit as it is, to the last bit; so does Base."""
+    def root(key):
+        (ck,) = sorted((runs[key] / "checkpoints" / "photometric").glob("ckpt_*.pt"))[-1:]
+        return _flat_tensors(torch.load(ck, map_location="cpu", weights_only=False)["task"]), ck.name
+
+    ref, name = root("tpt")
+    assert len(ref) > 10
+    for key in ("default", "sac", "auto", "auto_grown", "base"):
+        got, got_name = root(key)
+        assert got_name == name and got.keys() == ref.keys(), key
+        assert all(torch.equal(got[k], ref[k]) for k in ref), key
+
+
+def test_the_table_counts_a_lent_roots_time(runs):
+    from benchmarks.reporting.results import cost_metrics
+
+    timing = json.loads((runs["tree_on_tpt"] / "timing.json").read_text())
+    own = dict(timing, root_from=None)
+    lent = timing["root_from"]
+    got, alone = cost_metrics(timing, None), cost_metrics(own, None)
+    assert got["wall_time_s"] == pytest.approx(alone["wall_time_s"] + sum(lent["stages_s"].values()))
+    assert got["cpu_time_s"] == pytest.approx(alone["cpu_time_s"] + sum(lent["stages_cpu_s"].values()))
 
 
 def test_node_training_optimises_the_nearest_ancestors_only(runs, tmp_path):
