@@ -97,7 +97,7 @@ ABLATIONS = ("ba", "sw", "tpt", "sac")
 #: Settings of the children only (a tree that does not grow never reads them).
 NODE_FIELDS = ("chain_length", "split", "layer_steps", "min_len", "inherit_caps", "inherit_opacity",
                "ancestors_optimised", "max_workers", "sequential", "node_steps_per_frame", "node_static_lr",
-               "ancestor_lr", "lambda_parent_depth")  # fmt: skip
+               "ancestor_lr", "lambda_parent_depth", "node_densify")  # fmt: skip
 #: Every setting read only from the tree stage on: two runs that differ in these alone train the same root.
 TREE_FIELDS = ("depth", "auto_depth", "auto_split", "holdout", *NODE_FIELDS)
 
@@ -156,6 +156,10 @@ class WorldTreeConfig(BaseConfig):
     where the prior measures no depth (classical priors: moving and filled pixels) a child keeps the depth
     its parent fitted over more frames and cameras, and where it does (exact or imported depth) the child
     follows the prior. 0 = off (the paper's children). Measured in docs/worldtree_method.md."""
+    node_densify: bool = False
+    """Density control in each child over its own dynamic Gaussians: the root's dynamic schedule scaled to the
+    child's steps (never the background or the ancestors). Off: a child only refines the Gaussians it
+    inherits, at most ``inherit_caps`` (the paper's children re-run 3DGS's density control)."""
     holdout: HoldoutConfig = field(default_factory=HoldoutConfig)
     """Held-out validation of each child (:mod:`worldtree.tree.validate`): some of its frames are kept from
     its training and it is kept only where it draws them better than its parent."""
@@ -295,6 +299,8 @@ class NodeTrainConfig:
     steps_per_frame: float | None = None
     """The root's steps per training frame: a node of ``n`` frames trains at most ``ceil(steps_per_frame *
     n)`` steps (None: ``steps_at(depth)`` whatever its length)."""
+    node_densify: bool = False
+    """Density control over the node's own dynamic Gaussians (``WorldTreeConfig.node_densify``)."""
 
     def steps_at(self, depth: int) -> int:
         return self.layer_steps[min(depth, len(self.layer_steps)) - 1]
@@ -500,15 +506,32 @@ def _load_context(tree_dir: Path, device: str) -> tuple[dict[str, torch.Tensor],
     return _CONTEXT[key]
 
 
+def scaled_schedule(strategy: DensifyStrategy, root_steps: int, steps: int) -> DensifyStrategy:
+    """``strategy`` with its refine window and period scaled from ``root_steps`` to ``steps`` (the same
+    fractions of the fit; a period of at least one step), no opacity reset."""
+    f = steps / max(int(root_steps), 1)
+    return dataclasses.replace(
+        strategy,
+        refine_start=round(strategy.refine_start * f),
+        refine_stop=round(strategy.refine_stop * f),
+        refine_every=max(1, round(strategy.refine_every * f)),
+        reset_every=0,
+    )
+
+
 def _node_photometric(cfg: NodeTrainConfig, steps: int) -> PhotometricConfig:
-    """The root's photometric settings for a child node of ``steps`` steps: cameras fixed, no density control
-    and no migration (all three only at the root: children's sets are tied to their ancestors')."""
+    """The root's photometric settings for a child node of ``steps`` steps: cameras fixed, no migration, and
+    no density control unless ``node_densify`` (then over the node's own dynamic Gaussians only: the
+    background is shared and the ancestors are tied to their own nodes)."""
+    dyn = _NO_DENSIFY
+    if cfg.node_densify:
+        dyn = scaled_schedule(cfg.photometric.dynamic_strategy, cfg.photometric.steps, steps)
     return dataclasses.replace(
         cfg.photometric,
         steps=steps,
         camera_start_step=steps + 1,
         static_strategy=_NO_DENSIFY,
-        dynamic_strategy=_NO_DENSIFY,
+        dynamic_strategy=dyn,
         node_densify_every=0,
         migrate_every=0,
     )
@@ -896,6 +919,7 @@ def _write_context(s: WorldTreeState, tree_dir: Path, no_ancestors: bool) -> Non
         ancestor_lr=c.ancestor_lr,
         holdout=c.holdout if c.holdout_on() else None,
         lambda_parent_depth=c.lambda_parent_depth,
+        node_densify=c.node_densify,
     )
     write_config(tree_dir / "node_config.json", ncfg)
 

@@ -434,6 +434,38 @@ def test_node_with_budget_auto_and_early_stop_records_its_choices(runs, tmp_path
     assert bool((contrib[:n_s] < 1.0).any())
 
 
+def test_node_densify_grows_the_childs_own_gaussians_only(runs, tmp_path):
+    """`node_densify`: node 6 retrained with a density control that grows every Gaussian with any gradient
+    ends with more dynamic Gaussians of its own than without; its background and its ancestors keep their
+    counts. The schedule is the root's, scaled to the node's steps."""
+    import dataclasses
+
+    from methods.worldtree import scaled_schedule, train_node
+    from worldtree.strategy import DensifyStrategy
+
+    grow = DensifyStrategy(grow_grad2d=1e-12, grow_scale3d=1e9, refine_start=10, refine_stop=30, refine_every=10,
+                           reset_every=3000)  # fmt: skip
+    half = scaled_schedule(grow, 40, 20)
+    assert (half.refine_start, half.refine_stop, half.refine_every, half.reset_every) == (5, 15, 5, 0)
+    src = runs["default"] / "checkpoints" / "tree"
+    base = read_config(src / "node_config.json", NodeTrainConfig)
+    counts = {}
+    for on in (False, True):
+        tree = tmp_path / f"tree{int(on)}"
+        folder = tree / "layer2" / "node6"
+        folder.mkdir(parents=True)
+        shutil.copy(src / "context.pt", tree / "context.pt")
+        pcfg = dataclasses.replace(base.photometric, steps=40, dynamic_strategy=grow)
+        write_config(tree / "node_config.json", dataclasses.replace(base, photometric=pcfg, layer_steps=(40, 40),
+                                                                   node_densify=on))  # fmt: skip
+        torch.manual_seed(6)
+        out = train_node(load_payload(src / "layer2" / "node6" / "input.pt"), NodeContext(6, 6, "cpu", 1, str(folder)))
+        st = out["stats"]
+        counts[on] = (st["num_dynamic"], st["num_static"], st["num_ancestor_gaussians"])
+    assert counts[True][0] > counts[False][0] > 0
+    assert counts[True][1:] == counts[False][1:]
+
+
 def test_node_training_with_neighbour_coupling_moves_its_scaffold_differently(runs, tmp_path):
     """Node 6 (depth 2, with ancestors drawn behind the carried picture) trained with the neighbour coupling
     every step: it runs, stays finite, and its scaffold ends elsewhere than without the term."""
