@@ -21,7 +21,10 @@ import` writes) are re-indexed without frame k (flow pairs touching k are droppe
 has ``priors``.
 
 What each method draws between two frames is its own (its ``render_between``; this repository's methods:
-docs/evaluation.md).
+docs/evaluation.md). The runs go frame by frame; a method whose first stages another method of ``--methods``
+trains alike for the same k (``MethodSpec.shared_root``: WorldTree after Base) takes them from that run
+(:mod:`benchmarks.runner.shared_root`; the row's ``root_from``, and ``train_s`` counts the lent stages), unless
+``--no-share-root``.
 
 Usage (results appended to OUT/loo.json; a finished (label, k, method) result is reused only when it was
 computed with the same configuration -- preset, steps, seed, downscale, every ``--set``, the depth options,
@@ -126,10 +129,12 @@ def _to_u8(img: torch.Tensor) -> np.ndarray:
 
 def run_one(
     args, spec, cfg, scene: Scene, k: int, device, prior_dirs: dict[str, Path], out: Path,
-    score_scene: Scene | None = None,
+    score_scene: Scene | None = None, checkpoints: Path | None = None, lent=None,
 ) -> dict:
     """Train ``spec`` on ``scene`` minus frame k, render frame k's camera at time k, score it (against
-    ``score_scene``'s frame k and through its camera when given: the same scene at another size)."""
+    ``score_scene``'s frame k and through its camera when given: the same scene at another size).
+    ``checkpoints``: a folder for the method's checkpoints (None: none kept), holding ``lent``'s root
+    (:class:`benchmarks.runner.shared_root.LentRoot`, linked there) when another method's run lends it."""
     from worldtree.infra.determinism import deterministic_for
     from worldtree.trainer import TrainContext
 
@@ -148,7 +153,7 @@ def run_one(
         deterministic_for(device)  # as `wtbench run`: one seed, one result
         method = spec.build(cfg, sub, device)
         t0 = time.perf_counter()
-        method.fit(TrainContext(checkpoint_dir=None, progress=args.progress, resume=False))
+        method.fit(TrainContext(checkpoint_dir=checkpoints, progress=args.progress, resume=checkpoints is not None))
         train_s = time.perf_counter() - t0
     target = score_scene if score_scene is not None else scene
     H, W = target.height, target.width
@@ -156,8 +161,12 @@ def run_one(
     t_k = k - 0.5  # frame k's time: halfway between the kept frames k-1 and k+1, re-indexed k-1 and k
     pred, gt = _to_u8(render_between(method, K, w2c, W, H, t_k)), _to_u8(target.images[k])
     write_image(out / f"k{k:02d}_{spec.name}.png", pred)
+    if lent is not None:  # the lent stages' time, so that train_s is what the method costs alone
+        train_s += sum(lent.stages_s.values())
     row = {"k": k, "method": spec.name, "psnr": score(pred, gt), "train_s": round(train_s, 1),
            "scored_size": [W, H]}
+    if lent is not None:
+        row["root_from"] = {"method": lent.method, "items": list(lent.items), "stages_s": lent.stages_s}
     stats = method.stats()
     node = node_at(method, t_k)
     if node is not None:  # a method with a tree: the node that drew time k, the tree's nodes and decisions
@@ -230,6 +239,11 @@ def main(argv: list[str] | None = None) -> None:
         "--label", default="", help="Name of this configuration in the results (e.g. before/after)."
     )
     ap.add_argument("--progress", action="store_true")
+    ap.add_argument(
+        "--no-share-root", dest="share_root", action="store_false",
+        help="Train every method's root itself (default: a method whose root another method of --methods "
+        "trains alike for the same frame, WorldTree after Base, takes it from that run).",
+    )  # fmt: skip
     args = ap.parse_args(argv)
     args.method_steps = {spec.name: getattr(args, f"steps_of:{spec.name}") for spec in list_methods()}
 
@@ -420,31 +434,66 @@ def _run_all(
         raise UserError(f"{res_path}: unreadable ({e}); move it away to start a new results file") from None
     done = {(r.get("label"), r.get("k"), r.get("method"), r.get("config_key")) for r in results["runs"]
             if isinstance(r, dict)}  # fmt: skip
-    for spec, cfg, key in plans:
-        scene = scenes[cfg.downscale]
-        for k in frames:
-            if (args.label, k, spec.name, key) in done:
-                continue
-            if any((r.get("label"), r.get("k"), r.get("method")) == (args.label, k, spec.name)
-                   for r in results["runs"] if isinstance(r, dict)):  # fmt: skip
-                print(f"[loo] {args.label or '-'} k={k} {spec.name}: {res_path} holds a result computed with "
-                      "other settings; computing this configuration's", file=sys.stderr, flush=True)  # fmt: skip
-            print(f"[loo] {args.label or '-'} k={k} {spec.name}: training on {scene.num_frames - 1} frames",
-                  file=sys.stderr, flush=True)  # fmt: skip
-            row = run_one(
-                args, spec, cfg, scene, k, device, prior_dirs if hasattr(cfg, "priors") else {}, out, score_scene
-            )
-            row.update(label=args.label, preset=args.preset, seed=cfg.seed, steps=cfg.steps,
-                       downscale=cfg.downscale, version=worldtree.__version__, command=" ".join(sys.argv),
-                       config_key=key, sets=sorted(args.sets),
-                       priors={n: str(p.resolve()) for n, p in prior_dirs.items()})  # fmt: skip
-            results["runs"].append(row)
-            atomic_write_json(res_path, results)
-            mp = f" mPSNR {row['mpsnr']:.2f}" if row.get("mpsnr") is not None else ""
-            nb = row["psnr_train_neighbours"]
-            print(f"[loo] k={k} {spec.name}: PSNR {row['psnr']:.2f}{mp} (kept neighbours fitted at "
-                  f"{nb['prev']:.2f} / {nb['next']:.2f}; {row['train_s']:.0f} s)", flush=True)  # fmt: skip
+    # Frame by frame, so that the runs of one held-out frame can share a root (Base and WorldTree train the
+    # same one): the first run of each root keeps its checkpoints until the frame's last run.
+    for k in frames:
+        with tempfile.TemporaryDirectory(dir=out, prefix=TMP_PREFIX) as roots:
+            _run_frame(args, plans, scenes, k, device, prior_dirs, out, score_scene, results, done, Path(roots))
     _summary(results, args.label, {key for _, _, key in plans})
+
+
+def _root_record(spec, cfg, args, prior_dirs: dict[str, Path]) -> dict:
+    """What :func:`benchmarks.runner.shared_root.root_differences` compares, for one method of the sweep."""
+    return {"method": spec.name, "scene": str(Path(args.scene).resolve()), "device": args.device,
+            "imported_priors": {n: str(p.resolve()) for n, p in prior_dirs.items()},
+            "config": dataclasses.asdict(cfg)}  # fmt: skip
+
+
+def _run_frame(args, plans, scenes, k: int, device, prior_dirs, out: Path, score_scene, results: dict, done: set,
+               roots: Path) -> None:  # fmt: skip
+    """Every method's run without frame ``k`` (see :func:`_run_all`); ``roots``: a temporary folder for the
+    checkpoints of runs that lend their root (``--no-share-root``: none kept)."""
+    from benchmarks.runner.shared_root import lend_root, lendable, root_differences
+
+    res_path = out / "loo.json"
+    lenders: list[tuple[dict, Path]] = []
+    for i, (spec, cfg, key) in enumerate(plans):
+        scene = scenes[cfg.downscale]
+        if (args.label, k, spec.name, key) in done:
+            continue
+        if any((r.get("label"), r.get("k"), r.get("method")) == (args.label, k, spec.name)
+               for r in results["runs"] if isinstance(r, dict)):  # fmt: skip
+            print(f"[loo] {args.label or '-'} k={k} {spec.name}: {res_path} holds a result computed with "
+                  "other settings; computing this configuration's", file=sys.stderr, flush=True)  # fmt: skip
+        print(f"[loo] {args.label or '-'} k={k} {spec.name}: training on {scene.num_frames - 1} frames",
+              file=sys.stderr, flush=True)  # fmt: skip
+        shared = spec.shared_root if args.share_root else None
+        folder, lent = None, None
+        if shared is not None:
+            rec = _root_record(spec, cfg, args, prior_dirs if hasattr(cfg, "priors") else {})
+            src = next((f for r, f in lenders if root_differences(shared, r, rec) is None), None)
+            folder = roots / f"{i}-{spec.name}"
+            if src is None:
+                lenders.append((rec, folder))
+            else:
+                lent = lendable(src, next(r["method"] for r, f in lenders if f == src), shared)
+                lend_root(lent, folder / "checkpoints", shared.checkpoints)
+                print(f"[loo] k={k} {spec.name}: root from this frame's {lent.method} run", file=sys.stderr,
+                      flush=True)  # fmt: skip
+        row = run_one(
+            args, spec, cfg, scene, k, device, prior_dirs if hasattr(cfg, "priors") else {}, out, score_scene,
+            checkpoints=folder / "checkpoints" if folder is not None else None, lent=lent,
+        )
+        row.update(label=args.label, preset=args.preset, seed=cfg.seed, steps=cfg.steps,
+                   downscale=cfg.downscale, version=worldtree.__version__, command=" ".join(sys.argv),
+                   config_key=key, sets=sorted(args.sets),
+                   priors={n: str(p.resolve()) for n, p in prior_dirs.items()})  # fmt: skip
+        results["runs"].append(row)
+        atomic_write_json(res_path, results)
+        mp = f" mPSNR {row['mpsnr']:.2f}" if row.get("mpsnr") is not None else ""
+        nb = row["psnr_train_neighbours"]
+        print(f"[loo] k={k} {spec.name}: PSNR {row['psnr']:.2f}{mp} (kept neighbours fitted at "
+              f"{nb['prev']:.2f} / {nb['next']:.2f}; {row['train_s']:.0f} s)", flush=True)  # fmt: skip
 
 
 def _training_size(cfg, args):

@@ -29,7 +29,7 @@ from worldtree.infra.atomic import atomic_write_json
 from worldtree.infra.errors import UserError
 
 __all__ = [
-    "ROOT_FROM_FILE", "LentRoot", "check_root_from", "lend_root", "sweep_lender", "plan_lenders", "root_differences",
+    "ROOT_FROM_FILE", "LentRoot", "check_root_from", "lend_root", "lendable", "sweep_lender", "plan_lenders", "root_differences",
     "root_from_record",
 ]
 
@@ -154,12 +154,21 @@ def check_root_from(source: Path, target: Path, spec: Any, record: dict[str, Any
     src_kind = src_kind or _device_kind(src.get("device"))
     if src_kind is not None and src_kind != device_kind:
         raise UserError(f"{where}: trained on {src_kind}, this run is on {device_kind}; give a run of the same device kind")
-    items = tuple(n for n in shared.checkpoints if (source / "checkpoints" / n).exists())
-    if not items:
+    lent = lendable(source, str(src["method"]), shared)
+    if not lent.items:
         raise UserError(f"{where}: holds none of {', '.join(shared.checkpoints)} under checkpoints/ yet; "
                         "let it train first")  # fmt: skip
+    return lent
+
+
+def lendable(source: Path, method: str, shared: Any) -> LentRoot:
+    """What the folder ``source`` (a run folder, or any folder with the run's ``checkpoints/``) of a
+    ``method`` run holds of ``shared``'s checkpoints, and their seconds there; unchecked (the caller has
+    compared the configs: :func:`root_differences`)."""
+    source = Path(source).resolve()
+    items = tuple(n for n in shared.checkpoints if (source / "checkpoints" / n).exists())
     wall, cpu = _stage_seconds(source, shared.ledger, shared.stages)
-    return LentRoot(source, str(src["method"]), items, wall, cpu)
+    return LentRoot(source, method, items, wall, cpu)
 
 
 def plan_lenders(shared: Any, records: list[dict[str, Any]]) -> list[int | None]:

@@ -295,7 +295,7 @@ def test_finished_results_are_keyed_by_their_whole_configuration(tmp_path, monke
     out = tmp_path / "out"
     calls = []
 
-    def fake_run_one(args, spec, cfg, scene, k, device, prior_dirs, out_, score_scene=None):
+    def fake_run_one(args, spec, cfg, scene, k, device, prior_dirs, out_, score_scene=None, **_):
         calls.append((spec.name, k, cfg.steps, cfg.lambda_dssim))
         return {"k": k, "method": spec.name, "psnr": 20.0 + len(calls), "train_s": 0.0,
                 "psnr_train_neighbours": {"prev": 1.0, "next": 1.0}}  # fmt: skip
@@ -326,7 +326,7 @@ def _configs_seen(monkeypatch, loo) -> dict:
     """``{method: config}`` of the last held-out run of each method; the runs themselves are faked."""
     seen = {}
 
-    def fake_run_one(args, spec, cfg, scene, k, device, prior_dirs, out_, score_scene=None):
+    def fake_run_one(args, spec, cfg, scene, k, device, prior_dirs, out_, score_scene=None, **_):
         seen[spec.name] = cfg
         return {"k": k, "method": spec.name, "psnr": 1.0, "train_s": 0.0,
                 "psnr_train_neighbours": {"prev": 1.0, "next": 1.0}}  # fmt: skip
@@ -374,7 +374,7 @@ def test_priors_are_part_of_the_key(tmp_path, monkeypatch):
 
     scene = _tiny_scene(tmp_path / "scene")
     calls = []
-    monkeypatch.setattr(loo, "run_one", lambda *a: calls.append(a[1].name) or {
+    monkeypatch.setattr(loo, "run_one", lambda *a, **_: calls.append(a[1].name) or {
         "k": a[4], "method": a[1].name, "psnr": 1.0, "train_s": 0.0,
         "psnr_train_neighbours": {"prev": 1.0, "next": 1.0}})  # fmt: skip
     disp = tmp_path / "disp"
@@ -627,7 +627,7 @@ def test_the_quick_preset_trains_a_short_video_at_full_size(tmp_path, monkeypatc
 
     scene = _tiny_scene(tmp_path / "scene")
     seen = []
-    monkeypatch.setattr(loo, "run_one", lambda *a: seen.append(a[2].downscale) or {
+    monkeypatch.setattr(loo, "run_one", lambda *a, **_: seen.append(a[2].downscale) or {
         "k": a[4], "method": a[1].name, "psnr": 1.0, "train_s": 0.0,
         "psnr_train_neighbours": {"prev": 1.0, "next": 1.0}})  # fmt: skip
     base = [str(scene), "--frames", "2", "--methods", "static", "--preset", "quick"]
@@ -658,3 +658,29 @@ def test_each_held_out_run_trains_with_deterministic_kernels(tmp_path, monkeypat
     scene = _tiny_scene(tmp_path / "scene", width=48, height=24)
     loo.main([str(scene), "--frames", "2", "--methods", "static", "-o", str(tmp_path / "out"), "--steps", "3"])
     assert seen == [True]
+
+
+def test_worldtree_takes_the_held_out_frames_root_from_base(tmp_path):
+    """By default WorldTree's run without frame k grows its tree on Base's root of the same frame (linked, not
+    trained again: its row names the lender, and its time includes the lent stages'); its scores are those of
+    the run that trains its own root (`--no-share-root`), to the last digit."""
+    import json
+
+    from benchmarks.evaluation import leave_one_out as loo
+
+    scene = _tiny_scene(tmp_path / "scene", width=48, height=24)
+    argv = [str(scene), "--frames", "2", "--methods", "base,worldtree", "--preset", "smoke", "--device", "cpu",
+            "--set", "worldtree:min_len=2"]  # fmt: skip
+    loo.main([*argv, "-o", str(tmp_path / "shared")])
+    loo.main([*argv, "-o", str(tmp_path / "alone"), "--no-share-root"])
+    shared, alone = ({r["method"]: r for r in json.loads((tmp_path / d / "loo.json").read_text())["runs"]}
+                     for d in ("shared", "alone"))  # fmt: skip
+    lent = shared["worldtree"]["root_from"]
+    assert lent["method"] == "base" and "photometric" in lent["items"] and lent["stages_s"]["photometric"] > 0
+    assert shared["worldtree"]["train_s"] >= lent["stages_s"]["photometric"]
+    assert "root_from" not in shared["base"] and "root_from" not in alone["worldtree"]
+    for m in ("base", "worldtree"):
+        assert shared[m]["psnr"] == alone[m]["psnr"], m
+        assert shared[m]["psnr_train_neighbours"] == alone[m]["psnr_train_neighbours"], m
+    assert shared["worldtree"]["tree"]["tree_nodes"] == alone["worldtree"]["tree"]["tree_nodes"]
+    assert not list((tmp_path / "shared").glob(f"{loo.TMP_PREFIX}*"))  # the frame's roots are removed
