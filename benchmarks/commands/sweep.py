@@ -252,8 +252,8 @@ def _root_lenders(found, points, run: RunOptions) -> dict[tuple[str, str], Path]
     (``--share-root``); runs absent train their own. A run whose config is refused lends and borrows nothing
     (it fails on its own)."""
     from benchmarks.runner.runs import config_record_of, run_folder_of
-    from benchmarks.runner.shared_root import plan_lenders
     from methods.registry import get_method
+    from methods.shared_root import plan_lenders
     from worldtree.infra.errors import UserError
 
     shared = get_method(run.method).shared_root

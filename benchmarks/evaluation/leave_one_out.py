@@ -453,7 +453,7 @@ def _run_frame(args, plans, scenes, k: int, device, prior_dirs, out: Path, score
                roots: Path) -> None:  # fmt: skip
     """Every method's run without frame ``k`` (see :func:`_run_all`); ``roots``: a temporary folder for the
     checkpoints of runs that lend their root (``--no-share-root``: none kept)."""
-    from benchmarks.runner.shared_root import lend_root, lendable, root_differences
+    from methods.shared_root import lend_root, lendable, root_differences
 
     res_path = out / "loo.json"
     lenders: list[tuple[dict, Path]] = []

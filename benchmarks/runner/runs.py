@@ -380,7 +380,7 @@ def _execute_locked(req, spec, cfg, folder, root, view, device, timer, method, b
     """The part of :func:`execute` that runs with the run folder locked. ``method`` is the built method, or
     None when the run looked finished before locking (``build_method()`` builds it if it no longer is);
     ``lent``: the checked root of ``--root-from`` (None without)."""
-    from benchmarks.runner.shared_root import lend_root, root_from_record
+    from methods.shared_root import lend_root, root_from_record
     from worldtree.trainer import TrainContext
 
     record = _config_record(spec, cfg, req)

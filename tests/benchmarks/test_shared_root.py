@@ -1,5 +1,5 @@
-"""`--root-from`'s checks and linking (benchmarks.runner.shared_root) on hand-made run folders. The runs
-themselves (a tree grown on a lent root renders as the tree trained alone) are in
+"""`--root-from`'s checks and linking (benchmarks.runner.shared_root, methods.shared_root) on hand-made run
+folders. The runs themselves (a tree grown on a lent root renders as the tree trained alone) are in
 tests/methods/test_worldtree_run.py."""
 
 from __future__ import annotations
@@ -9,8 +9,9 @@ from pathlib import Path
 
 import pytest
 
-from benchmarks.runner.shared_root import ROOT_FROM_FILE, check_root_from, lend_root, root_from_record
+from benchmarks.runner.shared_root import check_root_from
 from methods.registry import get_method
+from methods.shared_root import ROOT_FROM_FILE, lend_root, root_from_record
 from worldtree.infra.errors import UserError
 
 WT = get_method("worldtree")
