@@ -29,8 +29,8 @@ from worldtree.infra.atomic import atomic_write_json
 from worldtree.infra.errors import UserError
 
 __all__ = [
-    "ROOT_FROM_FILE", "LentRoot", "lend_root", "lendable", "plan_lenders", "read_run_json", "root_differences",
-    "root_from_record",
+    "ROOT_FROM_FILE", "LentRoot", "held", "lend_root", "lendable", "plan_lenders", "read_run_json",
+    "root_differences", "root_from_record",
 ]
 
 ROOT_FROM_FILE = "root_from.json"
@@ -83,14 +83,11 @@ def _stage_seconds(source: Path, ledger: str, stages: tuple[str, ...]) -> tuple[
     """The lending run's seconds of ``stages`` (its ledger, plus its own lender's record)."""
     wall: dict[str, float] = {}
     cpu: dict[str, float] = {}
-    places: list[tuple[dict, str, str]] = []
+    docs = [root_from_record(source / "checkpoints")]
     if ledger and (source / "checkpoints" / ledger).is_file():
-        places.append((read_run_json(source / "checkpoints" / ledger, "stage ledger"), "stages_s", "stages_cpu_s"))
-    own = root_from_record(source / "checkpoints")
-    if own is not None:
-        places.append((own, "stages_s", "stages_cpu_s"))
-    for doc, wkey, ckey in places:
-        for out, key in ((wall, wkey), (cpu, ckey)):
+        docs.append(read_run_json(source / "checkpoints" / ledger, "stage ledger"))
+    for doc in filter(None, docs):
+        for out, key in ((wall, "stages_s"), (cpu, "stages_cpu_s")):
             vals = doc.get(key)
             for st in stages:
                 v = vals.get(st) if isinstance(vals, dict) else None
@@ -130,9 +127,14 @@ def lendable(source: Path, method: str, shared: Any) -> LentRoot:
     ``method`` run holds of ``shared``'s checkpoints, and their seconds there; unchecked (the caller has
     compared the configs: :func:`root_differences`)."""
     source = Path(source).resolve()
-    items = tuple(n for n in shared.checkpoints if (source / "checkpoints" / n).exists())
+    items = held(source / "checkpoints", shared.checkpoints)
     wall, cpu = _stage_seconds(source, shared.ledger, shared.stages)
     return LentRoot(source, method, items, wall, cpu)
+
+
+def held(checkpoints: Path, names: tuple[str, ...]) -> tuple[str, ...]:
+    """Those of ``names`` (checkpoint files or folders) present in the checkpoint folder ``checkpoints``."""
+    return tuple(n for n in names if (Path(checkpoints) / n).exists())
 
 
 def plan_lenders(shared: Any, records: list[dict[str, Any]]) -> list[int | None]:
@@ -181,7 +183,7 @@ def lend_root(lent: LentRoot, checkpoints: Path, shared_names: tuple[str, ...]) 
         raise UserError(f"--root-from {lent.source}: this run was grown on {have.get('run')}'s root; give that "
                         "run, or --force to start again")  # fmt: skip
     if have is None:
-        own = [n for n in shared_names if (checkpoints / n).exists()]
+        own = held(checkpoints, shared_names)
         if own:
             raise UserError(f"--root-from {lent.source}: this run already trained {', '.join(own)} itself; drop "
                             "--root-from to resume it, or --force to start again")  # fmt: skip

@@ -471,12 +471,12 @@ def _run_frame(args, plans, scenes, k: int, device, prior_dirs, out: Path, score
         folder, lent = None, None
         if shared is not None:
             rec = _root_record(spec, cfg, args, prior_dirs if hasattr(cfg, "priors") else {})
-            src = next((f for r, f in lenders if root_differences(shared, r, rec) is None), None)
+            src = next(((r, f) for r, f in lenders if root_differences(shared, r, rec) is None), None)
             folder = roots / f"{i}-{spec.name}"
             if src is None:
                 lenders.append((rec, folder))
             else:
-                lent = lendable(src, next(r["method"] for r, f in lenders if f == src), shared)
+                lent = lendable(src[1], src[0]["method"], shared)
                 lend_root(lent, folder / "checkpoints", shared.checkpoints)
                 print(f"[loo] k={k} {spec.name}: root from this frame's {lent.method} run", file=sys.stderr,
                       flush=True)  # fmt: skip

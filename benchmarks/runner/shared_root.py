@@ -13,7 +13,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-from methods.shared_root import LentRoot, lendable, read_run_json, root_differences, root_from_record
+from methods.shared_root import LentRoot, held, lendable, read_run_json, root_differences, root_from_record
 from worldtree.infra.errors import UserError
 
 __all__ = ["check_root_from", "sweep_lender"]
@@ -63,8 +63,6 @@ def sweep_lender(lender: Path, borrower: Path, shared: Any) -> Path | None:
     from benchmarks.runner.runs import RunFolder
 
     lender, borrower = Path(lender), Path(borrower)
-    ready = (lender / "config.json").is_file() and any((lender / "checkpoints" / n).exists() for n in shared.checkpoints)
-    own = root_from_record(borrower / "checkpoints") is None and any(
-        (borrower / "checkpoints" / n).exists() for n in shared.checkpoints
-    )
+    ready = (lender / "config.json").is_file() and bool(held(lender / "checkpoints", shared.checkpoints))
+    own = root_from_record(borrower / "checkpoints") is None and bool(held(borrower / "checkpoints", shared.checkpoints))
     return lender if ready and not own and not RunFolder(borrower).is_done() else None
