@@ -227,11 +227,11 @@ def _with_notes(source: str, notes: list[str]) -> str:
 def _depth(imgs, Ks, w2cs, scene, cfg: PriorsConfig, cache, fp, progress, notes=None):
     """(depth [T,H,W], conf [T,H,W], source, key of the metric depth or None when it is not metric, the
     function ``dynamic mask [T,H,W] or None -> fitted imported depth [T,H,W]`` under ``merge="fill"``, or
-    None)."""
+    None; the depth [T,H,W] the depth-consistency motion cue tests the flow against, None: the depth itself)."""
     T, H, W = imgs.shape[:3]
     if cfg.depth_source == "classical":
         d, c, key = _classical_depth(imgs, Ks, w2cs, scene.near, scene.far, cfg, cache, fp, progress)
-        return d, c, "classical", key, None
+        return d, c, "classical", key, None, None
     di = cfg.depth_import
     if di.merge not in ("replace", "fill"):
         raise UserError(f"priors.depth_import.merge={di.merge!r}: choose replace or fill")
@@ -269,9 +269,10 @@ def _depth(imgs, Ks, w2cs, scene, cfg: PriorsConfig, cache, fp, progress, notes=
         note = "where unconfident and on dynamic pixels"
         if di.fit_exclude_dynamic:
             note += " (refitted without them)"
-        return depth, conf, f"classical, filled from {src} {note}", key, fill
+        cue = ref if di.fill_cue_depth == "classical" else None
+        return depth, conf, f"classical, filled from {src} {note}", key, fill, cue
     # Network depth carries no confidence of its own: trust it everywhere.
-    return d, np.ones_like(d), src, key, None
+    return d, np.ones_like(d), src, key, None, None
 
 
 def _scale_to_cameras(depth, source: str, flows, Ks, w2cs, cfg: PriorsConfig, flow_key: str):
@@ -464,7 +465,7 @@ def _compute_priors(scene, cfg: PriorsConfig | None, cache_dir, progress: Progre
     if cfg.flow_source != "classical":
         fields = imported.read_flows(cfg.flow_source, T, H, W, notes=resized["flow"])
     # Depth first: metric depth and the poses predict where static pixels go, which guides flow and tracks.
-    depth, depth_conf, depth_src, depth_key, fill = _depth(
+    depth, depth_conf, depth_src, depth_key, fill, cue_depth = _depth(
         imgs, Ks, w2cs, scene, cfg, cache, fp, progress, notes=resized["depth"]
     )
     init = (depth, Ks, w2cs, depth_key) if depth_key is not None else None
@@ -487,7 +488,7 @@ def _compute_priors(scene, cfg: PriorsConfig | None, cache_dir, progress: Progre
     elif cfg.motion.enabled:
         # Motion discovery: epipolar and depth-consistency cues fused (the residual cue joins after the
         # static warm-up, in the methods). Depth is metric only when classical or fitted.
-        metric = depth if depth_key is not None else None
+        metric = (depth if cue_depth is None else cue_depth) if depth_key is not None else None
         evidence = dynamic_masks.prior_evidence(
             err, flows, metric, Ks, w2cs, cfg.motion, cfg.epi, threads=resolve_threads(cfg.threads)
         )

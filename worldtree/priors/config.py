@@ -260,6 +260,13 @@ class DepthImportConfig:
     """Classical confidence from which the classical depth is kept under ``merge="fill"``."""
     fill_conf: float = 1.0
     """Confidence given to the imported depth where it fills (network depth carries none of its own)."""
+    fill_cue_depth: Literal["classical", "merged"] = "classical"
+    """Under ``merge="fill"``: the depth the depth-consistency motion cue tests the flow against. "classical":
+    the stereo depth with its own fill (a static-world estimate, as without an import); "merged": the fitted
+    import where stereo is unconfident. Where stereo is unconfident on static content (a strip at the rig's
+    end that one camera sees, the top of the end frames) the import is an extrapolation of its per-frame
+    scale, and on Balloon1 the shipped MiDaS there was far enough off to mark the strips as moving (docs/priors.md,
+    "The depth-consistency cue under merge=fill")."""
 
 
 @dataclass(frozen=True)

@@ -158,3 +158,45 @@ def test_fill_needs_the_fit(planar_scene_files, tmp_path):
     )
     with pytest.raises(UserError, match="fit_scale_shift=true"):
         compute_priors(scene, cfg, None)
+
+
+def test_the_depth_consistency_cue_tests_the_flow_against_stereo_under_fill(planar_static, tmp_path):
+    """A static scene whose imported disparity is exact except where stereo is unconfident (the end frames'
+    strips no other camera matches), where it reads 2.5 times nearer: that is what ``fill`` puts there, and
+    a depth-consistency cue tested against it marks those static pixels as moving. With
+    ``fill_cue_depth="classical"`` (default) the cue is the one computed against the stereo depth itself."""
+    from worldtree.priors.motion_cues import rigid_evidence_maps
+
+    sc, fr = planar_static
+    scene = sc.to_scene(fr)
+    base = PriorsConfig(depth=DepthConfig(num_planes=32))
+    classical = compute_priors(scene, base, tmp_path / "c")
+    unconf = classical.depth_conf < 0.5
+    assert 0.005 < unconf.mean() < 0.2  # the scene has such strips (end frames), and they are a small part
+    disp = 0.5 / fr["depth"]
+    disp = np.where(unconf, 2.5 * disp, disp).astype(np.float32)
+    for t in range(len(disp)):
+        (tmp_path / "disp").mkdir(exist_ok=True)
+        np.save(tmp_path / "disp" / f"{t:05d}.npy", disp[t])
+    Ks, w2cs = scene.Ks.double().numpy(), scene.w2cs.double().numpy()
+    got = {}
+    for cue in ("classical", "merged"):
+        di = DepthImportConfig(kind="disparity", fit_scale_shift=True, fit_shift=False, merge="fill",
+                               fill_cue_depth=cue)  # fmt: skip
+        pri = compute_priors(scene, dataclasses.replace(base, depth_source=str(tmp_path / "disp"), depth_import=di),
+                             tmp_path / "c")  # fmt: skip
+        # The depth prior is the same either way: the import, 2.5 times too near, fills the strips.
+        ratio = np.median(pri.depth[unconf] / fr["depth"][unconf])
+        assert abs(ratio - 0.4) < 0.04
+        got[cue] = pri
+    mt = base.motion
+    # Independent: the cue recomputed from the run's own flows against the stereo depth / the filled depth.
+    merged_depth = np.where(unconf, got["merged"].depth, classical.depth)
+    for cue, depth in (("classical", classical.depth), ("merged", merged_depth)):
+        want = rigid_evidence_maps(got[cue].flow, depth, Ks, w2cs, mt.rigid_tol_px, mt.rigid_rel_depth)
+        np.testing.assert_allclose(got[cue].motion_evidence["rigid"], want, atol=1e-3)  # float32 rounding
+    strip_ev = {cue: float(got[cue].motion_evidence["rigid"][unconf].mean()) for cue in got}
+    assert strip_ev["merged"] > 0.3, strip_ev  # the filled strips read as moving ...
+    assert strip_ev["classical"] < 0.1, strip_ev  # ... and not against stereo
+    assert got["classical"].epi_mask.mean() <= got["merged"].epi_mask.mean()
+    assert got["classical"].epi_mask.mean() < 0.01  # nothing moves
