@@ -255,8 +255,17 @@ def _depth(imgs, Ks, w2cs, scene, cfg: PriorsConfig, cache, fp, progress, notes=
     src = f"imported:{cfg.depth_source} ({di.kind}{fit})"
     if di.merge == "fill":
         keep = ref_conf >= di.fill_min_conf
-        depth = np.where(keep, ref, d).astype(np.float32)
-        conf = np.where(keep, ref_conf, di.fill_conf).astype(np.float32)
+        if di.fill_static == "import":
+            depth = np.where(keep, ref, d).astype(np.float32)
+            conf = np.where(keep, ref_conf, di.fill_conf).astype(np.float32)
+        else:
+            # The unconfident pixels keep the classical depth; "agreement" trusts it (fill_conf) where the
+            # import, an independent estimate, says the same within fill_agreement (a log ratio).
+            depth = ref.astype(np.float32)
+            conf = ref_conf.astype(np.float32)
+            if di.fill_static == "agreement":
+                ratio = np.abs(np.log(np.maximum(d, 1e-9) / np.maximum(ref, 1e-9)))
+                conf = np.where(~keep & (ratio <= di.fill_agreement), di.fill_conf, conf).astype(np.float32)
 
         def fill(mask: np.ndarray | None) -> np.ndarray:
             # Dynamic pixels get the import once the masks are known, refitted without them.

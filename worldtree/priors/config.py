@@ -9,6 +9,8 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass, field
 from typing import Literal
 
+from worldtree.infra.config_ranges import in_range
+
 
 @dataclass(frozen=True)
 class FlowConfig:
@@ -260,6 +262,14 @@ class DepthImportConfig:
     """Classical confidence from which the classical depth is kept under ``merge="fill"``."""
     fill_conf: float = 1.0
     """Confidence given to the imported depth where it fills (network depth carries none of its own)."""
+    fill_static: Literal["import", "classical", "agreement"] = "import"
+    """Under ``merge="fill"``: what the pixels where stereo is unconfident (outside the dynamic masks) get.
+    "import": the fitted import at ``fill_conf``; "classical": the classical depth (its edge-aware fill, which
+    continues the confident surfaces around) with its own low confidence, the import only on moving pixels;
+    "agreement": the classical depth, at ``fill_conf`` where the import agrees with it within
+    ``fill_agreement`` and at its own confidence elsewhere."""
+    fill_agreement: float = field(default=0.15, metadata=in_range(0.0, None, "a log ratio of depths"))
+    """``fill_static="agreement"``: the largest ``|log(import / classical)|`` counted as agreement."""
     fill_cue_depth: Literal["classical", "merged"] = "classical"
     """Under ``merge="fill"``: the depth the depth-consistency motion cue tests the flow against. "classical":
     the stereo depth with its own fill (a static-world estimate, as without an import); "merged": the fitted

@@ -200,3 +200,51 @@ def test_the_depth_consistency_cue_tests_the_flow_against_stereo_under_fill(plan
     assert strip_ev["classical"] < 0.1, strip_ev  # ... and not against stereo
     assert got["classical"].epi_mask.mean() <= got["merged"].epi_mask.mean()
     assert got["classical"].epi_mask.mean() < 0.01  # nothing moves
+
+
+def test_fill_static_keeps_the_classical_depth_and_trusts_it_where_the_import_agrees(planar_static, tmp_path):
+    """``fill_static``: what a static pixel stereo is unsure of gets under ``fill``. The import is exact except
+    on half of those pixels, where it reads 2.5 times nearer (a network's error at the image border)."""
+    sc, fr = planar_static
+    scene = sc.to_scene(fr)
+    base = PriorsConfig(depth=DepthConfig(num_planes=32))
+    classical = compute_priors(scene, base, tmp_path / "c")
+    unconf = classical.depth_conf < 0.5
+    cols = np.arange(unconf.shape[2])[None, None, :]
+    bad = unconf & (cols < unconf.shape[2] // 2)
+    assert bad.sum() > 50 and (unconf & ~bad).sum() > 50
+    disp = np.where(bad, 2.5, 1.0) * 0.5 / fr["depth"]
+    (tmp_path / "disp").mkdir()
+    for t in range(len(disp)):
+        np.save(tmp_path / "disp" / f"{t:05d}.npy", disp[t].astype(np.float32))
+    got = {}
+    for mode in ("import", "classical", "agreement"):
+        di = DepthImportConfig(kind="disparity", fit_scale_shift=True, fit_shift=False, merge="fill",
+                               fill_static=mode)  # fmt: skip
+        got[mode] = compute_priors(
+            scene, dataclasses.replace(base, depth_source=str(tmp_path / "disp"), depth_import=di), tmp_path / "c"
+        )
+        assert not got[mode].epi_mask.any()  # nothing moves: no pixel is refilled from the masks
+    truth = fr["depth"]
+    # import: the unconfident pixels take the import (2.5 times too near where it errs), trusted.
+    imp = got["import"]
+    assert abs(np.median(imp.depth[bad] / truth[bad]) - 0.4) < 0.04
+    assert np.all(imp.depth_conf[unconf] == 1.0)
+    # classical: the stereo depth and its own confidence everywhere.
+    np.testing.assert_array_equal(got["classical"].depth, classical.depth)
+    np.testing.assert_array_equal(got["classical"].depth_conf, classical.depth_conf)
+    # agreement: the stereo depth; trusted where the (exact) import is within 15 % of it, not where it errs.
+    agr = got["agreement"]
+    np.testing.assert_array_equal(agr.depth, classical.depth)
+    err = np.abs(np.log(classical.depth / truth))
+    # Where the import errs and stereo does not (within 20 %: the two differ by more than 0.7 in log), the
+    # pixel stays as unsure as stereo says.
+    differ = bad & (err < 0.2)
+    assert differ.sum() > 50
+    np.testing.assert_array_equal(agr.depth_conf[differ], classical.depth_conf[differ])
+    close = unconf & ~bad & (np.abs(np.log(classical.depth / truth)) < 0.1)
+    far = unconf & ~bad & (np.abs(np.log(classical.depth / truth)) > 0.2)
+    assert close.sum() > 20
+    assert np.all(agr.depth_conf[close] == 1.0)
+    np.testing.assert_array_equal(agr.depth_conf[far], classical.depth_conf[far])
+    np.testing.assert_array_equal(agr.depth_conf[~unconf], classical.depth_conf[~unconf])
