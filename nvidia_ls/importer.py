@@ -472,13 +472,16 @@ def _write_priors(
                                   "scaled_by": world_scale if src.depth_kind == "depth" else 1.0}  # fmt: skip
         args += ["--depth-maps", f"{IMPORTED}/{sub}", "--set", f"priors.depth_import.kind={src.depth_kind}"]
         if src.depth_kind == "disparity":  # relative (MiDaS-like): its scale is unknown
-            # Used only where stereo measures nothing (moving objects, unconfident pixels: on Balloon1 MiDaS is
-            # 11-16% off the static background where stereo is 1-2% off), scaled per frame to the stereo
-            # without a shift: one wall's narrow range of depth fixes no shift, and the one a line fits
-            # there puts a nearer moving object far too far (docs/priors.md, "A scale without a shift").
+            # Used only on the moving pixels, where stereo measures nothing (on Balloon1 MiDaS is 11-16% off
+            # the static background where stereo is 1-2% off, and extrapolated into the strips only an end
+            # camera sees it tilts the wall by 40 %: docs/priors.md, "What the static pixels stereo is unsure
+            # of get under fill"), scaled per frame to the stereo without a shift: one wall's narrow range of
+            # depth fixes no shift, and the one a line fits there puts a nearer moving object far too far
+            # (docs/priors.md, "A scale without a shift").
             args += ["--set", "priors.depth_import.fit_scale_shift=true",
                      "--set", "priors.depth_import.fit_shift=false",
-                     "--set", "priors.depth_import.merge=fill"]  # fmt: skip
+                     "--set", "priors.depth_import.merge=fill",
+                     "--set", "priors.depth_import.fill_static=classical"]  # fmt: skip
     if src.flow:
         fdir = _mkdir(tmp / IMPORTED / "flow")
         sizes = set()

@@ -99,9 +99,9 @@ def test_imported_priors_equal_the_exact_ones(exported, imported):
     args = run_args(imported)
     assert args[args.index("--flow") + 1] == str((imported / "imported" / "flow").resolve())
     # relative disparity is suggested scaled to the stereo without a shift, and only where stereo measures
-    # nothing (moving and unconfident pixels)
+    # nothing (the moving pixels)
     assert args[args.index("--depth-maps") + 1] == str((imported / "imported" / "disp").resolve())
-    for s in ("kind=disparity", "fit_scale_shift=true", "fit_shift=false", "merge=fill"):
+    for s in ("kind=disparity", "fit_scale_shift=true", "fit_shift=false", "merge=fill", "fill_static=classical"):
         assert f"priors.depth_import.{s}" in args, s
     assert "optional_why" not in rec and "wtbench_run_args_optional" not in rec
     H, W = CFG.height, CFG.width

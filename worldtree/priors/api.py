@@ -227,11 +227,11 @@ def _with_notes(source: str, notes: list[str]) -> str:
 def _depth(imgs, Ks, w2cs, scene, cfg: PriorsConfig, cache, fp, progress, notes=None):
     """(depth [T,H,W], conf [T,H,W], source, key of the metric depth or None when it is not metric, the
     function ``dynamic mask [T,H,W] or None -> fitted imported depth [T,H,W]`` under ``merge="fill"``, or
-    None; the depth [T,H,W] the depth-consistency motion cue tests the flow against, None: the depth itself)."""
+    None)."""
     T, H, W = imgs.shape[:3]
     if cfg.depth_source == "classical":
         d, c, key = _classical_depth(imgs, Ks, w2cs, scene.near, scene.far, cfg, cache, fp, progress)
-        return d, c, "classical", key, None, None
+        return d, c, "classical", key, None
     di = cfg.depth_import
     if di.merge not in ("replace", "fill"):
         raise UserError(f"priors.depth_import.merge={di.merge!r}: choose replace or fill")
@@ -255,17 +255,11 @@ def _depth(imgs, Ks, w2cs, scene, cfg: PriorsConfig, cache, fp, progress, notes=
     src = f"imported:{cfg.depth_source} ({di.kind}{fit})"
     if di.merge == "fill":
         keep = ref_conf >= di.fill_min_conf
-        if di.fill_static == "import":
-            depth = np.where(keep, ref, d).astype(np.float32)
-            conf = np.where(keep, ref_conf, di.fill_conf).astype(np.float32)
-        else:
-            # The unconfident pixels keep the classical depth; "agreement" trusts it (fill_conf) where the
-            # import, an independent estimate, says the same within fill_agreement (a log ratio).
-            depth = ref.astype(np.float32)
-            conf = ref_conf.astype(np.float32)
-            if di.fill_static == "agreement":
-                ratio = np.abs(np.log(np.maximum(d, 1e-9) / np.maximum(ref, 1e-9)))
-                conf = np.where(~keep & (ratio <= di.fill_agreement), di.fill_conf, conf).astype(np.float32)
+        if di.fill_static == "classical":
+            # Stereo's own fill and confidence on every static pixel: the import only on the moving ones.
+            keep = np.ones_like(keep)
+        depth = np.where(keep, ref, d).astype(np.float32)
+        conf = np.where(keep, ref_conf, di.fill_conf).astype(np.float32)
 
         def fill(mask: np.ndarray | None) -> np.ndarray:
             # Dynamic pixels get the import once the masks are known, refitted without them.
@@ -275,13 +269,12 @@ def _depth(imgs, Ks, w2cs, scene, cfg: PriorsConfig, cache, fp, progress, notes=
                 raw, di, ref, ref_conf, exclude=_dilate(mask, di.fit_exclude_px)
             )
 
-        note = "where unconfident and on dynamic pixels"
+        note = "on dynamic pixels" if di.fill_static == "classical" else "where unconfident and on dynamic pixels"
         if di.fit_exclude_dynamic:
             note += " (refitted without them)"
-        cue = ref if di.fill_cue_depth == "classical" else None
-        return depth, conf, f"classical, filled from {src} {note}", key, fill, cue
+        return depth, conf, f"classical, filled from {src} {note}", key, fill
     # Network depth carries no confidence of its own: trust it everywhere.
-    return d, np.ones_like(d), src, key, None, None
+    return d, np.ones_like(d), src, key, None
 
 
 def _scale_to_cameras(depth, source: str, flows, Ks, w2cs, cfg: PriorsConfig, flow_key: str):
@@ -474,7 +467,7 @@ def _compute_priors(scene, cfg: PriorsConfig | None, cache_dir, progress: Progre
     if cfg.flow_source != "classical":
         fields = imported.read_flows(cfg.flow_source, T, H, W, notes=resized["flow"])
     # Depth first: metric depth and the poses predict where static pixels go, which guides flow and tracks.
-    depth, depth_conf, depth_src, depth_key, fill, cue_depth = _depth(
+    depth, depth_conf, depth_src, depth_key, fill = _depth(
         imgs, Ks, w2cs, scene, cfg, cache, fp, progress, notes=resized["depth"]
     )
     init = (depth, Ks, w2cs, depth_key) if depth_key is not None else None
@@ -497,7 +490,7 @@ def _compute_priors(scene, cfg: PriorsConfig | None, cache_dir, progress: Progre
     elif cfg.motion.enabled:
         # Motion discovery: epipolar and depth-consistency cues fused (the residual cue joins after the
         # static warm-up, in the methods). Depth is metric only when classical or fitted.
-        metric = (depth if cue_depth is None else cue_depth) if depth_key is not None else None
+        metric = depth if depth_key is not None else None
         evidence = dynamic_masks.prior_evidence(
             err, flows, metric, Ks, w2cs, cfg.motion, cfg.epi, threads=resolve_threads(cfg.threads)
         )

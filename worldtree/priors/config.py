@@ -9,8 +9,6 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass, field
 from typing import Literal
 
-from worldtree.infra.config_ranges import in_range
-
 
 @dataclass(frozen=True)
 class FlowConfig:
@@ -262,21 +260,16 @@ class DepthImportConfig:
     """Classical confidence from which the classical depth is kept under ``merge="fill"``."""
     fill_conf: float = 1.0
     """Confidence given to the imported depth where it fills (network depth carries none of its own)."""
-    fill_static: Literal["import", "classical", "agreement"] = "import"
-    """Under ``merge="fill"``: what the pixels where stereo is unconfident (outside the dynamic masks) get.
-    "import": the fitted import at ``fill_conf``; "classical": the classical depth (its edge-aware fill, which
-    continues the confident surfaces around) with its own low confidence, the import only on moving pixels;
-    "agreement": the classical depth, at ``fill_conf`` where the import agrees with it within
-    ``fill_agreement`` and at its own confidence elsewhere."""
-    fill_agreement: float = field(default=0.15, metadata=in_range(0.0, None, "a log ratio of depths"))
-    """``fill_static="agreement"``: the largest ``|log(import / classical)|`` counted as agreement."""
-    fill_cue_depth: Literal["classical", "merged"] = "classical"
-    """Under ``merge="fill"``: the depth the depth-consistency motion cue tests the flow against. "classical":
-    the stereo depth with its own fill (a static-world estimate, as without an import); "merged": the fitted
-    import where stereo is unconfident. Where stereo is unconfident on static content (a strip at the rig's
-    end that one camera sees, the top of the end frames) the import is an extrapolation of its per-frame
-    scale, and on Balloon1 the shipped MiDaS there was far enough off to mark the strips as moving (docs/priors.md,
-    "The depth-consistency cue under merge=fill")."""
+    fill_static: Literal["import", "classical"] = "import"
+    """Under ``merge="fill"``: what the static pixels stereo is unconfident on get (a strip at the rig's end that
+    one camera sees, textureless areas). "import": the fitted import at ``fill_conf``; "classical": the
+    classical depth (its edge-aware fill continues the confident surfaces around) with its own low
+    confidence, so that the import fills only the moving pixels. With the shipped MiDaS of Balloon1, whose
+    per-frame scale is extrapolated into those strips, "import" tilted the flat wall there by 40 % and the
+    depth-consistency cue, testing the flow against it, marked the strips as moving; with a network as good
+    as the simulated one of ``benchmarks.speed.twin_mono_prior`` "import" scores higher (docs/priors.md, "What
+    the static pixels stereo is unsure of get under fill"). ``nvls import`` suggests "classical" for
+    relative disparity."""
 
 
 @dataclass(frozen=True)
