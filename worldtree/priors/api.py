@@ -227,11 +227,12 @@ def _with_notes(source: str, notes: list[str]) -> str:
 def _depth(imgs, Ks, w2cs, scene, cfg: PriorsConfig, cache, fp, progress, notes=None):
     """(depth [T,H,W], conf [T,H,W], source, key of the metric depth or None when it is not metric, the
     function ``dynamic mask [T,H,W] or None -> fitted imported depth [T,H,W]`` under ``merge="fill"``, or
-    None)."""
+    None; under ``fill_static="classical"`` the classical depth and confidence [T,H,W] the static pixels keep,
+    else None)."""
     T, H, W = imgs.shape[:3]
     if cfg.depth_source == "classical":
         d, c, key = _classical_depth(imgs, Ks, w2cs, scene.near, scene.far, cfg, cache, fp, progress)
-        return d, c, "classical", key, None
+        return d, c, "classical", key, None, None
     di = cfg.depth_import
     if di.merge not in ("replace", "fill"):
         raise UserError(f"priors.depth_import.merge={di.merge!r}: choose replace or fill")
@@ -255,9 +256,6 @@ def _depth(imgs, Ks, w2cs, scene, cfg: PriorsConfig, cache, fp, progress, notes=
     src = f"imported:{cfg.depth_source} ({di.kind}{fit})"
     if di.merge == "fill":
         keep = ref_conf >= di.fill_min_conf
-        if di.fill_static == "classical":
-            # Stereo's own fill and confidence on every static pixel: the import only on the moving ones.
-            keep = np.ones_like(keep)
         depth = np.where(keep, ref, d).astype(np.float32)
         conf = np.where(keep, ref_conf, di.fill_conf).astype(np.float32)
 
@@ -272,9 +270,10 @@ def _depth(imgs, Ks, w2cs, scene, cfg: PriorsConfig, cache, fp, progress, notes=
         note = "on dynamic pixels" if di.fill_static == "classical" else "where unconfident and on dynamic pixels"
         if di.fit_exclude_dynamic:
             note += " (refitted without them)"
-        return depth, conf, f"classical, filled from {src} {note}", key, fill
+        stereo = (ref, ref_conf) if di.fill_static == "classical" else None
+        return depth, conf, f"classical, filled from {src} {note}", key, fill, stereo
     # Network depth carries no confidence of its own: trust it everywhere.
-    return d, np.ones_like(d), src, key, None
+    return d, np.ones_like(d), src, key, None, None
 
 
 def _scale_to_cameras(depth, source: str, flows, Ks, w2cs, cfg: PriorsConfig, flow_key: str):
@@ -467,7 +466,7 @@ def _compute_priors(scene, cfg: PriorsConfig | None, cache_dir, progress: Progre
     if cfg.flow_source != "classical":
         fields = imported.read_flows(cfg.flow_source, T, H, W, notes=resized["flow"])
     # Depth first: metric depth and the poses predict where static pixels go, which guides flow and tracks.
-    depth, depth_conf, depth_src, depth_key, fill = _depth(
+    depth, depth_conf, depth_src, depth_key, fill, stereo = _depth(
         imgs, Ks, w2cs, scene, cfg, cache, fp, progress, notes=resized["depth"]
     )
     init = (depth, Ks, w2cs, depth_key) if depth_key is not None else None
@@ -489,8 +488,10 @@ def _compute_priors(scene, cfg: PriorsConfig | None, cache_dir, progress: Progre
         mask_conf = mask.astype(np.float32)
     elif cfg.motion.enabled:
         # Motion discovery: epipolar and depth-consistency cues fused (the residual cue joins after the
-        # static warm-up, in the methods). Depth is metric only when classical or fitted.
-        metric = depth if depth_key is not None else None
+        # static warm-up, in the methods). Depth is metric only when classical or fitted. Under
+        # fill_static="classical" the depth-consistency cue tests the flow against stereo: the import, an
+        # extrapolation where stereo is unsure of static content, marked such strips as moving on Balloon1.
+        metric = (depth if stereo is None else stereo[0]) if depth_key is not None else None
         evidence = dynamic_masks.prior_evidence(
             err, flows, metric, Ks, w2cs, cfg.motion, cfg.epi, threads=resolve_threads(cfg.threads)
         )
@@ -506,6 +507,10 @@ def _compute_priors(scene, cfg: PriorsConfig | None, cache_dir, progress: Progre
         depth, depth_conf = _refill_dynamic(depth, depth_conf, mask, imgs, cfg)
     elif fill is not None:
         # Stereo on moving objects is noise even where it looks confident: the network depth replaces it.
+        if stereo is not None:
+            # The import guided the flow and the tracks on the moving objects before the masks were known;
+            # the static pixels now keep the stereo depth and confidence (fill_static="classical").
+            depth, depth_conf = stereo
         depth = np.where(mask, fill(mask), depth).astype(np.float32)
         depth_conf = np.where(mask, cfg.depth_import.fill_conf, depth_conf).astype(np.float32)
     n_chained, pieces = 0, None

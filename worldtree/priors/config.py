@@ -261,14 +261,15 @@ class DepthImportConfig:
     fill_conf: float = 1.0
     """Confidence given to the imported depth where it fills (network depth carries none of its own)."""
     fill_static: Literal["import", "classical"] = "import"
-    """Under ``merge="fill"``: what the static pixels stereo is unconfident on get (a strip at the rig's end that
-    one camera sees, textureless areas). "import": the fitted import at ``fill_conf``; "classical": the
-    classical depth (its edge-aware fill continues the confident surfaces around) with its own low
-    confidence, so that the import fills only the moving pixels. With the shipped MiDaS of Balloon1, whose
-    per-frame scale is extrapolated into those strips, "import" tilted the flat wall there by 40 % and the
-    depth-consistency cue, testing the flow against it, marked the strips as moving; with a network as good
-    as the simulated one of ``benchmarks.speed.twin_mono_prior`` "import" scores higher (docs/priors.md, "What
-    the static pixels stereo is unsure of get under fill"). ``nvls import`` suggests "classical" for
+    """Under ``merge="fill"``: what the static pixels stereo is unconfident on end with (a strip at the rig's end
+    that one camera sees, textureless areas). "import": the fitted import at ``fill_conf``. "classical": the
+    import still guides the flow and the tracks before the masks are known (on the moving objects it is the
+    only measurement), but the depth-consistency motion cue tests the flow against the classical depth, and
+    once the masks are known every static pixel keeps the classical depth (its edge-aware fill continues the
+    confident surfaces around) with its own confidence, so that the import ends on the moving pixels only.
+    With the shipped MiDaS of Balloon1, extrapolated by its per-frame scale into the strips only an end camera
+    sees, "import" tilted the flat wall there by 40 % and the cue marked the strips as moving (docs/priors.md,
+    "What the static pixels stereo is unsure of get under fill"). ``nvls import`` suggests "classical" for
     relative disparity."""
 
 

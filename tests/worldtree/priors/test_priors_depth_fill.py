@@ -206,3 +206,34 @@ def test_a_static_strip_the_import_misplaces_reads_as_moving_unless_stereo_keeps
     assert strip_ev["classical"] < 0.1, strip_ev  # ... and not against stereo
     assert got["classical"].epi_mask.mean() < 0.01  # nothing moves
     assert got["classical"].epi_mask.mean() <= got["import"].epi_mask.mean()
+
+
+def test_fill_static_classical_keeps_stereo_on_static_pixels_and_the_import_guides_the_tracks(
+    planar_scene_files, tmp_path
+):
+    """With imported masks: the moving square takes the import, every static pixel the classical depth and
+    confidence (the unconfident ones too), and the tracks and flow are those the import guided (as under
+    ``fill_static="import"``: on the moving objects it is the only measurement)."""
+    scene, fr, root = planar_scene_files
+    base = PriorsConfig(depth=DepthConfig(num_planes=32), masks_source=str(root / "masks"))
+    classical = compute_priors(scene, base, tmp_path / "c")
+    got = {}
+    for mode in ("import", "classical"):
+        di = DepthImportConfig(kind="disparity", fit_scale_shift=True, merge="fill", fill_static=mode)
+        got[mode] = compute_priors(
+            scene, dataclasses.replace(base, depth_source=str(root / "disp"), depth_import=di), tmp_path / "c"
+        )
+    mask = fr["mask"]
+    unconf = (classical.depth_conf < 0.5) & ~mask
+    assert unconf.sum() > 20
+    cls, imp = got["classical"], got["import"]
+    np.testing.assert_array_equal(cls.depth[~mask], classical.depth[~mask])
+    np.testing.assert_array_equal(cls.depth_conf[~mask], classical.depth_conf[~mask])
+    assert not np.array_equal(imp.depth[unconf], classical.depth[unconf])  # the import filled them
+    np.testing.assert_array_equal(cls.depth[mask], imp.depth[mask])
+    rel = np.abs(cls.depth[mask] - fr["depth"][mask]) / fr["depth"][mask]
+    assert np.median(rel) < 0.05
+    np.testing.assert_array_equal(cls.tracks, imp.tracks)
+    for k in imp.flow:
+        np.testing.assert_array_equal(cls.flow[k].flow, imp.flow[k].flow)
+    assert cls.sources["depth"].endswith("on dynamic pixels (refitted without them)")
