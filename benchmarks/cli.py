@@ -51,7 +51,7 @@ def main() -> None:
     """Console-script entry point."""
     from worldtree.infra import openmp_policy
 
-    openmp_policy.configure()  # before torch is imported: OpenMP threads sleep on an oversubscribed machine
+    openmp_policy.configure()  # before torch is imported: OpenMP threads sleep between loops
     command = next((a for a in sys.argv[1:] if not a.startswith("-")), None)
     if command not in METHOD_OPTION_COMMANDS:
         from benchmarks.commands import method_options

@@ -245,7 +245,7 @@ def main() -> None:
     """Console-script entry point."""
     from worldtree.infra import openmp_policy
 
-    openmp_policy.configure()  # before torch is imported: OpenMP threads sleep on an oversubscribed machine
+    openmp_policy.configure()  # before torch is imported: OpenMP threads sleep between loops
     # nvls keeps no checkpoints: every command writes its folder whole (atomic_dir) or removes it.
     run_cli(app, interrupted=INTERRUPTED_NO_CHECKPOINT)
 
