@@ -28,6 +28,7 @@ from benchmarks.api import load_run
 from benchmarks.evaluation.metrics.psnr import psnr
 from worldtree.imageio import read_image
 from worldtree.infra.errors import UserError
+from worldtree.pixels import as_uint8
 from worldtree.scene_schema import read_cameras, resolve_inside
 
 
@@ -41,7 +42,8 @@ def strip_psnr(run_dir: Path, frame: int = 0, side: str = "left", fraction: floa
     run = load_run(run_dir, device="cpu")
     name = f"train_{frame:03d}"
     if name not in run.cameras:
-        raise UserError(f"--frame {frame}: {run_dir} has training frames 0..{len(run.cameras) - 1}")
+        frames = sum(c.kind == "train" for c in run.cameras.values())
+        raise UserError(f"--frame {frame}: {run_dir} has training frames 0..{frames - 1}")
     cam = run.cameras[name]
     doc = read_cameras(run.scene_dir)
     gt = read_image(resolve_inside(run.scene_dir, doc.frames[cam.frame].file, run.scene_dir / "cameras.json"))
@@ -52,8 +54,7 @@ def strip_psnr(run_dir: Path, frame: int = 0, side: str = "left", fraction: floa
     for t in run.times:
         # The frame's camera at another time: its given pose, which the run maps to the one it fitted.
         img = run.render((cam.K, cam.w2c, cam.width, cam.height), int(t))
-        pred = (img.clamp(0, 1).numpy() * 255.0 + 0.5).astype(np.uint8)
-        out[int(t)] = float(psnr(torch.from_numpy(np.ascontiguousarray(pred[:, cols]))[None], ref, 255.0)[0])
+        out[int(t)] = float(psnr(as_uint8(img[:, cols].contiguous())[None], ref, 255.0)[0])
     return out
 
 
