@@ -494,6 +494,10 @@ def _write_priors(
                                  "source": str(next(iter(src.flow.values())).parent.resolve()),
                                  "source_sizes": sorted(sizes)}  # fmt: skip
         args += ["--flow", f"{IMPORTED}/flow"]
+        # The frame gaps the run's flow settings ask for and the folder lacks (DynamicNeRF ships neighbours only)
+        # come from DIS: RAFT's neighbour pairs alone left Balloon1's person and half its balloon out of the
+        # masks (docs/priors.md, "The pairs an imported flow folder lacks").
+        args += ["--set", "priors.flow.import_missing=classical"]
     if src.motion_masks:
         mdir = _mkdir(tmp / IMPORTED / "masks")
         for t, p in enumerate(src.motion_masks):

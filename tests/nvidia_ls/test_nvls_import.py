@@ -98,6 +98,7 @@ def test_imported_priors_equal_the_exact_ones(exported, imported):
     assert rec["priors"]["depth"]["kind"] == "disparity"
     args = run_args(imported)
     assert args[args.index("--flow") + 1] == str((imported / "imported" / "flow").resolve())
+    assert "priors.flow.import_missing=classical" in args  # the gaps of 3 frames the folder lacks
     # relative disparity is suggested scaled to the stereo without a shift, and only where stereo measures
     # nothing (the moving pixels)
     assert args[args.index("--depth-maps") + 1] == str((imported / "imported" / "disp").resolve())

@@ -132,6 +132,7 @@ def _flows(
     """Flow pairs; ``init`` = (depth [T,H,W], Ks, w2cs, depth_key) starts DIS from the rigid flow;
     ``fields`` are the imported flows ({(i, j): [H,W,2]}) when ``cfg.flow_source`` is a folder."""
     T, H, W = imgs.shape[:3]
+    pairs = [(i, j) for i, j in flow.flow_pairs(T, cfg.flow.offsets) if i < j]
     if cfg.flow_source != "classical":
         out = {}
         for (i, j), f in fields.items():
@@ -139,14 +140,33 @@ def _flows(
             gi, gj = flow.to_gray_u8(imgs[i]), flow.to_gray_u8(imgs[j])
             out[(i, j)] = flow.FlowPair(f, flow.pair_validity(gi, gj, f, fields.get((j, i)), cfg.flow))
         key = hash_key("flow-imported", _path_digest(cfg.flow_source), fp, cfg.flow)
-        return out, key, f"imported:{cfg.flow_source}"
+        src = f"imported:{cfg.flow_source}"
+        missing = [(i, j) for i, j in pairs if (i, j) not in fields and (j, i) not in fields]
+        if cfg.flow.import_missing == "classical" and missing:
+            # A folder that holds neighbours only (DynamicNeRF's RAFT) leaves out the wider gaps, whose other
+            # viewing directions are what tests motion along one pair's epipolar lines.
+            dis, dis_key, _ = _classical_flows(imgs, cfg, cache, fp, progress, init, missing, complete=False)
+            out.update(dis)
+            key = hash_key(key, dis_key)
+            gaps = sorted({j - i for i, j in missing})
+            src += f" + classical DIS for the {len(missing)} pairs it lacks (gaps {', '.join(map(str, gaps))})"
+        return out, key, src
+    return _classical_flows(imgs, cfg, cache, fp, progress, init, pairs)
+
+
+def _classical_flows(
+    imgs, cfg: PriorsConfig, cache: PriorCache, fp: str, progress, init, pairs: list[tuple[int, int]],
+    complete: bool = True,
+) -> tuple[dict, str, str]:
+    """OpenCV DIS flow of ``pairs`` (i < j; both directions), cached per pair under the key of the whole
+    classical flow, so a subset reuses a full run's cache and the other way round; only the whole set
+    (``complete``) marks the entry complete."""
     if not cfg.flow.init_from_depth:
         init = None
-    key = hash_key("flow", fp, cfg.flow, None if init is None else init[3])
+    key = hash_key("flow", fp, cfg.flow.dis_settings(), None if init is None else init[3])
     meta = {"inputs": fp, "settings": config_dict(cfg.flow), "init_depth": None if init is None else init[3]}
     entry = cache.entry("flow", key, meta)
     grays = [flow.to_gray_u8(im) for im in imgs]
-    pairs = [(i, j) for i, j in flow.flow_pairs(T, cfg.flow.offsets) if i < j]
     out: dict[tuple[int, int], flow.FlowPair] = {}
 
     def compute(ij: tuple[int, int]) -> tuple[dict, bool]:
@@ -173,7 +193,7 @@ def _flows(
         bw = flow.FlowPair(got["bwd"].astype(np.float32), got["bwd_valid"])
         out[(i, j)], out[(j, i)] = fw, bw
         _tick(progress, "flow", n + 1, len(pairs))
-    if entry is not None:
+    if entry is not None and complete:
         entry.mark_complete()
     return out, key, "classical"
 

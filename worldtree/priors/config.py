@@ -6,7 +6,7 @@ changing a field recomputes exactly the priors that depend on it.
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from typing import Literal
 
 
@@ -28,6 +28,14 @@ class FlowConfig:
     init_from_depth: bool = True
     """Start DIS from the rigid flow given by the metric depth prior and the poses (robust to wide camera
     jumps; used only when metric depth is available: classical, or imported with a scale/shift fit)."""
+    import_missing: Literal["skip", "classical"] = "skip"
+    """With an imported flow folder (``PriorsConfig.flow_source``), the pairs of ``offsets`` it lacks: left out
+    ("skip"), or computed here by DIS ("classical"; cached as the classical flow). Folders of neighbouring
+    frames only (DynamicNeRF's RAFT) have no gap of 3, whose other viewing directions the motion cues use."""
+
+    def dis_settings(self) -> FlowConfig:
+        """The settings DIS itself depends on (the cache key of classical flow): ``import_missing`` is not one."""
+        return replace(self, import_missing="skip")
 
 
 @dataclass(frozen=True)

@@ -262,3 +262,45 @@ def test_identical_sees_one_changed_value(computed):
     flows = dict(pri.flow)
     flows[k] = api_mod.FlowPair(pri.flow[k].flow, ~pri.flow[k].valid)
     assert not pri.identical(dataclasses.replace(pri, flow=flows))
+
+
+def _neighbour_flows(pri, folder):
+    """Write the gap-1 pairs of ``pri``'s flow as a folder of .flo files (what DynamicNeRF ships)."""
+    folder.mkdir()
+    for (i, j), fp in pri.flow.items():
+        if abs(i - j) == 1:
+            write_flo(folder / f"{i:05d}_{j:05d}.flo", fp.flow)
+    return folder
+
+
+def test_imported_flow_gets_the_gaps_it_lacks_from_dis(scene, computed, tmp_path, monkeypatch):
+    pri, _ = computed
+    fdir = _neighbour_flows(pri, tmp_path / "flow")
+    fill = dataclasses.replace(FAST.flow, import_missing="classical")
+    cfg = dataclasses.replace(FAST, flow_source=str(fdir), flow=fill)
+    cache = tmp_path / "cache"
+    got = compute_priors(scene, cfg, cache)
+    gaps = {abs(i - j) for i, j in got.flow}
+    assert gaps == set(FAST.flow.offsets) == {1, 3}
+    assert "classical DIS for the" in got.sources["flow"] and "(gaps 3)" in got.sources["flow"]
+    for (i, j), fp in pri.flow.items():  # the classical run computed every pair itself, with the same depth
+        if abs(i - j) == 3:
+            np.testing.assert_array_equal(got.flow[(i, j)].flow, fp.flow)
+            np.testing.assert_array_equal(got.flow[(i, j)].valid, fp.valid)
+    # The default leaves the folder's pairs alone.
+    plain = compute_priors(scene, dataclasses.replace(FAST, flow_source=str(fdir)), None)
+    assert {abs(i - j) for i, j in plain.flow} == {1} and "DIS" not in plain.sources["flow"]
+    # The filled pairs are cached as the classical flow: a classical run on that cache recomputes only the
+    # pairs the import had.
+    calls = []
+    real = api_mod.flow.compute_pair
+
+    def counting(*a, **k):
+        calls.append(1)
+        return real(*a, **k)
+
+    monkeypatch.setattr(api_mod.flow, "compute_pair", counting)
+    classical = compute_priors(scene, FAST, cache)
+    assert len(calls) == scene.num_frames - 1  # the gap-1 pairs
+    np.testing.assert_array_equal(classical.flow[(0, 3)].flow, pri.flow[(0, 3)].flow)
+    assert len(classical.flow) == len(pri.flow)
