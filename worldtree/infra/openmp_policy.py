@@ -3,10 +3,8 @@
 PyTorch's CPU operators and the C++ rasterizer run their parallel loops on OpenMP threads. Between two loops
 GNU OpenMP's threads spin (busy-wait) for a while by default, which costs nothing on an idle machine but, when
 more runnable processes than cores compete, burns the time slices the working threads need (measurements:
-docs/running.md, "Limits"). Until 2026-12-01 ``PASSIVE`` was chosen only when the load average at start-up
-was above the core count, which jobs started together never see: two quick Base runs started at once on 2
-cores took 192 s with the default policy and 62 s with ``PASSIVE``, and one alone 54 s and 55 s (the same
-scores), so sleeping is the policy whatever the load.
+docs/running.md, "Limits"). Jobs started together see no load at start-up, so the policy does not depend
+on it: threads sleep whatever the load (one run alone is as fast either way, same docs).
 
 The policy is read once, when the OpenMP runtime starts (the first ``import torch``), so the command-line entry
 points call :func:`configure` before importing torch. A policy the user set is never changed.

@@ -163,8 +163,9 @@ def _classical_flows(
     (``complete``) marks the entry complete."""
     if not cfg.flow.init_from_depth:
         init = None
-    key = hash_key("flow", fp, cfg.flow.dis_settings(), None if init is None else init[3])
-    meta = {"inputs": fp, "settings": config_dict(cfg.flow), "init_depth": None if init is None else init[3]}
+    settings = cfg.flow.dis_settings()
+    key = hash_key("flow", fp, settings, None if init is None else init[3])
+    meta = {"inputs": fp, "settings": config_dict(settings), "init_depth": None if init is None else init[3]}
     entry = cache.entry("flow", key, meta)
     grays = [flow.to_gray_u8(im) for im in imgs]
     out: dict[tuple[int, int], flow.FlowPair] = {}
