@@ -49,9 +49,10 @@ for _name in COMMAND_MODULES:
 
 def main() -> None:
     """Console-script entry point."""
-    from worldtree.infra import openmp_policy
+    from worldtree.infra import openmp_policy, thread_governor
 
-    openmp_policy.configure()  # before torch is imported: OpenMP threads sleep between loops
+    openmp_policy.configure()  # before torch is imported: a short spin between OpenMP loops, then sleep
+    thread_governor.enable()  # one torch thread while other processes use the cores
     command = next((a for a in sys.argv[1:] if not a.startswith("-")), None)
     if command not in METHOD_OPTION_COMMANDS:
         from benchmarks.commands import method_options

@@ -243,9 +243,10 @@ def info(scene: Path = typer.Argument(..., help="Scene folder written by `nvls b
 
 def main() -> None:
     """Console-script entry point."""
-    from worldtree.infra import openmp_policy
+    from worldtree.infra import openmp_policy, thread_governor
 
-    openmp_policy.configure()  # before torch is imported: OpenMP threads sleep between loops
+    openmp_policy.configure()  # before torch is imported: a short spin between OpenMP loops, then sleep
+    thread_governor.enable()  # one torch thread while other processes use the cores
     # nvls keeps no checkpoints: every command writes its folder whole (atomic_dir) or removes it.
     run_cli(app, interrupted=INTERRUPTED_NO_CHECKPOINT)
 

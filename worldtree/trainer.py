@@ -36,7 +36,7 @@ from worldtree.checkpoint import (
     restore_rng_state,
     save_checkpoint,
 )
-from worldtree.infra import stop_request
+from worldtree.infra import stop_request, thread_governor
 from worldtree.infra.errors import SettingError, UserError
 from worldtree.plateau import PlateauDetector
 
@@ -342,6 +342,7 @@ class Trainer:
         try:
             for step in range(start + 1, total + 1):
                 stop_request.check()  # a Ctrl-C / SIGTERM whose exception was lost elsewhere stops here
+                thread_governor.tick()  # the torch team follows the free cores
                 out = self.task.training_step(step)
                 loss_value = float(out.loss.detach())
                 guard.check_loss(step, loss_value)  # before backward: a non-finite loss never steps

@@ -40,6 +40,7 @@ import torch
 import worldtree
 from methods.config_overrides import apply_overrides, sets_digest, split_assignment
 from worldtree.imageio import write_image
+from worldtree.infra import thread_governor
 from worldtree.infra.atomic import atomic_write_json, atomic_write_text
 from worldtree.infra.config_ranges import check_config_ranges
 from worldtree.infra.errors import UserError
@@ -436,6 +437,8 @@ def _execute_locked(req, spec, cfg, folder, root, view, device, timer, method, b
         "torch_threads": torch.get_num_threads(),
         "deterministic": torch.are_deterministic_algorithms_enabled(),
         "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY"),
+        "gomp_spincount": os.environ.get("GOMP_SPINCOUNT"),
+        "thread_governor": thread_governor.record(),
         "method_stats": stats,
         "root_from": root_from_record(folder.checkpoints),
     }

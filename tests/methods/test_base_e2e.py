@@ -189,3 +189,23 @@ def test_photometric_steps_keep_the_visits_per_frame(preset, frames, steps):
     cfg = get_method("base").config(preset)
     assert cfg.photometric_steps(frames) == steps
     assert dataclasses.replace(cfg, steps_per_frame=0.0).photometric_steps(frames) == cfg.steps
+
+
+def test_two_threads_train_the_same_model_as_one(smoke_runs, tiny_scene, tmp_path):
+    """The thread governor changes torch's thread count with the machine's load during a run
+    (worldtree.infra.thread_governor), which is only sound if the count does not change what is trained."""
+    torch.set_num_threads(2)
+    try:
+        two = run(tiny_scene, tmp_path, "smoke")
+    finally:
+        torch.set_num_threads(1)
+    one = smoke_runs["smoke"]
+    assert json.loads(two.folder.timing_json.read_text())["torch_threads"] == 2
+    for name in ("static_gaussians.pt", "dynamic_gaussians.pt"):
+        a = torch.load(one.folder.model / name, weights_only=True)
+        b = torch.load(two.folder.model / name, weights_only=True)
+        assert a.keys() == b.keys()
+        for k in a:
+            if isinstance(a[k], torch.Tensor):
+                assert torch.equal(a[k], b[k]), (name, k)
+    assert two.mean == one.mean

@@ -19,5 +19,6 @@ modules only, never another part of ``worldtree`` (nor ``methods``, ``nvidia_ls`
 - :mod:`worldtree.infra.timing` -- the run's stage clock, kept across resumed sessions.
 - :mod:`worldtree.infra.device` -- the compute device picked at run time.
 - :mod:`worldtree.infra.cores` -- the CPU cores this process may run on.
-- :mod:`worldtree.infra.openmp_policy` -- how OpenMP threads wait between parallel loops (sleeping, unless the user chose).
+- :mod:`worldtree.infra.openmp_policy` -- how OpenMP threads wait between parallel loops (a short spin, then sleep).
+- :mod:`worldtree.infra.thread_governor` -- torch's thread count follows the cores other processes leave free.
 """

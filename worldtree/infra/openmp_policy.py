@@ -1,13 +1,19 @@
-"""How OpenMP threads wait between parallel regions: sleep (``PASSIVE``) unless the user chose otherwise.
+"""How OpenMP threads wait between parallel loops: a short spin, then sleep, unless the user chose.
 
-PyTorch's CPU operators and the C++ rasterizer run their parallel loops on OpenMP threads. Between two loops
-GNU OpenMP's threads spin (busy-wait) for a while by default, which costs nothing on an idle machine but, when
-more runnable processes than cores compete, burns the time slices the working threads need (measurements:
-docs/running.md, "Limits"). Jobs started together see no load at start-up, so the policy does not depend
-on it: threads sleep whatever the load (one run alone is as fast either way, same docs).
+Rule: when neither ``OMP_WAIT_POLICY`` nor ``GOMP_SPINCOUNT`` is set, the command-line entry points set
+``OMP_WAIT_POLICY=PASSIVE`` and ``GOMP_SPINCOUNT=10000`` (GNU OpenMP, which PyTorch's Linux wheels use: about
+0.1 ms of spinning before a waiting thread sleeps; other OpenMP runtimes read only the policy and sleep at
+once). A variable the user set is never changed, and then neither is the other one.
 
-The policy is read once, when the OpenMP runtime starts (the first ``import torch``), so the command-line entry
-points call :func:`configure` before importing torch. A policy the user set is never changed.
+Why both: a thread that sleeps at once costs a wake-up per parallel loop, up to a millisecond on a virtual
+machine whose idle cores halt, which halved the training speed of an idle 2-core machine; a thread that spins
+for the runtime's default (about 3 ms) or for ever burns the cores other processes need when the machine is
+shared. The short spin covers the gaps between the loops of one training step; sharing is handled by taking
+torch's team down to one thread while anything else runs (:mod:`worldtree.infra.thread_governor`).
+Measurements: docs/running.md, "Limits".
+
+The variables are read once, when the OpenMP runtime starts (the first ``import torch``), so the entry points
+call :func:`configure` before importing torch.
 """
 
 from __future__ import annotations
@@ -16,25 +22,28 @@ import os
 import sys
 from collections.abc import MutableMapping
 
-__all__ = ["choose", "configure"]
+__all__ = ["SPINCOUNT", "choose", "configure"]
 
 VARIABLE = "OMP_WAIT_POLICY"
+SPIN_VARIABLE = "GOMP_SPINCOUNT"
+SPINCOUNT = "10000"
 
 
-def choose(environ: MutableMapping[str, str]) -> str | None:
-    """``"PASSIVE"`` when ``environ`` has no ``OMP_WAIT_POLICY``; None (the user's setting stands) otherwise."""
-    return None if VARIABLE in environ else "PASSIVE"
+def choose(environ: MutableMapping[str, str]) -> dict[str, str]:
+    """The variables to set: both of the module's when ``environ`` has neither, none otherwise."""
+    if VARIABLE in environ or SPIN_VARIABLE in environ:
+        return {}
+    return {VARIABLE: "PASSIVE", SPIN_VARIABLE: SPINCOUNT}
 
 
-def configure(environ: MutableMapping[str, str] | None = None) -> str | None:
-    """Set ``OMP_WAIT_POLICY`` by :func:`choose` for this process and its children, before torch is imported.
+def configure(environ: MutableMapping[str, str] | None = None) -> dict[str, str] | None:
+    """Set :func:`choose`'s variables for this process and its children, before torch is imported.
 
-    Returns the policy set, or None when nothing was changed (already set, or torch already imported so the
-    runtime has read it)."""
+    Returns the variables set, or None when nothing was changed (the user chose, or torch is already imported
+    so the runtime has read its settings)."""
     env = os.environ if environ is None else environ
     if "torch" in sys.modules:
         return None
-    policy = choose(env)
-    if policy is not None:
-        env[VARIABLE] = policy
-    return policy
+    chosen = choose(env)
+    env.update(chosen)
+    return chosen or None

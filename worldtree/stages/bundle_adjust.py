@@ -25,7 +25,7 @@ from dataclasses import dataclass, field
 
 import torch
 
-from worldtree.infra import stop_request
+from worldtree.infra import stop_request, thread_governor
 from worldtree.motion.lift import sample_depth
 from worldtree.optim import ExponentialLR
 from worldtree.stages.cameras import apply_delta
@@ -269,6 +269,7 @@ def bundle_adjust(
     best = {k: v.detach().clone() for k, v in prob.params.items()}
     for step in range(cfg.steps):
         stop_request.check()  # a stop whose exception was lost elsewhere (worldtree.infra.stop_request)
+        thread_governor.tick()  # the torch team follows the free cores
         for g in opt.param_groups:
             g["lr"] = scheds[g["name"]](step)
         loss, terms = prob.loss()

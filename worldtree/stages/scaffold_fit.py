@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 
 import torch
 
-from worldtree.infra import stop_request
+from worldtree.infra import stop_request, thread_governor
 from worldtree.motion.regularizers import MotionLossConfig, motion_losses
 from worldtree.motion.scaffold import Scaffold
 
@@ -61,6 +61,7 @@ def fit_scaffold(
     graphs = scaffold.arap_graphs()
     for step in range(cfg.steps):
         stop_request.check()  # a stop whose exception was lost elsewhere (worldtree.infra.stop_request)
+        thread_governor.tick()  # the torch team follows the free cores
         d = torch.sqrt(((scaffold.pos - target) ** 2).sum(-1) + 1e-12) / unit
         data = (d * w).sum() / w.sum().clamp_min(1.0)
         ml = motion_losses(scaffold.pos, scaffold.quat, graphs, cfg.motion)

@@ -23,7 +23,7 @@ from dataclasses import dataclass
 
 import torch
 
-from worldtree.infra import stop_request
+from worldtree.infra import stop_request, thread_governor
 from worldtree.motion import se3
 from worldtree.optim import ExponentialLR
 from worldtree.pixels import unit_float
@@ -341,6 +341,7 @@ def refine_test_poses(
         scale[:3] = cfg.translation_lr_scale
         for s in range(n_steps):
             stop_request.check()  # a stop whose exception was lost elsewhere
+            thread_governor.tick()  # the torch team follows the free cores
             for g in opt.param_groups:
                 g["lr"] = sched(s)
             out = render_fn(int(time), apply_delta(xi * scale, current))
