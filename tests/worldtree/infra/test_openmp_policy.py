@@ -9,7 +9,6 @@ import sys
 
 from worldtree.infra.openmp_policy import choose, configure
 
-
 BOTH = {"OMP_WAIT_POLICY": "PASSIVE", "GOMP_SPINCOUNT": "10000"}
 
 
