@@ -3,11 +3,11 @@ changes what it should, checked against closed forms, the default renders as bef
 
 from __future__ import annotations
 
-import hashlib
 import json
 import math
 import subprocess
 import sys
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -50,25 +50,30 @@ def _object_centres(sc, index, steps):
 
 
 # ------------------------------------------------------------------------------------------------ default
-# sha256 of rgb + object ids of every camera and time step of this config, rendered by the generator before
-# the family options existed (commit 208438b). It changes with any change to the default scene, rig, textures,
-# motion or renderer; float rounding on another CPU could flip a pixel too (then compare against 208438b).
-FROZEN = ({"steps": 3, "width": 48, "height": 32, "supersample": 2},
-          "7029041ac23a6d2ee9e868c8b8c2d62444b72741bf50c5fbc5b661041a611054")  # fmt: skip
+# rgb + object ids of every camera and time step of this config, rendered by the generator before the family
+# options existed (commit 208438b, on an AMD EPYC; `tests/nvidia_ls/data/synth_default_208438b.npz`). Any change
+# to the default scene, rig, textures, motion or renderer moves many pixels; float rounding on another CPU
+# may flip a few at object edges (an exact hash taken on an Intel Xeon failed on the EPYC, where 208438b and
+# today's code render identically), so up to 0.5 % of the pixels may differ.
+FROZEN = {"steps": 3, "width": 48, "height": 32, "supersample": 2}
+FROZEN_RENDER = Path(__file__).parent / "data" / "synth_default_208438b.npz"
 
 
 def test_default_config_renders_as_before():
-    kw, digest = FROZEN
-    cfg = SynthConfig(**kw)
+    cfg = SynthConfig(**FROZEN)
     sc = make_scene(cfg)
-    h = hashlib.sha256()
+    rgb, ids = [], []
     for ci in range(cfg.cameras):
         r = synth._CameraRenderer(sc, sc.Ks[ci], sc.w2cs[ci], cfg.width, cfg.height, cfg.supersample)
         for t in range(cfg.steps):
             v = r.render(float(t))
-            h.update(v.rgb.tobytes())
-            h.update(v.object_id.tobytes())
-    assert h.hexdigest() == digest
+            rgb.append(v.rgb)
+            ids.append(v.object_id)
+    ref = np.load(FROZEN_RENDER)
+    rgb, ids = np.stack(rgb), np.stack(ids)
+    assert rgb.shape == ref["rgb"].shape and ids.shape == ref["ids"].shape
+    moved = (rgb != ref["rgb"]).any(-1) | (ids != ref["ids"])
+    assert moved.mean() <= 0.005, f"{moved.sum()} of {moved.size} pixels differ from 208438b's render"
 
 
 def _old_rig(cfg):
