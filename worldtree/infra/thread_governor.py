@@ -31,7 +31,7 @@ from dataclasses import dataclass, field
 
 from worldtree.infra.cores import available_cores
 
-__all__ = ["ENV_SWITCH", "ThreadGovernor", "busy_ticks", "enable", "record", "threads_for", "tick"]
+__all__ = ["ENV_SWITCH", "ThreadGovernor", "busy_ticks", "enable", "enabled", "record", "threads_for", "tick"]
 
 ENV_SWITCH = "WORLDTREE_THREAD_GOVERNOR"
 _TICKS_PER_S = os.sysconf("SC_CLK_TCK") if hasattr(os, "sysconf") else 100
@@ -111,7 +111,9 @@ class ThreadGovernor:
 
             self.get_threads = self.get_threads or torch.get_num_threads
             self.set_threads = self.set_threads or torch.set_num_threads
-        self.current = self.ceiling = int(self.get_threads())
+        self.current = int(self.get_threads())
+        # A ceiling given may be above the count it starts with (a tree's worker starts at its share).
+        self.ceiling = max(int(self.ceiling), self.current)
 
     def _sample(self) -> tuple[float, int, float] | None:
         text = self.read_stat()
@@ -154,16 +156,25 @@ class ThreadGovernor:
 
 _governor: ThreadGovernor | None = None
 _enabled = False
+_ceiling = 0
 
 
-def enable(environ: dict[str, str] | None = None) -> bool:
+def enable(environ: dict[str, str] | None = None, ceiling: int = 0) -> bool:
     """Govern this process's threads from its next :func:`tick` on (idempotent; torch is imported then, not
-    now); False when switched off (``WORLDTREE_THREAD_GOVERNOR=0``) or without ``/proc/stat``."""
-    global _enabled
+    now); ``ceiling`` > 0 lets the count rise above the one the process starts with (a tree's worker, which
+    starts at its share of the cores, may use them all once the other workers are done). False when switched
+    off (``WORLDTREE_THREAD_GOVERNOR=0``) or without ``/proc/stat``."""
+    global _enabled, _ceiling
     env = os.environ if environ is None else environ
     if env.get(ENV_SWITCH, "1").strip().lower() in ("0", "false", "off", "no"):
         return False
     _enabled = _enabled or _read_stat() is not None
+    _ceiling = max(_ceiling, int(ceiling))
+    return _enabled
+
+
+def enabled() -> bool:
+    """Whether :func:`enable` switched the governor on in this process."""
     return _enabled
 
 
@@ -173,7 +184,7 @@ def tick() -> None:
     if not _enabled:
         return
     if _governor is None:
-        _governor = ThreadGovernor()
+        _governor = ThreadGovernor(ceiling=_ceiling)
     _governor.tick()
 
 

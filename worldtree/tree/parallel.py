@@ -4,7 +4,9 @@ Nodes of one depth are independent once their parents are trained, so a layer of
 tasks on a pool of worker processes (``spawn`` start method; CUDA cannot be used in forked children):
 
 - CPU: ``workers = min(n, max_workers or cores)``; each worker runs ``torch.set_num_threads(max(1, cores //
-  workers))`` so the workers together use the cores once instead of oversubscribing them.
+  workers))`` so the workers together use the cores once instead of oversubscribing them; when the process
+  that starts them governs its threads (:mod:`worldtree.infra.thread_governor`), so do the workers, with every
+  core as their ceiling: a worker left alone at the end of a layer takes the cores the others freed.
 - CUDA with several devices: one worker per device, each bound to its own GPU (a worker takes a device id
   from a queue when it starts); tasks go to whichever worker is free.
 - CUDA with one device: the workers share it (``max_workers`` bounds how many nodes sit on it at once).
@@ -42,6 +44,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from worldtree.infra import thread_governor
 from worldtree.infra.atomic import atomic_write_json
 from worldtree.infra.cores import available_cores
 from worldtree.infra.determinism import deterministic_for
@@ -193,8 +196,11 @@ def _terminate_workers(pool: ProcessPoolExecutor) -> None:
 _WORKER: dict[str, Any] = {"device": "cpu", "threads": 1}
 
 
-def _init_worker(threads: int, device_queue, default_device: str) -> None:
+def _init_worker(threads: int, device_queue, default_device: str, governed: int = 0) -> None:
     torch.set_num_threads(threads)
+    if governed and device_queue is None and default_device == "cpu":
+        # Starts at its share; may take every core once the layer's other workers are done.
+        thread_governor.enable(ceiling=governed)
     dev = default_device
     if device_queue is not None:
         dev = f"cuda:{device_queue.get()}"
@@ -336,7 +342,8 @@ class LayerRunner:
         default = "cuda:0" if self.gpus == 1 else "cpu"
         threads = max(1, self.cores // workers)
         self._pool = ProcessPoolExecutor(workers, mp_context=ctx, initializer=_init_worker,
-                                         initargs=(threads, queue, default))  # fmt: skip
+                                         initargs=(threads, queue, default,
+                                                   self.cores if thread_governor.enabled() else 0))  # fmt: skip
         self._workers = workers
         return self._pool
 

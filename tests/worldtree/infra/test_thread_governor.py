@@ -90,6 +90,26 @@ def test_a_count_set_by_someone_else_becomes_the_ceiling():
     assert g.tick() == 1 and g.ceiling == 1  # a free machine does not raise it above the count set
 
 
+def test_a_worker_started_at_its_share_takes_the_cores_the_others_free():
+    m = Machine()
+    m.threads = 1  # one of two tree workers
+    g = m.governor()
+    g.ceiling = 0
+    g.__post_init__()
+    assert g.ceiling == 1  # no ceiling given: the count it started with
+    g = ThreadGovernor(
+        interval=1.0, cores=2, cpus=None, read_stat=m.stat, own_cpu_s=lambda: m.own, clock=lambda: m.t,
+        get_threads=lambda: m.threads, set_threads=lambda n: setattr(m, "threads", n), ceiling=2,
+    )  # fmt: skip
+    g.tick()
+    m.others = 1.0  # the other worker
+    m.advance(1.0)
+    assert g.tick() == 1
+    m.others = 0.0  # it is done
+    m.advance(1.0)
+    assert g.tick() == 2 and m.threads == 2
+
+
 def test_no_proc_stat_changes_nothing():
     m = Machine()
     g = m.governor()
