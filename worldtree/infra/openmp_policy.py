@@ -5,7 +5,7 @@ Rule: when neither ``OMP_WAIT_POLICY`` nor ``GOMP_SPINCOUNT`` is set, the comman
 0.1 ms of spinning before a waiting thread sleeps; other OpenMP runtimes read only the policy and sleep at
 once). A variable the user set is never changed, and then neither is the other one.
 
-Why both: a thread that sleeps at once costs a wake-up per parallel loop, up to a millisecond on a virtual
+Why both: a thread that sleeps at once costs a wake-up per parallel loop, about a millisecond on a virtual
 machine whose idle cores halt, which halved the training speed of an idle 2-core machine; a thread that spins
 for the runtime's default (about 3 ms) or for ever burns the cores other processes need when the machine is
 shared. The short spin covers the gaps between the loops of one training step; sharing is handled by taking

@@ -9,7 +9,7 @@ Slurm allocation or ``OMP_NUM_THREADS``; a count someone else sets later becomes
 default ``keep`` of 0.6 a 2-core machine keeps both threads while others use under 0.4 of a core.
 
 Why: OpenMP threads that sleep between parallel loops (``OMP_WAIT_POLICY=PASSIVE``) are safe on a shared
-machine but can halve the speed of an idle one, where waking a sleeping core costs up to a millisecond per
+machine but can halve the speed of an idle one, where waking a sleeping core costs about a millisecond per
 loop (a Firecracker VM: Base's photometric fit at 11.2 it/s against 22-26 spinning and 19.4 on one thread,
 docs/running.md); threads that spin are fast alone but, sharing cores with another process, wait for a
 descheduled partner (the same fit at 2.5-3.1 it/s). So the entry points let threads spin briefly
