@@ -196,11 +196,11 @@ def _terminate_workers(pool: ProcessPoolExecutor) -> None:
 _WORKER: dict[str, Any] = {"device": "cpu", "threads": 1}
 
 
-def _init_worker(threads: int, device_queue, default_device: str, governed: int = 0) -> None:
+def _init_worker(threads: int, device_queue, default_device: str, governor_ceiling: int = 0) -> None:
     torch.set_num_threads(threads)
-    if governed and device_queue is None and default_device == "cpu":
+    if governor_ceiling and device_queue is None and default_device == "cpu":
         # Starts at its share; may take every core once the layer's other workers are done.
-        thread_governor.enable(ceiling=governed)
+        thread_governor.enable(ceiling=governor_ceiling)
     dev = default_device
     if device_queue is not None:
         dev = f"cuda:{device_queue.get()}"

@@ -55,13 +55,13 @@ class Machine:
     def stat(self) -> str:
         return f"cpu  {self.busy} 0 0 0 0 0 0 0 0 0\n"
 
-    def governor(self) -> ThreadGovernor:
+    def governor(self, ceiling: int = 0) -> ThreadGovernor:
         def set_threads(n: int) -> None:
             self.threads = n
 
         return ThreadGovernor(
             interval=1.0, cores=self.cores, cpus=None, read_stat=self.stat, own_cpu_s=lambda: self.own,
-            clock=lambda: self.t, get_threads=lambda: self.threads, set_threads=set_threads,
+            clock=lambda: self.t, get_threads=lambda: self.threads, set_threads=set_threads, ceiling=ceiling,
         )  # fmt: skip
 
 
@@ -93,14 +93,8 @@ def test_a_count_set_by_someone_else_becomes_the_ceiling():
 def test_a_worker_started_at_its_share_takes_the_cores_the_others_free():
     m = Machine()
     m.threads = 1  # one of two tree workers
-    g = m.governor()
-    g.ceiling = 0
-    g.__post_init__()
-    assert g.ceiling == 1  # no ceiling given: the count it started with
-    g = ThreadGovernor(
-        interval=1.0, cores=2, cpus=None, read_stat=m.stat, own_cpu_s=lambda: m.own, clock=lambda: m.t,
-        get_threads=lambda: m.threads, set_threads=lambda n: setattr(m, "threads", n), ceiling=2,
-    )  # fmt: skip
+    assert m.governor().ceiling == 1  # no ceiling given: the count it started with
+    g = m.governor(ceiling=2)
     g.tick()
     m.others = 1.0  # the other worker
     m.advance(1.0)
