@@ -230,10 +230,13 @@ def _lpips_model(lpips_weights, device, warn_list: list[str]):
 
 @contextlib.contextmanager
 def _torch_threads(n: int) -> Iterator[None]:
-    """Set torch's intra-op threads for the block (restored after)."""
+    """Set torch's intra-op threads for the block (restored after: the count the run is meant to have, not one
+    the thread governor had lowered under load)."""
     import torch
 
-    before = torch.get_num_threads()
+    from worldtree.infra import thread_governor
+
+    before = thread_governor.intended_threads()
     torch.set_num_threads(n)
     try:
         yield

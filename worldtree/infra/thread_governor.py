@@ -5,7 +5,9 @@ step of a training loop) checks, at most once per ``interval`` seconds, how busy
 the last check (``/proc/stat``, the CPUs of its affinity mask) against this process's own CPU time, and sets
 torch's thread count to the cores the others left free: ``floor(cores - others + 1 - keep)`` clamped to
 ``[1, ceiling]``, ``ceiling`` being the count the process had when the governor started (a sweep's job, a
-Slurm allocation or ``OMP_NUM_THREADS``; a count someone else sets later becomes the new ceiling). With the
+Slurm allocation or ``OMP_NUM_THREADS``; a count someone else sets later becomes the new ceiling, so code that
+sets a count for a while and then restores it must restore :func:`intended_threads`, not torch's count, which
+may be one the governor lowered). With the
 default ``keep`` of 0.6 a 2-core machine keeps both threads while others use under 0.4 of a core.
 
 Why: OpenMP threads that sleep between parallel loops (``OMP_WAIT_POLICY=PASSIVE``) are safe on a shared
@@ -31,7 +33,10 @@ from dataclasses import dataclass, field
 
 from worldtree.infra.cores import available_cores
 
-__all__ = ["ENV_SWITCH", "ThreadGovernor", "busy_ticks", "enable", "enabled", "record", "threads_for", "tick"]
+__all__ = [
+    "ENV_SWITCH", "ThreadGovernor", "busy_ticks", "enable", "enabled", "intended_threads", "record", "threads_for",
+    "tick",
+]  # fmt: skip
 
 ENV_SWITCH = "WORLDTREE_THREAD_GOVERNOR"
 _TICKS_PER_S = os.sysconf("SC_CLK_TCK") if hasattr(os, "sysconf") else 100
@@ -186,6 +191,17 @@ def tick() -> None:
     if _governor is None:
         _governor = ThreadGovernor(ceiling=_ceiling)
     _governor.tick()
+
+
+def intended_threads() -> int:
+    """The thread count the process is meant to run with: the governor's ceiling once it governs, else torch's
+    count now. Code that changes the count for a while restores this one (restoring torch's count as it found
+    it would make a count the governor had lowered under load the new ceiling)."""
+    if _governor is not None:
+        return _governor.ceiling
+    import torch
+
+    return int(torch.get_num_threads())
 
 
 def record() -> dict | None:

@@ -417,8 +417,9 @@ class LayerRunner:
         return rep
 
     def _run_here(self, node: int, seed: int, folder: str, device: str) -> NodeReport:
-        # Same seeding as a worker, but restore this process's RNG and thread settings afterwards.
-        threads_before = torch.get_num_threads()
+        # Same seeding as a worker, but restore this process's RNG and thread settings afterwards; the thread
+        # count restored is the one the run is meant to have, not one the governor had lowered under load.
+        threads_before = thread_governor.intended_threads()
         np_state, py_state = np.random.get_state(), random.getstate()  # noqa: NPY002
         torch.set_num_threads(self.cores)
         try:

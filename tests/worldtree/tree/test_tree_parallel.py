@@ -134,3 +134,49 @@ def test_leaving_on_an_interrupt_stops_the_nodes_in_flight():
     runner.__exit__(KeyboardInterrupt, KeyboardInterrupt(), None)
     assert runner._pool is None and procs and not any(p.is_alive() for p in procs)
     assert busy.cancelled() or busy.exception(timeout=0) is not None  # it never finished its 120 s
+
+
+def test_a_node_run_here_restores_the_count_the_run_is_meant_to_have(tmp_path, monkeypatch):
+    # Under load the governor had lowered the team to one thread; a node trained in this process uses every core
+    # and ticks the governor; afterwards the run's own count (the ceiling, 2) must be restored, not the lowered 1,
+    # which the governor would then take as the new ceiling and keep after the load ends.
+    from worldtree.infra import thread_governor as tg
+    from worldtree.tree import parallel
+
+    threads_here = torch.get_num_threads()
+    clock, busy, own = [0.0], [0], [0.0]
+
+    def advance(seconds: float, others: float) -> None:
+        clock[0] += seconds
+        own[0] += seconds
+        busy[0] += round((1.0 + others) * seconds * tg._TICKS_PER_S)
+
+    torch.set_num_threads(2)
+    try:
+        g = tg.ThreadGovernor(
+            interval=1.0, cores=2, cpus=None, read_stat=lambda: f"cpu  {busy[0]} 0 0 0 0 0 0 0 0 0\n",
+            own_cpu_s=lambda: own[0], clock=lambda: clock[0],
+        )  # fmt: skip
+        monkeypatch.setattr(tg, "_governor", g)
+        monkeypatch.setattr(tg, "_enabled", True)
+        g.tick()
+        advance(1.0, others=1.0)
+        assert g.tick() == 1 and torch.get_num_threads() == 1  # lowered under load
+
+        node_run = parallel._run_node
+
+        def ticking_node(*args, **kwargs):
+            advance(1.0, others=1.0)
+            tg.tick()  # as a trainer's step does, while the node runs on every core
+            return node_run(*args, **kwargs)
+
+        monkeypatch.setattr(parallel, "_run_node", ticking_node)
+        folder = tmp_path / "layer"
+        write_input(folder, 0, make_input(dim=8, rows=16, steps=5, seed=3))
+        with LayerRunner(ParallelConfig(sequential=True, device="cpu"), fit_node) as r:
+            r.run_layer(1, folder, [0], [1])
+        assert torch.get_num_threads() == 2 and tg.intended_threads() == 2
+        advance(1.0, others=0.0)  # the load has ended
+        assert g.tick() == 2 and g.ceiling == 2
+    finally:
+        torch.set_num_threads(threads_here)
