@@ -18,7 +18,7 @@ import re
 import shlex
 import sys
 import warnings
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
@@ -28,6 +28,7 @@ import numpy as np
 import pandas as pd
 
 from worldtree.imageio import as_uint8_array
+from worldtree.infra import thread_governor
 from worldtree.infra.cores import available_cores
 from worldtree.infra.errors import UserError
 
@@ -228,22 +229,6 @@ def _lpips_model(lpips_weights, device, warn_list: list[str]):
     return model.to(device), {**info.record(), "available": True}
 
 
-@contextlib.contextmanager
-def _torch_threads(n: int) -> Iterator[None]:
-    """Set torch's intra-op threads for the block (restored after: the count the run is meant to have, not one
-    the thread governor had lowered under load)."""
-    import torch
-
-    from worldtree.infra import thread_governor
-
-    before = thread_governor.intended_threads()
-    torch.set_num_threads(n)
-    try:
-        yield
-    finally:
-        torch.set_num_threads(before)
-
-
 def _batches(shapes: Sequence[tuple[int, ...]], limit_pixels: int) -> list[list[int]]:
     """Consecutive indices grouped into runs of one shape, each of at most ``limit_pixels`` pixels."""
     out: list[list[int]] = []
@@ -294,7 +279,7 @@ def _score_all(
 
     chunks = [list(range(i, min(n, i + chunk))) for i in range(0, n, chunk)]
     with (
-        _torch_threads(1 if cpu else torch.get_num_threads()),
+        thread_governor.threads_for_block(1 if cpu else torch.get_num_threads()),
         ThreadPoolExecutor(max_workers=workers) as pool,
         ThreadPoolExecutor(max_workers=4) if not cpu else contextlib.nullcontext() as reader,
     ):

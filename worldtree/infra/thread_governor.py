@@ -6,8 +6,8 @@ the last check (``/proc/stat``, the CPUs of its affinity mask) against this proc
 torch's thread count to the cores the others left free: ``floor(cores - others + 1 - keep)`` clamped to
 ``[1, ceiling]``, ``ceiling`` being the count the process had when the governor started (a sweep's job, a
 Slurm allocation or ``OMP_NUM_THREADS``; a count someone else sets later becomes the new ceiling, so code that
-sets a count for a while and then restores it must restore :func:`intended_threads`, not torch's count, which
-may be one the governor lowered). With the
+sets a count for a while uses :func:`threads_for_block`, which restores :func:`intended_threads`, not torch's
+count, which may be one the governor lowered). With the
 default ``keep`` of 0.6 a 2-core machine keeps both threads while others use under 0.4 of a core.
 
 Why: OpenMP threads that sleep between parallel loops (``OMP_WAIT_POLICY=PASSIVE``) are safe on a shared
@@ -25,17 +25,18 @@ Off outside Linux (no ``/proc/stat``) and with ``WORLDTREE_THREAD_GOVERNOR=0``.
 
 from __future__ import annotations
 
+import contextlib
 import math
 import os
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 
 from worldtree.infra.cores import available_cores
 
 __all__ = [
     "ENV_SWITCH", "ThreadGovernor", "busy_ticks", "enable", "enabled", "intended_threads", "record", "threads_for",
-    "tick",
+    "threads_for_block", "tick",
 ]  # fmt: skip
 
 ENV_SWITCH = "WORLDTREE_THREAD_GOVERNOR"
@@ -202,6 +203,19 @@ def intended_threads() -> int:
     import torch
 
     return int(torch.get_num_threads())
+
+
+@contextlib.contextmanager
+def threads_for_block(n: int) -> Iterator[None]:
+    """Run the block on ``n`` torch threads, then restore :func:`intended_threads` (read before the block)."""
+    import torch
+
+    before = intended_threads()
+    torch.set_num_threads(n)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)
 
 
 def record() -> dict | None:

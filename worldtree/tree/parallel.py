@@ -417,16 +417,12 @@ class LayerRunner:
         return rep
 
     def _run_here(self, node: int, seed: int, folder: str, device: str) -> NodeReport:
-        # Same seeding as a worker, but restore this process's RNG and thread settings afterwards; the thread
-        # count restored is the one the run is meant to have, not one the governor had lowered under load.
-        threads_before = thread_governor.intended_threads()
+        # Same seeding as a worker, but restore this process's RNG and thread settings afterwards.
         np_state, py_state = np.random.get_state(), random.getstate()  # noqa: NPY002
-        torch.set_num_threads(self.cores)
         try:
-            with torch.random.fork_rng(devices=[]):
+            with thread_governor.threads_for_block(self.cores), torch.random.fork_rng(devices=[]):
                 return _run_node(self.fn, node, seed, folder, device, self.cores)
         finally:
-            torch.set_num_threads(threads_before)
             np.random.set_state(np_state)  # noqa: NPY002
             random.setstate(py_state)
 
