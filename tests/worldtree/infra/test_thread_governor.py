@@ -9,6 +9,7 @@ import time
 
 import pytest
 
+from tests.worldtree.infra.scripted_machine import Machine
 from worldtree.infra import thread_governor as tg
 from worldtree.infra.thread_governor import ThreadGovernor, busy_ticks, threads_for
 
@@ -38,31 +39,6 @@ def test_busy_ticks_counts_user_nice_system_irq_softirq_only():
     assert busy_ticks(STAT, {0, 1}) == 98 + 62
     assert busy_ticks(STAT, {5}) is None  # none of the CPUs is listed
     assert busy_ticks("intr 1\n", None) is None
-
-
-class Machine:
-    """A scripted machine: a clock, the others' busy cores and this process's own CPU use per second."""
-
-    def __init__(self, cores: int = 2):
-        self.t, self.busy, self.own, self.others, self.own_rate = 0.0, 0, 0.0, 0.0, 1.0
-        self.cores, self.threads = cores, cores
-
-    def advance(self, seconds: float) -> None:
-        self.t += seconds
-        self.own += self.own_rate * seconds
-        self.busy += round((self.others + self.own_rate) * seconds * tg._TICKS_PER_S)
-
-    def stat(self) -> str:
-        return f"cpu  {self.busy} 0 0 0 0 0 0 0 0 0\n"
-
-    def governor(self, ceiling: int = 0) -> ThreadGovernor:
-        def set_threads(n: int) -> None:
-            self.threads = n
-
-        return ThreadGovernor(
-            interval=1.0, cores=self.cores, cpus=None, read_stat=self.stat, own_cpu_s=lambda: self.own,
-            clock=lambda: self.t, get_threads=lambda: self.threads, set_threads=set_threads, ceiling=ceiling,
-        )  # fmt: skip
 
 
 def test_the_team_drops_to_one_thread_while_others_run_and_comes_back():

@@ -10,6 +10,7 @@ import pytest
 import torch
 
 from benchmarks.fixtures.toy_nodes import fit_node, flags_node, make_input
+from tests.worldtree.infra.scripted_machine import Machine
 from worldtree.tree.parallel import LayerFailed, LayerRunner, ParallelConfig, node_dir, write_input
 
 NODES = [4, 5, 6, 7]
@@ -144,29 +145,21 @@ def test_a_node_run_here_restores_the_count_the_run_is_meant_to_have(tmp_path, m
     from worldtree.tree import parallel
 
     threads_here = torch.get_num_threads()
-    clock, busy, own = [0.0], [0], [0.0]
-
-    def advance(seconds: float, others: float) -> None:
-        clock[0] += seconds
-        own[0] += seconds
-        busy[0] += round((1.0 + others) * seconds * tg._TICKS_PER_S)
-
+    m = Machine()
     torch.set_num_threads(2)
     try:
-        g = tg.ThreadGovernor(
-            interval=1.0, cores=2, cpus=None, read_stat=lambda: f"cpu  {busy[0]} 0 0 0 0 0 0 0 0 0\n",
-            own_cpu_s=lambda: own[0], clock=lambda: clock[0],
-        )  # fmt: skip
+        g = m.governor(torch_threads=True)
         monkeypatch.setattr(tg, "_governor", g)
         monkeypatch.setattr(tg, "_enabled", True)
         g.tick()
-        advance(1.0, others=1.0)
+        m.others = 1.0
+        m.advance(1.0)
         assert g.tick() == 1 and torch.get_num_threads() == 1  # lowered under load
 
         node_run = parallel._run_node
 
         def ticking_node(*args, **kwargs):
-            advance(1.0, others=1.0)
+            m.advance(1.0)
             tg.tick()  # as a trainer's step does, while the node runs on every core
             return node_run(*args, **kwargs)
 
@@ -176,7 +169,8 @@ def test_a_node_run_here_restores_the_count_the_run_is_meant_to_have(tmp_path, m
         with LayerRunner(ParallelConfig(sequential=True, device="cpu"), fit_node) as r:
             r.run_layer(1, folder, [0], [1])
         assert torch.get_num_threads() == 2 and tg.intended_threads() == 2
-        advance(1.0, others=0.0)  # the load has ended
+        m.others = 0.0  # the load has ended
+        m.advance(1.0)
         assert g.tick() == 2 and g.ceiling == 2
     finally:
         torch.set_num_threads(threads_here)
