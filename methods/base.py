@@ -60,8 +60,10 @@ from worldtree.motion.track_depth import ratio_map, smooth_trajectory_depths
 from worldtree.plateau import PlateauDetector
 from worldtree.priors import Priors, PriorsConfig, compute_priors
 from worldtree.priors.api import add_chained_tracks
+from worldtree.priors.config import FreeSpaceConfig
 from worldtree.priors.dynamic_masks import refine_with_residual
 from worldtree.priors.epipolar import label_dynamic_tracks
+from worldtree.priors.free_space import free_space_violations
 from worldtree.render import rasterize
 from worldtree.scene import Scene
 from worldtree.stages.bundle_adjust import BAResult, BundleAdjustConfig, bundle_adjust
@@ -125,6 +127,9 @@ class BaseConfig(CommonConfig):
     """Geometric scaffold fit."""
     object_depth: ObjectDepthConfig = field(default_factory=ObjectDepthConfig)
     """Outlined moving objects placed by their size and path (imported masks with the classical depth)."""
+    depth_free_space: FreeSpaceConfig = field(default_factory=FreeSpaceConfig)
+    """Imported depth outside the dynamic masks that floats in front of the scene, left out of the photometric
+    fit's depth loss (a moving object the masks missed; classical depth is never checked)."""
     photometric: PhotometricConfig = field(default_factory=PhotometricConfig)
     """Joint fit (its ``steps`` field is replaced by ``steps`` above)."""
     test_pose: PoseRefineConfig = field(default_factory=PoseRefineConfig)
@@ -166,6 +171,14 @@ class BaseConfig(CommonConfig):
         if self.steps_per_frame > 0:
             return max(int(self.steps), steps_for_frames(self.steps_per_frame, frames))
         return int(self.steps)
+
+    def photometric_config(self) -> PhotometricConfig:
+        """The photometric settings every fit of this run uses (the root and a tree's nodes): the static
+        floater removal (``photometric.floater_every``) only with an imported depth, which can measure moving
+        objects; the classical depth is a static-world estimate and leaves it off."""
+        if self.priors.depth_source == "classical" and self.photometric.floater_every:
+            return dataclasses.replace(self.photometric, floater_every=0)
+        return self.photometric
 
     def with_exact_steps(self) -> BaseConfig:
         """``steps`` exactly: ``steps_per_frame`` off (it would raise the count on a long video)."""
@@ -216,6 +229,17 @@ class BaseConfig(CommonConfig):
             out["scaffold.trajectory_depth_imported"] = (
                 "applies to imported depth fitted to the classical one only (--depth-maps with --depth-fit)"
             )
+        if self.priors.depth_source == "classical":
+            why = "the classical depth is a static-world estimate and is not checked; applies to --depth-maps"
+            out.update(settings_of("depth_free_space", self.depth_free_space, why, skip=()))
+            out["photometric.floater_every"] = why
+            out["photometric.floater_tolerance"] = why
+        else:
+            if not self.depth_free_space.enabled:
+                why = "--set depth_free_space.enabled=true"
+                out.update(settings_of("depth_free_space", self.depth_free_space, why))
+            if self.photometric.floater_every <= 0:
+                out["photometric.floater_tolerance"] = "floater removal is off; --set photometric.floater_every=N"
         if self.priors.masks_source is None or self.priors.depth_source != "classical":
             why = (
                 "objects are placed by size and path only with imported masks (--masks) and the classical depth"
@@ -414,6 +438,11 @@ def prior_use(c: BaseConfig, sources: dict[str, str]) -> dict[str, dict[str, Any
     )  # fmt: skip
     if ph.lambda_depth > 0:
         depth["photometric"] = f"scale-and-shift-invariant depth L1, photometric.lambda_depth {ph.lambda_depth}"
+        if c.depth_free_space.enabled and sources.get("depth", "classical") != "classical":
+            depth["photometric"] += (
+                "; pixels outside the dynamic masks that float in front of what other frames see left out "
+                f"(depth_free_space.tolerance {c.depth_free_space.tolerance})"
+            )
     masks = {"sw": f"moving pixels (dilated {c.sw.dilate_px} px) left out of the static warm-up"} if sw else {}
     masks["scaffold"] = "pixels the dynamic Gaussians are lifted from"
     if _uses_object_depth(c, sources):
@@ -745,8 +774,9 @@ def stage_photometric(s: BaseState) -> None:
     """Joint photometric fit of static + dynamic Gaussians, scaffold and (from a set step) cameras; under the
     Gaussian budget and with the loss-plateau stop when those are on (``info["adaptive"]``)."""
     c, sc = s.cfg, s.scene
+    _drop_floating_depth(s)
     steps = c.photometric_steps(sc.num_frames)
-    pcfg = dataclasses.replace(c.photometric, steps=steps)
+    pcfg = dataclasses.replace(c.photometric_config(), steps=steps)
     fit = PhotometricFit(
         pcfg, sc.images, s.depth, sc.Ks, s.w2cs, s.static, s.dynamic, s.scaffold, s.tracks, s.track_vis,
         s.extent, seed=c.seed,
@@ -772,6 +802,27 @@ def stage_photometric(s: BaseState) -> None:
         rec["early_stop"] = s.stop.report()
     s.fit = fit
     s.renderer, s.gaussians_at = fit.render, fit.gaussians_at
+
+
+def _drop_floating_depth(s: BaseState) -> None:
+    """An imported depth's pixels outside the dynamic masks that a static world cannot hold
+    (:func:`worldtree.priors.free_space.free_space_violations`) get depth 0 and confidence 0, so that neither
+    the photometric fit's depth loss nor a tree child's depth hold pulls static Gaussians out to them;
+    ``info["depth_free_space"]``. The classical depth is a static-world estimate and is left as it is."""
+    fc = s.cfg.depth_free_space
+    if not fc.enabled or s.cfg.priors.depth_source == "classical":
+        return
+    flag = free_space_violations(
+        s.depth, s.scene.Ks, s.w2cs, fc.tolerance, fc.views, fc.share, fc.window
+    ) & ~s.P["epi_mask"].bool()
+    s.depth = torch.where(flag, torch.zeros_like(s.depth), s.depth)
+    conf = s.P["depth_conf"]
+    s.P = {**s.P, "depth_conf": torch.where(flag, torch.zeros_like(conf), conf)}
+    per_frame = flag.flatten(1).float().mean(1)
+    s.info["depth_free_space"] = {
+        "dropped_fraction": float(per_frame.mean()),
+        "dropped_fraction_max_frame": float(per_frame.max()) if per_frame.numel() else 0.0,
+    }
 
 
 def _adaptive_setup(s: BaseState, fit: PhotometricFit) -> PlateauDetector | None:
@@ -1145,6 +1196,7 @@ class BaseMethod:
             "stages_cpu_s": dict(self.clock.stages_cpu_s),
             "ablate": list(self.cfg.ablate),
             "migration": dict(fit.migration) if fit is not None else {},
+            "floaters_removed": fit.floaters if fit is not None else 0,
             **{k: v for k, v in s.info.items() if k not in ("scaffold_fit",)},
         }
 

@@ -902,7 +902,7 @@ def _write_context(s: WorldTreeState, tree_dir: Path, no_ancestors: bool) -> Non
     save_torch(tree_dir / "context.pt", data)
     tcfg = c.tree_config()
     ncfg = NodeTrainConfig(
-        photometric=c.photometric,
+        photometric=c.photometric_config(),
         layer_steps=c.layer_steps,
         policy=tcfg.inherit.policy,
         no_ancestors=no_ancestors,

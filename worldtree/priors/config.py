@@ -9,6 +9,8 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass, field, replace
 from typing import Literal
 
+from worldtree.infra.errors import SettingError
+
 
 @dataclass(frozen=True)
 class FlowConfig:
@@ -212,6 +214,38 @@ class MotionConfig:
     mask (the object is where the masks say it is; elsewhere it would be background)."""
     max_dynamic_tracks: int = 4000
     """Upper bound on the chained dynamic tracks."""
+
+
+@dataclass(frozen=True)
+class FreeSpaceConfig:
+    """Which pixels of an imported depth are left out of the depth losses because a static world cannot hold
+    them (:func:`worldtree.priors.free_space.free_space_violations`): outside the dynamic masks, a pixel whose
+    depth puts its point in front of what other frames see there is a moving object the masks missed (or a
+    wrong depth), and a depth loss there pulls static Gaussians into floaters. The classical depth is a
+    static-world estimate and is never checked."""
+
+    enabled: bool = True
+    """Check an imported depth before the photometric fit (false: every pixel keeps its depth)."""
+    tolerance: float = 0.25
+    """A violation needs the point nearer than ``1 - tolerance`` times the depth the other frame sees (an
+    imported depth's per-frame scale is a few to 25 % off; a moving object in front of the wall is far more)."""
+    views: int = 8
+    """Frames each frame is compared with, spread over the video."""
+    share: float = 0.5
+    """Fraction of the frames that see a pixel that must find it in free space."""
+    window: int = 3
+    """Odd side (pixels) of the minimum filter over the other frame's depth (depth edges, pose error)."""
+
+    def __post_init__(self) -> None:
+        checks = (
+            ("tolerance", 0.0 < self.tolerance < 1.0, "choose a margin between 0 and 1 (exclusive)"),
+            ("views", self.views >= 1, "choose at least 1 frame"),
+            ("share", 0.0 < self.share <= 1.0, "choose a fraction in (0, 1]"),
+            ("window", self.window >= 1 and self.window % 2 == 1, "choose an odd size >= 1"),
+        )
+        for name, ok, why in checks:
+            if not ok:
+                raise SettingError.of_field(self, name, why)
 
 
 @dataclass(frozen=True)

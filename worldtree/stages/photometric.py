@@ -45,6 +45,7 @@ from worldtree.motion.regularizers import MotionLossConfig, frame_window, motion
 from worldtree.motion.scaffold import Scaffold, SkinCache, densify
 from worldtree.optim import ConstantLR, GroupedAdam, gaussian_schedules
 from worldtree.pixels import unit_float
+from worldtree.priors.free_space import points_in_free_space, window_minimum
 from worldtree.render import rasterize
 from worldtree.stages import set_migration as mig
 from worldtree.stages.cameras import apply_delta, project_points
@@ -145,6 +146,15 @@ class PhotometricConfig:
     dynamic; a dynamic one that does not move and stays under half of it becomes static."""
     migrate_min_views: int = 3
     """A Gaussian must be seen in at least this many of the measured frames to move."""
+    floater_every: int = 100
+    """Every this many steps from the static density control's start (0 = off; not in the paper), static
+    Gaussians whose centre floats in front of the depth prior seen from the training frames
+    (:func:`worldtree.priors.free_space.points_in_free_space`: nearer than ``1 - floater_tolerance`` of the
+    depth in at least half of the frames that see it, out of up to 8 spread over the video) are removed. A depth
+    that measures moving objects pulls static Gaussians out to them where the masks miss them; a static world
+    cannot hold a point there (docs/base_method.md, "Depth that a static world cannot hold")."""
+    floater_tolerance: float = 0.25
+    """Relative margin of the floater test."""
     static_move_frac: float = 0.002
     """A dynamic Gaussian moving less than this fraction of the scene extent over the video is 'still'."""
     backend: str = "auto"
@@ -318,6 +328,7 @@ class PhotometricFit:
         self.cache = self.dynamic.attach(self.scaffold)
         self.backend = "none"
         self.migration = {"static_to_dynamic": 0, "dynamic_to_static": 0, "events": []}
+        self.floaters = 0  # static Gaussians removed by the floater test (``floater_every``)
 
     # ------------------------------------------------------------------ set-up
     def _gauss_schedules(self, gs: GaussianSet) -> dict:
@@ -525,6 +536,7 @@ class PhotometricFit:
             self.cfg.dynamic_strategy.step_post_backward(
                 self.dynamic, self.dyn_opt, self.dyn_state, step, _View(render, slice(n_s, n_s + before))
             )
+        self._remove_floaters(step)
         changed = len(self.dynamic) != before or (step % self.cfg.dynamic_strategy.refine_every == 0)
         changed = self._densify_nodes(step) > 0 or changed
         changed = self._migrate(step) > 0 or changed
@@ -629,6 +641,27 @@ class PhotometricFit:
         return added
 
     @torch.no_grad()
+    def _remove_floaters(self, step: int) -> int:
+        """Static Gaussians in front of the depth prior seen from the training frames, removed when scheduled
+        (``floater_every``); returns how many. ``self.floaters`` counts them over the fit."""
+        c = self.cfg
+        if c.floater_every <= 0 or step < c.static_strategy.refine_start or step % c.floater_every != 0:
+            return 0
+        if len(self.static) == 0:
+            return 0
+        ref = window_minimum(self.depth, 3)
+        w2cs = torch.stack([self.cameras_detached(t) for t in range(self.T)])
+        frames = sorted(set(torch.linspace(0, self.T - 1, min(self.T, 8)).round().long().tolist()))
+        mask = points_in_free_space(
+            self.static.means.detach(), ref, self.Ks, w2cs, frames, c.floater_tolerance, 0.5
+        )
+        n = int(mask.sum())
+        if n:
+            remove(self.static, self.static_opt, self.static_state, mask)
+        self.floaters += n
+        return n
+
+    @torch.no_grad()
     def _migrate(self, step: int) -> int:
         """Static <-> dynamic migration when scheduled (module ``set_migration``); returns Gaussians moved."""
         c = self.cfg
@@ -723,6 +756,7 @@ class PhotometricFit:
             "queue": list(self.queue),
             "pairs_rng": self.pairs.get_state(),
             "migration": dict(self.migration),
+            "floaters": self.floaters,
             "cache": self.cache.to_state(),
         }
 
@@ -745,6 +779,7 @@ class PhotometricFit:
         self.queue = [int(i) for i in state["queue"]]
         self.pairs.set_state(state["pairs_rng"])
         self.migration = state.get("migration", self.migration)
+        self.floaters = int(state.get("floaters", 0))
         # The skinning neighbourhoods in use at the checkpoint, not new ones from its (moved) node positions:
         # they are recomputed only every ``reattach_every`` steps, so a resumed fit must keep the old ones.
         cache = state.get("cache")
