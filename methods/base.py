@@ -129,7 +129,7 @@ class BaseConfig(CommonConfig):
     """Outlined moving objects placed by their size and path (imported masks with the classical depth)."""
     depth_free_space: FreeSpaceConfig = field(default_factory=FreeSpaceConfig)
     """Imported depth outside the dynamic masks that floats in front of the scene, left out of the photometric
-    fit's depth loss (a moving object the masks missed; classical depth is never checked)."""
+    fit's depth loss (a moving object the masks missed; classical depth is never checked). Off by default."""
     photometric: PhotometricConfig = field(default_factory=PhotometricConfig)
     """Joint fit (its ``steps`` field is replaced by ``steps`` above)."""
     test_pose: PoseRefineConfig = field(default_factory=PoseRefineConfig)
@@ -438,7 +438,13 @@ def prior_use(c: BaseConfig, sources: dict[str, str]) -> dict[str, dict[str, Any
     )  # fmt: skip
     if ph.lambda_depth > 0:
         depth["photometric"] = f"scale-and-shift-invariant depth L1, photometric.lambda_depth {ph.lambda_depth}"
-        if c.depth_free_space.enabled and sources.get("depth", "classical") != "classical":
+        imported = sources.get("depth", "classical") != "classical"
+        if imported and ph.floater_every > 0:
+            depth["photometric"] += (
+                f"; static Gaussians in front of it removed every {ph.floater_every} steps "
+                f"(photometric.floater_every, tolerance {ph.floater_tolerance})"
+            )
+        if c.depth_free_space.enabled and imported:
             depth["photometric"] += (
                 "; pixels outside the dynamic masks that float in front of what other frames see left out "
                 f"(depth_free_space.tolerance {c.depth_free_space.tolerance})"

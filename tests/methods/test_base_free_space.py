@@ -9,7 +9,7 @@ from types import SimpleNamespace
 
 import torch
 
-from methods.base import BaseConfig, _drop_floating_depth
+from methods.base import BaseConfig, _drop_floating_depth, prior_use
 from tests.worldtree.stages.test_stages_photometric import scene
 from worldtree.priors import PriorsConfig
 
@@ -22,6 +22,9 @@ def test_the_classical_depth_switches_the_removal_off_for_every_fit():
     imported = dataclasses.replace(classical, priors=PriorsConfig(depth_source="/some/depth"))
     assert imported.photometric_config().floater_every == classical.photometric.floater_every
     assert "photometric.floater_every" not in imported.ignored_settings()
+    use = prior_use(imported, {"depth": "imported:/some/depth"})["depth"]["used_in"]["photometric"]
+    assert "photometric.floater_every" in use
+    assert "photometric.floater_every" not in prior_use(classical, {})["depth"]["used_in"]["photometric"]
 
 
 def _state(depth_source: str):
@@ -32,7 +35,9 @@ def _state(depth_source: str):
     depth[1, 10:16, 30:38] = 1.2  # a near object in frame 1 that no mask holds: floats in front
     depth[3, 10:16, 4:12] = 1.2  # the same in frame 3, inside its mask: the moving object's own depth
     mask[3, 10:16, 4:12] = True
-    cfg = dataclasses.replace(BaseConfig(), priors=PriorsConfig(depth_source=depth_source))
+    base = BaseConfig()
+    on = dataclasses.replace(base.depth_free_space, enabled=True)  # off by default
+    cfg = dataclasses.replace(base, priors=PriorsConfig(depth_source=depth_source), depth_free_space=on)
     return SimpleNamespace(
         cfg=cfg,
         depth=depth,
@@ -62,10 +67,9 @@ def test_the_classical_depth_and_a_switched_off_check_are_left_as_they_are():
     before = s.depth.clone()
     _drop_floating_depth(s)
     assert torch.equal(s.depth, before) and "depth_free_space" not in s.info
+    assert not BaseConfig().depth_free_space.enabled  # the default
     s = _state("/imported/depth")
-    s.cfg = dataclasses.replace(
-        s.cfg, depth_free_space=dataclasses.replace(s.cfg.depth_free_space, enabled=False)
-    )
+    s.cfg = dataclasses.replace(s.cfg, depth_free_space=BaseConfig().depth_free_space)
     before = s.depth.clone()
     _drop_floating_depth(s)
     assert torch.equal(s.depth, before)
