@@ -228,7 +228,7 @@ class FreeSpaceConfig:
     """Check an imported depth before the photometric fit (false, the default: every pixel keeps its depth). Off
     because it measured no gain beside the static floater removal (``photometric.floater_every``), which is
     what removed the veil on the twin of Balloon1 (docs/base_method.md, "Depth that a static world cannot
-    hold"): on six generated scenes with their exact depth it moved mPSNR by -0.20 to -0.05 dB."""
+    hold"): on three generated scenes with their exact depth it moved mPSNR by -0.20 to -0.05 dB."""
     tolerance: float = 0.25
     """A violation needs the point nearer than ``1 - tolerance`` times the depth the other frame sees (an
     imported depth's per-frame scale is a few to 25 % off; a moving object in front of the wall is far more)."""
