@@ -28,7 +28,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from worldtree.stages.cameras import project_points
+from worldtree.motion.lift import project_points
 
 __all__ = ["frame_depth_errors", "measure_run", "summarise"]
 

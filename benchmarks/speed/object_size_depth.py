@@ -39,9 +39,9 @@ import torch
 
 from worldtree.imageio import read_mask
 from worldtree.infra.atomic import atomic_write_json
+from worldtree.motion.lift import project_points
 from worldtree.motion.track_depth import trajectory_scale
 from worldtree.scene import load_scene
-from worldtree.stages.cameras import project_points
 
 __all__ = ["measure_object", "object_pieces"]
 

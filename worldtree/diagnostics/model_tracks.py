@@ -21,9 +21,9 @@ import torch
 
 from worldtree.dynamic import TIME_STD, DynamicGaussians, gaussians_at
 from worldtree.gaussians import GaussianSet
+from worldtree.motion.lift import project_points
 from worldtree.motion.scaffold import Scaffold
 from worldtree.render import rasterize
-from worldtree.stages.cameras import project_points
 
 
 @dataclass

@@ -1,4 +1,5 @@
-"""Lift 2D point tracks to 3D world trajectories with depth maps and cameras, and fill their gaps in time.
+"""Lift 2D point tracks to 3D world trajectories with depth maps and cameras (and project world points back to
+pixels), and fill their gaps in time.
 
 Pixel convention (OpenCV, as the rasterizer): pixel (row i, column j) has its centre at ``(u, v) = (j, i)``;
 a frame's pixel area is ``-0.5 <= u < W - 0.5``, ``-0.5 <= v < H - 0.5``. Cameras are OpenCV world-to-camera
@@ -9,7 +10,7 @@ from __future__ import annotations
 
 import torch
 
-__all__ = ["camera_rays", "fill_gaps", "lift_tracks", "sample_depth"]
+__all__ = ["camera_rays", "fill_gaps", "lift_tracks", "project_points", "sample_depth"]
 
 
 def sample_depth(
@@ -83,6 +84,16 @@ def camera_rays(uv: torch.Tensor, Ks: torch.Tensor, dtype: torch.dtype) -> torch
     pix = torch.cat((uv, torch.ones_like(uv[..., :1])), dim=-1).to(dtype)  # [T, N, 3]
     # solve instead of inv: K is upper triangular and well conditioned, either is fine, solve is cleaner.
     return torch.linalg.solve(Ks.to(dtype), pix.transpose(1, 2)).transpose(1, 2)
+
+
+def project_points(points: torch.Tensor, K: torch.Tensor, w2c: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(uv [N, 2], z [N])``: pixels (centres at integers) and camera depth of world ``points`` [N, 3] seen by
+    the pinhole camera ``K`` [3, 3] / ``w2c`` [4, 4]. The division uses the depth clamped at 1e-6, so a point
+    at or behind the camera gets finite (meaningless) pixels: test ``z`` before using them. Differentiable."""
+    cam = points @ w2c[:3, :3].T + w2c[:3, 3]
+    z = cam[:, 2]
+    zc = z.clamp_min(1e-6)
+    return torch.stack([K[0, 0] * cam[:, 0] / zc + K[0, 2], K[1, 1] * cam[:, 1] / zc + K[1, 2]], 1), z
 
 
 def lift_tracks(

@@ -21,13 +21,14 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 
-from worldtree.motion.lift import camera_rays
+from worldtree.motion.lift import camera_rays, project_points
 
 __all__ = ["comparison_frames", "free_space_violations", "points_in_free_space", "window_minimum"]
 
 
-def comparison_frames(t: int, num_frames: int, views: int) -> list[int]:
-    """Up to ``views`` frames other than ``t``, spread evenly over the video (ascending, distinct)."""
+def comparison_frames(t: int | None, num_frames: int, views: int) -> list[int]:
+    """Up to ``views`` frames other than ``t`` (None: any frame), spread evenly over the video (ascending,
+    distinct)."""
     others = [s for s in range(num_frames) if s != t]
     if views <= 0 or not others:
         return []
@@ -72,12 +73,8 @@ def points_in_free_space(
     hits = torch.zeros_like(seen)
     pts = points.float()
     for s in frames:
-        cam = pts @ w2cs[s, :3, :3].float().T + w2cs[s, :3, 3].float()
-        z = cam[:, 2]
-        K = Ks[s].float()
-        zc = z.clamp_min(1e-6)  # behind the camera: finite pixels, excluded by ``z`` below
-        u = (K[0, 0] * cam[:, 0] / zc + K[0, 2]).round()
-        v = (K[1, 1] * cam[:, 1] / zc + K[1, 2]).round()
+        q, z = project_points(pts, Ks[s].float(), w2cs[s].float())  # behind the camera: excluded by ``z``
+        u, v = q[:, 0].round(), q[:, 1].round()
         inside = (z > 1e-6) & (u >= 0) & (u <= W - 1) & (v >= 0) & (v <= H - 1)
         r = reference[s][v.clamp(0, H - 1).long(), u.clamp(0, W - 1).long()]
         looked = inside & (r > 0)

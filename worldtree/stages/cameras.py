@@ -27,16 +27,6 @@ def centres(w2c: torch.Tensor) -> torch.Tensor:
     return -(R.transpose(-1, -2) @ t[..., None])[..., 0]
 
 
-def project_points(points: torch.Tensor, K: torch.Tensor, w2c: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """``(uv [N, 2], z [N])``: pixels (centres at integers) and camera depth of world ``points`` [N, 3] seen by
-    the pinhole camera ``K`` [3, 3] / ``w2c`` [4, 4]. The division uses the depth clamped at 1e-6, so a point
-    at or behind the camera gets finite (meaningless) pixels: test ``z`` before using them. Differentiable."""
-    cam = points @ w2c[:3, :3].T + w2c[:3, 3]
-    z = cam[:, 2]
-    zc = z.clamp_min(1e-6)
-    return torch.stack([K[0, 0] * cam[:, 0] / zc + K[0, 2], K[1, 1] * cam[:, 1] / zc + K[1, 2]], 1), z
-
-
 def rotation_angle_deg(Ra: torch.Tensor, Rb: torch.Tensor) -> torch.Tensor:
     """Geodesic angle in degrees between rotation matrices ``Ra``, ``Rb`` [..., 3, 3]."""
     tr = (Ra.transpose(-1, -2) @ Rb).diagonal(dim1=-2, dim2=-1).sum(-1)

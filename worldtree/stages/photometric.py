@@ -41,14 +41,15 @@ from worldtree.budget import growth_cap, negligible, render_contributions
 from worldtree.dynamic import TIME_STD, DynamicGaussians, gaussians_at
 from worldtree.gaussians import GaussianSet
 from worldtree.losses import SsimTargets, ssim
+from worldtree.motion.lift import project_points
 from worldtree.motion.regularizers import MotionLossConfig, frame_window, motion_losses
 from worldtree.motion.scaffold import Scaffold, SkinCache, densify
 from worldtree.optim import ConstantLR, GroupedAdam, gaussian_schedules
 from worldtree.pixels import unit_float
-from worldtree.priors.free_space import points_in_free_space, window_minimum
+from worldtree.priors.free_space import comparison_frames, points_in_free_space, window_minimum
 from worldtree.render import rasterize
 from worldtree.stages import set_migration as mig
-from worldtree.stages.cameras import apply_delta, project_points
+from worldtree.stages.cameras import apply_delta
 from worldtree.stages.frame_coupling import carried_frame, neighbour
 from worldtree.strategy import DensifyStrategy, remove
 from worldtree.trainer import StepOutput
@@ -277,7 +278,7 @@ def relative_depth_variance(
 
 def project(points: torch.Tensor, K: torch.Tensor, w2c: torch.Tensor) -> torch.Tensor:
     """Pixels ``[N, 2]`` of world points ``[N, 3]`` (depth clamped at 1e-6 to stay finite;
-    :func:`worldtree.stages.cameras.project_points`)."""
+    :func:`worldtree.motion.lift.project_points`)."""
     return project_points(points, K, w2c)[0]
 
 
@@ -651,7 +652,7 @@ class PhotometricFit:
             return 0
         ref = window_minimum(self.depth, 3)
         w2cs = torch.stack([self.cameras_detached(t) for t in range(self.T)])
-        frames = sorted(set(torch.linspace(0, self.T - 1, min(self.T, 8)).round().long().tolist()))
+        frames = comparison_frames(None, self.T, 8)
         mask = points_in_free_space(
             self.static.means.detach(), ref, self.Ks, w2cs, frames, c.floater_tolerance, 0.5
         )

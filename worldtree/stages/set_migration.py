@@ -27,8 +27,8 @@ from torch import nn
 
 from worldtree.dynamic import TIME_STD, DynamicGaussians
 from worldtree.gaussians import GaussianSet
+from worldtree.motion.lift import project_points
 from worldtree.optim import GroupedAdam
-from worldtree.stages.cameras import project_points
 from worldtree.strategy import STATE_KEYS, remove
 
 MIGRATED_TIME_STD = 1e3

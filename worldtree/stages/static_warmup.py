@@ -27,10 +27,10 @@ from worldtree.gaussians import GaussianSet
 from worldtree.infra.config_ranges import in_range
 from worldtree.infra.errors import UserError
 from worldtree.losses import SsimTargets, ssim_map
+from worldtree.motion.lift import project_points
 from worldtree.optim import GroupedAdam, gaussian_schedules
 from worldtree.pixels import unit_float
 from worldtree.render import rasterize
-from worldtree.stages.cameras import project_points
 from worldtree.strategy import DensifyStrategy
 from worldtree.trainer import DensifiedGaussianTrainable, StepOutput
 

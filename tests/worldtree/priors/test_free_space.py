@@ -151,6 +151,9 @@ def test_comparison_frames_are_spread_distinct_and_exclude_the_frame():
     gaps = np.diff(got)
     assert gaps.max() - gaps.min() <= 2  # evenly spread over the video
     assert comparison_frames(2, 10, 0) == []
+    # None excludes no frame: the frames a static point is looked at from (the fit's floater removal).
+    assert comparison_frames(None, 40, 8) == sorted(set(torch.linspace(0, 39, 8).round().long().tolist()))
+    assert comparison_frames(None, 5, 8) == [0, 1, 2, 3, 4]
 
 
 @pytest.mark.parametrize(
