@@ -68,6 +68,19 @@ def test_out_of_range_set_is_one_line(method, item, needle):
     assert msg.startswith(f"--set {item}: ") and needle in msg and "\n" not in msg
 
 
+def test_floater_margin_is_a_fraction_strictly_inside_zero_one():
+    # The floater test builds the imported depth's check from it (FreeSpaceConfig), which refuses 0 and 1 mid-fit.
+    cfg = get_method("base").config("smoke")
+    for bad in (0.0, 1.0, 1.5):
+        ph = dataclasses.replace(cfg.photometric, floater_tolerance=bad)
+        problems = config_problems(dataclasses.replace(cfg, photometric=ph))
+        assert [(k, why) for k, _, why in problems] == [
+            ("photometric.floater_tolerance", "must be between 0 and 1, both excluded (a relative margin)")
+        ], bad
+    ph = dataclasses.replace(cfg.photometric, floater_tolerance=0.4)
+    assert config_problems(dataclasses.replace(cfg, photometric=ph)) == []
+
+
 def test_in_range_values_and_zero_meaning_off_are_accepted():
     cfg, _ = resolve_config(
         get_method("base"),

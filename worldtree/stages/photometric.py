@@ -40,12 +40,14 @@ import torch
 from worldtree.budget import growth_cap, negligible, render_contributions
 from worldtree.dynamic import TIME_STD, DynamicGaussians, gaussians_at
 from worldtree.gaussians import GaussianSet
+from worldtree.infra.config_ranges import in_range
 from worldtree.losses import SsimTargets, ssim
 from worldtree.motion.lift import project_points
 from worldtree.motion.regularizers import MotionLossConfig, frame_window, motion_losses
 from worldtree.motion.scaffold import Scaffold, SkinCache, densify
 from worldtree.optim import ConstantLR, GroupedAdam, gaussian_schedules
 from worldtree.pixels import unit_float
+from worldtree.priors.config import FreeSpaceConfig
 from worldtree.priors.free_space import comparison_frames, points_in_free_space, window_minimum
 from worldtree.render import rasterize
 from worldtree.stages import set_migration as mig
@@ -151,11 +153,15 @@ class PhotometricConfig:
     """Every this many steps from the static density control's start (0 = off; not in the paper), static
     Gaussians whose centre floats in front of the depth prior seen from the training frames
     (:func:`worldtree.priors.free_space.points_in_free_space`: nearer than ``1 - floater_tolerance`` of the
-    depth in at least half of the frames that see it, out of up to 8 spread over the video) are removed. A depth
+    depth in at least ``share`` of the frames that see it, out of ``views`` spread over the video, the depth's
+    minimum over a ``window``: :class:`worldtree.priors.config.FreeSpaceConfig`'s defaults) are removed. A depth
     that measures moving objects pulls static Gaussians out to them where the masks miss them; a static world
     cannot hold a point there (docs/base_method.md, "Depth that a static world cannot hold")."""
-    floater_tolerance: float = 0.25
-    """Relative margin of the floater test."""
+    floater_tolerance: float = field(
+        default=FreeSpaceConfig.tolerance,
+        metadata=in_range(0, 1, "a relative margin", open_lo=True, open_hi=True),
+    )
+    """Relative margin of the floater test (the imported depth's check's, ``priors.free_space.tolerance``)."""
     static_move_frac: float = 0.002
     """A dynamic Gaussian moving less than this fraction of the scene extent over the video is 'still'."""
     backend: str = "auto"
@@ -650,11 +656,12 @@ class PhotometricFit:
             return 0
         if len(self.static) == 0:
             return 0
-        ref = window_minimum(self.depth, 3)
+        test = FreeSpaceConfig(tolerance=c.floater_tolerance)  # the imported depth's check's other defaults
+        ref = window_minimum(self.depth, test.window)
         w2cs = torch.stack([self.cameras_detached(t) for t in range(self.T)])
-        frames = comparison_frames(None, self.T, 8)
+        frames = comparison_frames(None, self.T, test.views)
         mask = points_in_free_space(
-            self.static.means.detach(), ref, self.Ks, w2cs, frames, c.floater_tolerance, 0.5
+            self.static.means.detach(), ref, self.Ks, w2cs, frames, test.tolerance, test.share
         )
         n = int(mask.sum())
         if n:
@@ -784,4 +791,6 @@ class PhotometricFit:
         # The skinning neighbourhoods in use at the checkpoint, not new ones from its (moved) node positions:
         # they are recomputed only every ``reattach_every`` steps, so a resumed fit must keep the old ones.
         cache = state.get("cache")
-        self.cache = SkinCache.from_state(cache, dev) if cache is not None else self.dynamic.attach(self.scaffold)
+        self.cache = (
+            SkinCache.from_state(cache, dev) if cache is not None else self.dynamic.attach(self.scaffold)
+        )
