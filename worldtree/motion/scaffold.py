@@ -16,8 +16,8 @@ from dataclasses import asdict, dataclass
 import torch
 from torch import nn
 
-from worldtree.motion import dualquat, se3, skinning
 from worldtree.motion import quaternion as Q
+from worldtree.motion import se3, skinning
 
 __all__ = [
     "ArapGraph",
@@ -604,8 +604,7 @@ class Scaffold(nn.Module):
                 frame, table_idx = torch.zeros_like(t_ref), inverse.view(idx.shape)
             else:
                 q_t, p_t = self.quat[ti][None], self.pos[ti][None]
-            q_tab, t_tab = se3.relative(q_t, p_t, quat, pos)
-            real, dual = dualquat.from_quat_trans(q_tab, t_tab)  # [T, M, 4] or [1, U, 4] each
+            real, dual = skinning.relative_dual(q_t, p_t, quat, pos)  # [T, M, 4] or [1, U, 4] each
             return skinning.deform_dual_planes(
                 points,
                 quats,

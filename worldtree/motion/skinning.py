@@ -9,7 +9,8 @@ Nodes carry a pose per frame (position [T, M, 3], rotation [T, M, 4] (w, x, y, z
 
 Everything is differentiable in PyTorch with respect to the points, node poses, ``sigma`` and the correction;
 the neighbour indices are integers and carry no gradient. On a CPU in float32, :func:`deform_dual_planes` (the
-scaffold's one-frame path) runs a compiled kernel with a hand-written backward instead of the autograd graph.
+scaffold's one-frame path) and :func:`relative_dual` (the table of node motions it blends) run compiled kernels
+with hand-written backwards instead of the autograd graph.
 """
 
 from __future__ import annotations
@@ -28,6 +29,7 @@ __all__ = [
     "gather_planes",
     "knn",
     "normalize_weights",
+    "relative_dual",
     "skinning_weights",
 ]
 
@@ -143,6 +145,70 @@ def gather_planes(traj: torch.Tensor, frame: torch.Tensor, knn_idx: torch.Tensor
     lin = (frame[:, None] * M + knn_idx).reshape(-1)
     planes = traj.reshape(T * M, C).t().contiguous()  # [C, T * M]
     return planes.index_select(1, lin).view(C, *knn_idx.shape)
+
+
+def relative_dual(
+    q_t: torch.Tensor, p_t: torch.Tensor, q_ref: torch.Tensor, p_ref: torch.Tensor, eps: float = 1e-12
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Unit dual quaternions ``(real, dual)`` [..., 4] of the node motions ``T(t) T(t_ref)^-1``: the poses at the
+    target frame (``q_t`` [..., 4] any norm, ``p_t`` [..., 3] scene units) and at the reference frames (``q_ref``,
+    ``p_ref``); leading shapes broadcast. :func:`worldtree.motion.se3.relative` then
+    :func:`worldtree.motion.dualquat.from_quat_trans`, guards included (a quaternion with ``|q| <= eps`` is the
+    identity, with zero gradient).
+
+    Float32 on the CPU takes the compiled kernel (:class:`_RelativeCompiled`,
+    ``worldtree/render/csrc/relative_cpu.cpp``) when it builds: each entry in one pass, in double, rounded once;
+    anything else takes :func:`_relative_dual_tensor`.
+    """
+    shape = torch.broadcast_shapes(q_t.shape[:-1], p_t.shape[:-1], q_ref.shape[:-1], p_ref.shape[:-1])
+    ops = _relative_ops(q_t, p_t, q_ref, p_ref)
+    if ops is None or len(shape) == 0:
+        return _relative_dual_tensor(q_t, p_t, q_ref, p_ref, eps)
+    # Broadcast inputs are expanded here, so that autograd's expand backward sums their gradients.
+    flat = [x.expand(*shape, x.shape[-1]).reshape(-1, x.shape[-1]) for x in (q_t, p_t, q_ref, p_ref)]
+    real, dual = _RelativeCompiled.apply(*flat, float(eps), ops)
+    return real.view(*shape, 4), dual.view(*shape, 4)
+
+
+def _relative_dual_tensor(q_t, p_t, q_ref, p_ref, eps: float = 1e-12) -> tuple[torch.Tensor, torch.Tensor]:
+    """:func:`relative_dual` written with tensors (any device and dtype; the compiled kernel's reference)."""
+    q_rel, t_rel = se3.relative(q_t, p_t, q_ref, p_ref)
+    return dualquat.from_quat_trans(q_rel, t_rel)
+
+
+def _relative_ops(*xs: torch.Tensor):
+    """The compiled kernel's ops when every input is a float32 CPU tensor and the kernel builds, else None."""
+    if any(x.device.type != "cpu" or x.dtype != torch.float32 for x in xs):
+        return None
+    from worldtree.render import cpu_kernel  # the rasterizer's extension also holds the motion kernels
+
+    return cpu_kernel.ops()
+
+
+class _RelativeCompiled(torch.autograd.Function):
+    """:func:`_relative_dual_tensor` on ``[U, C]`` inputs computed by the compiled kernel
+    (``relative_dual_forward`` / ``relative_dual_backward``); only the inputs are saved (the backward recomputes
+    each entry). Every value is per entry, so the results are the same for any thread count."""
+
+    @staticmethod
+    def forward(ctx, q_t, p_t, q_ref, p_ref, eps, ops):
+        ins = [x.detach().contiguous() for x in (q_t, p_t, q_ref, p_ref)]
+        threads = torch.get_num_threads()
+        real, dual = ops.relative_dual_forward(*ins, eps, threads)
+        ctx.save_for_backward(*ins)
+        ctx.args = (eps, threads, ops)
+        return real, dual
+
+    @staticmethod
+    @once_differentiable  # first derivatives only (nothing here needs second ones): an error, not a wrong value
+    def backward(ctx, g_real, g_dual):
+        ins = ctx.saved_tensors
+        eps, threads, ops = ctx.args
+        g_real = torch.zeros_like(ins[0]) if g_real is None else g_real.contiguous()
+        g_dual = torch.zeros_like(ins[0]) if g_dual is None else g_dual.contiguous()
+        grads = ops.relative_dual_backward(*ins, g_real, g_dual, eps, threads)
+        need = ctx.needs_input_grad[:4]
+        return (*(g if n else None for g, n in zip(grads, need, strict=True)), None, None)
 
 
 def deform_dual_planes(
