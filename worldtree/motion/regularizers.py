@@ -25,6 +25,7 @@ __all__ = [
     "frame_window",
     "local_coordinates",
     "motion_losses",
+    "smoothness_losses",
     "velocity_losses",
 ]
 
@@ -344,6 +345,43 @@ def acceleration_losses(pos: torch.Tensor, quat: torch.Tensor) -> tuple[torch.Te
     return _mean(a_xyz), _mean(a_rot)
 
 
+def smoothness_losses(
+    pos: torch.Tensor, quat: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """``(v_xyz, v_rot, a_xyz, a_rot)``: :func:`velocity_losses` and :func:`acceleration_losses` of ``pos``
+    [T, M, 3] and ``quat`` [T, M, 4] (0-d tensors; scene units and radians per frame, per frame squared).
+
+    Float32 on the CPU takes the compiled kernel (:class:`_SmoothCompiled`, ``worldtree/render/csrc/
+    smooth_cpu.cpp``) when it builds: each node's trajectory in one pass, in double, the same values for any
+    thread count; anything else takes the two tensor functions."""
+    ops = _compiled_ops(pos) if quat.device.type == "cpu" and quat.dtype == torch.float32 else None
+    if ops is None:
+        return (*velocity_losses(pos, quat), *acceleration_losses(pos, quat))
+    out = _SmoothCompiled.apply(pos, quat, ops)
+    return out[0], out[1], out[2], out[3]
+
+
+class _SmoothCompiled(torch.autograd.Function):
+    """:func:`velocity_losses` and :func:`acceleration_losses` by the compiled kernel (``motion_smooth_forward``
+    / ``motion_smooth_backward``) as one [4] tensor; only the inputs are kept for the backward."""
+
+    @staticmethod
+    def forward(ctx, pos, quat, ops):
+        p, q = pos.detach().contiguous(), quat.detach().contiguous()
+        threads = torch.get_num_threads()
+        ctx.save_for_backward(p, q)
+        ctx.args = (threads, ops)
+        return ops.motion_smooth_forward(p, q, 1e-12, threads)  # eps: quaternion.normalize's
+
+    @staticmethod
+    @once_differentiable  # first derivatives only (nothing here needs second ones): an error, not a wrong value
+    def backward(ctx, g):
+        p, q = ctx.saved_tensors
+        threads, ops = ctx.args
+        g_pos, g_quat = ops.motion_smooth_backward(p, q, g.contiguous(), 1e-12, threads)
+        return g_pos, g_quat, None
+
+
 def motion_losses(
     pos: torch.Tensor, quat: torch.Tensor, graphs: list[ArapGraph], cfg: MotionLossConfig | None = None
 ) -> MotionLosses:
@@ -363,8 +401,7 @@ def motion_losses(
         gc, gl = _arap_terms(pos, quat, R, g, cfg.arap_shifts, cfg.arap_shift_weights)
         coord = coord + g.weight * gc
         length = length + g.weight * gl
-    v_xyz, v_rot = velocity_losses(pos, quat)
-    a_xyz, a_rot = acceleration_losses(pos, quat)
+    v_xyz, v_rot, a_xyz, a_rot = smoothness_losses(pos, quat)
     total = (
         cfg.lambda_arap_coord * coord
         + cfg.lambda_arap_len * length

@@ -1,5 +1,6 @@
 """Building and caching the C++ rasterizer (csrc/rasterize_cpu.cpp) and, in the same library, the motion kernels
-(csrc/motion_cpu.cpp: ARAP, DQB skinning and relative node motions): one build per target, shared by processes.
+(csrc/motion_cpu.cpp: ARAP, smoothness terms, DQB skinning, relative node motions): one build per target, shared
+by processes.
 
 Three targets are compiled from the same sources:
 
@@ -27,7 +28,7 @@ The kernel includes only the ATen headers it uses (not ``<torch/extension.h>``, 
 compile) and registers its functions as torch custom ops in the namespace ``torch.ops.<name>`` (the build's name,
 so every target's build has its own), not as a pybind11 module. Each translation unit still spends about 4.5 s
 parsing those headers, so the library is two units compiled in parallel, one per core of a 2-core machine: SOURCE
-and motion_cpu.cpp, which #includes the ARAP, skinning and relative-motion files (INCLUDED_SOURCES). A first build
+and motion_cpu.cpp, which #includes the ARAP, smoothness, skinning and relative-motion files (INCLUDED_SOURCES). A first build
 (``cpu_kernel.prepare()`` in a fresh process, Python start and torch import included) took 10.1-11.6 s on the
 2-core development machine, against 13.6-14.0 s as three units (2026-11-26, docs/rendering.md); loading a
 finished build takes a few milliseconds once torch is imported.
@@ -54,9 +55,9 @@ log = logging.getLogger("worldtree.render")
 _CSRC = Path(__file__).parent / "csrc"
 SOURCE = _CSRC / "rasterize_cpu.cpp"
 #: Further translation units linked into the same library (their ops join the namespace as fragments), compiled
-#: in parallel with SOURCE: motion_cpu.cpp, the ARAP regulariser of the motion scaffold
-#: (worldtree.motion.regularizers), the DQB skinning of Gaussians and the relative node motions it blends
-#: (worldtree.motion.skinning) as one unit.
+#: in parallel with SOURCE: motion_cpu.cpp, the ARAP regulariser of the motion scaffold and its velocity and
+#: acceleration terms (worldtree.motion.regularizers), the DQB skinning of Gaussians and the relative node motions
+#: it blends (worldtree.motion.skinning) as one unit.
 EXTRA_SOURCES: tuple[Path, ...] = (_CSRC / "motion_cpu.cpp",)
 #: Sources a unit #includes instead of compiling them on their own (motion_cpu.cpp's kernels): copied next to
 #: the units and covered by the build key like them. Each unit parses the ATen headers once (about 4.5 s here), so
@@ -65,6 +66,7 @@ INCLUDED_SOURCES: tuple[Path, ...] = (
     _CSRC / "arap_cpu.cpp",
     _CSRC / "skinning_cpu.cpp",
     _CSRC / "relative_cpu.cpp",
+    _CSRC / "smooth_cpu.cpp",
 )
 TARGETS = ("native", "avx2", "portable")
 ENV_TARGET = "WORLDTREE_RASTER_TARGET"
