@@ -8,17 +8,12 @@ import math
 import pytest
 import torch
 
+from tests.worldtree.motion.compiled_kernels import assert_same_bits_at_thread_counts, require_kernel
 from worldtree.motion import dualquat, se3, skinning
 from worldtree.motion import quaternion as Q
 
 f64 = torch.float64
 
-
-def _kernel():
-    from worldtree.render import cpu_kernel
-
-    if not cpu_kernel.available():
-        pytest.skip(f"the compiled kernel does not build here: {cpu_kernel.build_error()}")
 
 
 def _case(T: int, M: int, seed: int) -> list[torch.Tensor]:
@@ -51,7 +46,7 @@ def _values(fn, xs, dtype, seed=3):
 
 @pytest.mark.parametrize("T, M", [(7, 13), (3, 5), (40, 33)])
 def test_compiled_matches_the_float64_tensor_version(T, M):
-    _kernel()
+    require_kernel()
     xs = _case(T, M, seed=T + M)
     assert skinning._relative_ops(*(x.float() for x in xs)) is not None
     got = _values(skinning.relative_dual, xs, torch.float32)
@@ -66,7 +61,7 @@ def test_compiled_matches_the_float64_tensor_version(T, M):
 
 
 def test_guarded_quaternions_are_the_identity_with_zero_gradient():
-    _kernel()
+    require_kernel()
     xs = _case(4, 6, seed=1)
     real, dual, g_qt, g_pt, g_qr, g_pr = _values(skinning.relative_dual, xs, torch.float32)
     # Zero and sub-eps reference rotations are the identity: the motion's rotation is the target's alone.
@@ -81,7 +76,7 @@ def test_guarded_quaternions_are_the_identity_with_zero_gradient():
 
 
 def test_closed_form_motions():
-    _kernel()
+    require_kernel()
     # A translation only: the motion is p_t - p_ref, dual = 0.5 (0, t).
     p_t, p_ref = torch.tensor([[1.0, -2.0, 0.5]]), torch.tensor([[0.25, 1.0, -3.0]])
     ident = torch.tensor([[2.0, 0.0, 0.0, 0.0]])  # any norm
@@ -104,18 +99,9 @@ def test_closed_form_motions():
 
 
 def test_same_bits_for_any_thread_count():
-    _kernel()
+    require_kernel()
     xs = _case(40, 60, seed=5)
-    before = torch.get_num_threads()
-    try:
-        torch.set_num_threads(1)
-        one = _values(skinning.relative_dual, xs, torch.float32)
-        torch.set_num_threads(2)
-        two = _values(skinning.relative_dual, xs, torch.float32)
-    finally:
-        torch.set_num_threads(before)
-    for a, b in zip(one, two, strict=True):
-        assert torch.equal(a, b)
+    assert_same_bits_at_thread_counts(lambda: _values(skinning.relative_dual, xs, torch.float32))
 
 
 def test_tensor_path_for_other_dtypes_and_scalars():
@@ -131,7 +117,7 @@ def test_tensor_path_for_other_dtypes_and_scalars():
 
 
 def test_a_nan_position_shows_in_the_outputs():
-    _kernel()
+    require_kernel()
     xs = [x.float() for x in _case(3, 4, seed=4)]
     xs[3][1, 2, 0] = float("nan")
     real, dual = skinning.relative_dual(*xs)

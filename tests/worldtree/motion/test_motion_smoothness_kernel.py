@@ -8,16 +8,11 @@ import math
 import pytest
 import torch
 
+from tests.worldtree.motion.compiled_kernels import assert_same_bits_at_thread_counts, require_kernel
 from worldtree.motion import regularizers as R
 
 f64 = torch.float64
 
-
-def _kernel():
-    from worldtree.render import cpu_kernel
-
-    if not cpu_kernel.available():
-        pytest.skip(f"the compiled kernel does not build here: {cpu_kernel.build_error()}")
 
 
 def _case(T: int, M: int, seed: int) -> list[torch.Tensor]:
@@ -49,7 +44,7 @@ def _tensor(pos, quat):
 
 @pytest.mark.parametrize("T, M", [(12, 37), (3, 5), (40, 8)])
 def test_compiled_matches_the_float64_tensor_version(T, M):
-    _kernel()
+    require_kernel()
     xs = _case(T, M, seed=T * M)
     assert R._compiled_ops(xs[0].float()) is not None
     got = _values(R.smoothness_losses, xs, torch.float32)
@@ -63,7 +58,7 @@ def test_compiled_matches_the_float64_tensor_version(T, M):
 
 @pytest.mark.parametrize("T, M", [(1, 4), (2, 4), (3, 0), (5, 1)])
 def test_short_videos_and_empty_scaffolds_are_zero_where_the_tensor_version_is(T, M):
-    _kernel()
+    require_kernel()
     xs = _case(T, M, seed=1)
     got = _values(R.smoothness_losses, xs, torch.float32)
     want = _values(_tensor, xs, f64)
@@ -75,7 +70,7 @@ def test_short_videos_and_empty_scaffolds_are_zero_where_the_tensor_version_is(T
 
 
 def test_closed_form_trajectories():
-    _kernel()
+    require_kernel()
     # Every node moves by v per frame along x and turns by w radians per frame about its own fixed axis, at any
     # quaternion norm: speed |v|, angular speed w, no acceleration of either kind.
     T, M, v, w = 10, 3, 0.25, 0.1
@@ -99,18 +94,9 @@ def test_closed_form_trajectories():
 
 
 def test_same_bits_for_any_thread_count():
-    _kernel()
+    require_kernel()
     xs = _case(30, 301, seed=9)
-    before = torch.get_num_threads()
-    try:
-        torch.set_num_threads(1)
-        one = _values(R.smoothness_losses, xs, torch.float32)
-        torch.set_num_threads(2)
-        two = _values(R.smoothness_losses, xs, torch.float32)
-    finally:
-        torch.set_num_threads(before)
-    for a, b in zip(one, two, strict=True):
-        assert torch.equal(a, b)
+    assert_same_bits_at_thread_counts(lambda: _values(R.smoothness_losses, xs, torch.float32))
 
 
 def test_float64_takes_the_tensor_functions():
