@@ -29,9 +29,7 @@ from pathlib import Path
 def _variants():
     from worldtree.motion import regularizers, skinning
 
-    def tensor_smooth(pos, quat):
-        return (*regularizers.velocity_losses(pos, quat), *regularizers.acceleration_losses(pos, quat))
-
+    tensor_smooth = regularizers._smoothness_tensor
     compiled_rel, compiled_smooth = skinning._relative_ops, regularizers.smoothness_losses
     off = lambda *args: None  # noqa: E731 - "no compiled ops": the tensor version
     return {

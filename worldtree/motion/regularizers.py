@@ -273,13 +273,11 @@ class _ArapTerms(torch.autograd.Function):
         return g_P.permute(2, 0, 1), g_R, None, None, None, None, None
 
 
-def _compiled_ops(pos: torch.Tensor):
-    """The compiled kernel's ops when ``pos`` can use them (float32 on the CPU, kernel built), else None."""
-    if pos.device.type != "cpu" or pos.dtype != torch.float32:
-        return None
-    from worldtree.render import cpu_kernel  # the rasterizer's extension also holds the ARAP kernel
+def _compiled_ops(*tensors: torch.Tensor):
+    """The compiled kernels' ops when every tensor can use them (float32 on the CPU, kernel built), else None."""
+    from worldtree.render import cpu_kernel  # the rasterizer's extension also holds the motion kernels
 
-    return cpu_kernel.ops()
+    return cpu_kernel.ops_for(*tensors)
 
 
 class _ArapCompiled(torch.autograd.Function):
@@ -353,12 +351,17 @@ def smoothness_losses(
 
     Float32 on the CPU takes the compiled kernel (:class:`_SmoothCompiled`, ``worldtree/render/csrc/
     smooth_cpu.cpp``) when it builds: each node's trajectory in one pass, in double, the same values for any
-    thread count; anything else takes the two tensor functions."""
-    ops = _compiled_ops(pos) if quat.device.type == "cpu" and quat.dtype == torch.float32 else None
+    thread count; anything else takes :func:`_smoothness_tensor`."""
+    ops = _compiled_ops(pos, quat)
     if ops is None:
-        return (*velocity_losses(pos, quat), *acceleration_losses(pos, quat))
+        return _smoothness_tensor(pos, quat)
     out = _SmoothCompiled.apply(pos, quat, ops)
     return out[0], out[1], out[2], out[3]
+
+
+def _smoothness_tensor(pos: torch.Tensor, quat: torch.Tensor):
+    """:func:`smoothness_losses` written with tensors (any device and dtype; the compiled kernel's reference)."""
+    return (*velocity_losses(pos, quat), *acceleration_losses(pos, quat))
 
 
 class _SmoothCompiled(torch.autograd.Function):

@@ -178,11 +178,9 @@ def _relative_dual_tensor(q_t, p_t, q_ref, p_ref, eps: float = 1e-12) -> tuple[t
 
 def _relative_ops(*xs: torch.Tensor):
     """The compiled kernel's ops when every input is a float32 CPU tensor and the kernel builds, else None."""
-    if any(x.device.type != "cpu" or x.dtype != torch.float32 for x in xs):
-        return None
     from worldtree.render import cpu_kernel  # the rasterizer's extension also holds the motion kernels
 
-    return cpu_kernel.ops()
+    return cpu_kernel.ops_for(*xs)
 
 
 class _RelativeCompiled(torch.autograd.Function):

@@ -67,6 +67,14 @@ def ops():
     return _load()
 
 
+def ops_for(*tensors):
+    """:func:`ops` when every one of ``tensors`` is float32 on the CPU (the kernels' only dtype and device), else
+    None (the caller's tensor version)."""
+    if any(t.device.type != "cpu" or t.dtype != torch.float32 for t in tensors):
+        return None
+    return ops()
+
+
 def build_error() -> str:
     """Why the build failed ('' when it did not)."""
     _load()

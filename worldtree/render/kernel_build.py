@@ -28,7 +28,8 @@ The kernel includes only the ATen headers it uses (not ``<torch/extension.h>``, 
 compile) and registers its functions as torch custom ops in the namespace ``torch.ops.<name>`` (the build's name,
 so every target's build has its own), not as a pybind11 module. Each translation unit still spends about 4.5 s
 parsing those headers, so the library is two units compiled in parallel, one per core of a 2-core machine: SOURCE
-and motion_cpu.cpp, which #includes the ARAP, smoothness, skinning and relative-motion files (INCLUDED_SOURCES). A first build
+and motion_cpu.cpp, which #includes the ARAP, smoothness, skinning and relative-motion files and their shared
+quaternion header (INCLUDED_SOURCES). A first build
 (``cpu_kernel.prepare()`` in a fresh process, Python start and torch import included) took 10.1-11.6 s on the
 2-core development machine, against 13.6-14.0 s as three units (2026-11-26, docs/rendering.md); loading a
 finished build takes a few milliseconds once torch is imported.
@@ -65,6 +66,7 @@ EXTRA_SOURCES: tuple[Path, ...] = (_CSRC / "motion_cpu.cpp",)
 INCLUDED_SOURCES: tuple[Path, ...] = (
     _CSRC / "arap_cpu.cpp",
     _CSRC / "skinning_cpu.cpp",
+    _CSRC / "quat_cpu.h",
     _CSRC / "relative_cpu.cpp",
     _CSRC / "smooth_cpu.cpp",
 )

@@ -38,17 +38,13 @@ def _values(fn, xs, dtype, seed=5):
     return [torch.stack([o.detach() for o in out]), *grads]
 
 
-def _tensor(pos, quat):
-    return (*R.velocity_losses(pos, quat), *R.acceleration_losses(pos, quat))
-
-
 @pytest.mark.parametrize("T, M", [(12, 37), (3, 5), (40, 8)])
 def test_compiled_matches_the_float64_tensor_version(T, M):
     require_kernel()
     xs = _case(T, M, seed=T * M)
     assert R._compiled_ops(xs[0].float()) is not None
     got = _values(R.smoothness_losses, xs, torch.float32)
-    want = _values(_tensor, xs, f64)
+    want = _values(R._smoothness_tensor, xs, f64)
     for a, b in zip(got, want, strict=True):
         assert a.dtype == torch.float32 and a.shape == b.shape and torch.isfinite(a).all()
         scale = max(1.0, float(b.abs().max()))
@@ -61,7 +57,7 @@ def test_short_videos_and_empty_scaffolds_are_zero_where_the_tensor_version_is(T
     require_kernel()
     xs = _case(T, M, seed=1)
     got = _values(R.smoothness_losses, xs, torch.float32)
-    want = _values(_tensor, xs, f64)
+    want = _values(R._smoothness_tensor, xs, f64)
     for a, b in zip(got, want, strict=True):
         assert torch.isfinite(a).all()
         torch.testing.assert_close(a.double(), b, rtol=1e-5, atol=1e-6)
@@ -103,5 +99,6 @@ def test_float64_takes_the_tensor_functions():
     xs = _case(6, 4, seed=3)
     assert R._compiled_ops(xs[0]) is None
     got = R.smoothness_losses(*xs)
-    for a, b in zip(got, _tensor(*xs), strict=True):
+    want = (*R.velocity_losses(*xs), *R.acceleration_losses(*xs))
+    for a, b in zip(got, want, strict=True):
         assert torch.equal(a, b)

@@ -5,5 +5,6 @@
 // their helpers must not share a name (a clash is a compile error, an overload would be silent).
 #include "arap_cpu.cpp"
 #include "skinning_cpu.cpp"
+#include "quat_cpu.h"
 #include "relative_cpu.cpp"
 #include "smooth_cpu.cpp"

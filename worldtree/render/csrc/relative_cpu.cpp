@@ -30,89 +30,49 @@
 
 #include <omp.h>
 
+#include "quat_cpu.h"
+
 namespace {
 
-struct Quat {
-  double w, x, y, z;
-};
-struct Vec {
-  double x, y, z;
-};
-
-inline Quat rel_mul(const Quat& a, const Quat& b) {  // Hamilton product a b
-  return {a.w * b.w - a.x * b.x - a.y * b.y - a.z * b.z, a.w * b.x + a.x * b.w + a.y * b.z - a.z * b.y,
-          a.w * b.y - a.x * b.z + a.y * b.w + a.z * b.x, a.w * b.z + a.x * b.y - a.y * b.x + a.z * b.w};
-}
-inline Quat rel_conj(const Quat& q) { return {q.w, -q.x, -q.y, -q.z}; }
-inline Vec rel_cross(const Vec& a, const Vec& b) {
-  return {a.y * b.z - a.z * b.y, a.z * b.x - a.x * b.z, a.x * b.y - a.y * b.x};
-}
-inline double rel_dot(const Vec& a, const Vec& b) { return a.x * b.x + a.y * b.y + a.z * b.z; }
-inline Vec rel_vec(const Quat& q) { return {q.x, q.y, q.z}; }
+using namespace motion_quat;
 
 // v + 2 w (u x v) + 2 u x (u x v) for a unit quaternion (w, u).
 inline Vec rel_rotate(const Quat& q, const Vec& v) {
-  const Vec u = rel_vec(q);
-  const Vec t = rel_cross(u, v);
+  const Vec u = vec(q);
+  const Vec t = cross(u, v);
   const Vec t2 = {2 * t.x, 2 * t.y, 2 * t.z};
-  const Vec ut = rel_cross(u, t2);
+  const Vec ut = cross(u, t2);
   return {v.x + q.w * t2.x + ut.x, v.y + q.w * t2.y + ut.y, v.z + q.w * t2.z + ut.z};
 }
 
 // Gradient of g . R(q) v with respect to the unit quaternion q = (w, u), as if its four components were free:
 // d/dw = 2 g.(u x v), d/du = 2 w (v x g) + 2 ((u.v) g + (u.g) v - 2 (g.v) u).
 inline Quat rel_rotate_grad_q(const Quat& q, const Vec& v, const Vec& g) {
-  const Vec u = rel_vec(q);
-  const Vec uv = rel_cross(u, v), vg = rel_cross(v, g);
-  const double u_v = rel_dot(u, v), u_g = rel_dot(u, g), g_v = rel_dot(g, v);
-  return {2 * rel_dot(g, uv), 2 * (q.w * vg.x + u_v * g.x + u_g * v.x - 2 * g_v * u.x),
+  const Vec u = vec(q);
+  const Vec uv = cross(u, v), vg = cross(v, g);
+  const double u_v = dot(u, v), u_g = dot(u, g), g_v = dot(g, v);
+  return {2 * dot(g, uv), 2 * (q.w * vg.x + u_v * g.x + u_g * v.x - 2 * g_v * u.x),
           2 * (q.w * vg.y + u_v * g.y + u_g * v.y - 2 * g_v * u.y),
           2 * (q.w * vg.z + u_v * g.z + u_g * v.z - 2 * g_v * u.z)};
 }
 
-// q / |q| and 1 / |q|; the identity (and 0) where |q|^2 <= eps^2 or is NaN, as quaternion.normalize.
-inline Quat rel_unit(const float* q, double eps2, double* inv_norm) {
-  const double w = q[0], x = q[1], y = q[2], z = q[3];
-  const double n2 = w * w + x * x + y * y + z * z;
-  if (!(n2 > eps2)) {
-    *inv_norm = 0.0;
-    return {1.0, 0.0, 0.0, 0.0};
-  }
-  const double inv = 1.0 / std::sqrt(n2);
-  *inv_norm = inv;
-  return {w * inv, x * inv, y * inv, z * inv};
-}
-
-// Gradient through q -> q / |q| at the unit value n (inv = 1 / |q|, 0 for the identity fallback): (g - n (n.g)) inv.
-inline Quat rel_unit_grad(const Quat& n, const Quat& g, double inv) {
-  const double d = n.w * g.w + n.x * g.x + n.y * g.y + n.z * g.z;
-  return {(g.w - n.w * d) * inv, (g.x - n.x * d) * inv, (g.y - n.y * d) * inv, (g.z - n.z * d) * inv};
-}
-
 struct Entry {
-  Quat a, c, qrel, real;
+  Quat a, c, real;
   Vec ti, trel;
   double inv_a, inv_b, inv_rel;
 };
 
 inline Entry rel_forward_one(const float* qt, const float* pt, const float* qr, const float* pr, double eps2) {
   Entry e;
-  e.a = rel_unit(qt, eps2, &e.inv_a);
-  const Quat b = rel_unit(qr, eps2, &e.inv_b);
-  e.c = rel_conj(b);
+  e.a = unit(load(qt), eps2, &e.inv_a);
+  const Quat b = unit(load(qr), eps2, &e.inv_b);
+  e.c = conj(b);
   const Vec rp = rel_rotate(e.c, {pr[0], pr[1], pr[2]});
   e.ti = {-rp.x, -rp.y, -rp.z};
   const Vec ra = rel_rotate(e.a, e.ti);
   e.trel = {ra.x + pt[0], ra.y + pt[1], ra.z + pt[2]};
-  e.qrel = rel_mul(e.a, e.c);
-  const double n2 = e.qrel.w * e.qrel.w + e.qrel.x * e.qrel.x + e.qrel.y * e.qrel.y + e.qrel.z * e.qrel.z;
-  if (!(n2 > eps2)) {  // cannot happen for unit a and c; kept so that the guard is the tensor version's
-    e.inv_rel = 0.0;
-    e.real = {1.0, 0.0, 0.0, 0.0};
-  } else {
-    e.inv_rel = 1.0 / std::sqrt(n2);
-    e.real = {e.qrel.w * e.inv_rel, e.qrel.x * e.inv_rel, e.qrel.y * e.inv_rel, e.qrel.z * e.inv_rel};
-  }
+  // The guard cannot trigger for unit a and c; it is the tensor version's (from_quat_trans normalises again).
+  e.real = unit(mul(e.a, e.c), eps2, &e.inv_rel);
   return e;
 }
 
@@ -144,12 +104,12 @@ std::vector<at::Tensor> relative_dual_forward(at::Tensor q_t, at::Tensor p_t, at
     const Quat& r = e.real;
     const Vec& t = e.trel;
     // dual = 0.5 (0, t) r = 0.5 (-t.rv, rw t + t x rv)
-    const Vec rv = rel_vec(r);
-    const Vec txr = rel_cross(t, rv);
+    const Vec rv = vec(r);
+    const Vec txr = cross(t, rv);
     float* o = ore + 4 * u;
     o[0] = float(r.w), o[1] = float(r.x), o[2] = float(r.y), o[3] = float(r.z);
     float* d = odu + 4 * u;
-    d[0] = float(-0.5 * rel_dot(t, rv));
+    d[0] = float(-0.5 * dot(t, rv));
     d[1] = float(0.5 * (r.w * t.x + txr.x));
     d[2] = float(0.5 * (r.w * t.y + txr.y));
     d[3] = float(0.5 * (r.w * t.z + txr.z));
@@ -178,36 +138,36 @@ std::vector<at::Tensor> relative_dual_backward(at::Tensor q_t, at::Tensor p_t, a
   for (int64_t u = 0; u < U; ++u) {
     const Entry e = rel_forward_one(qt + 4 * u, pt + 3 * u, qr + 4 * u, pr + 3 * u, eps2);
     const Quat& r = e.real;
-    const Vec rv = rel_vec(r), t = e.trel;
+    const Vec rv = vec(r), t = e.trel;
     const float* G = gre + 4 * u;
     const float* D = gdu + 4 * u;
     const double Gdw = D[0];
     const Vec Gdv = {D[1], D[2], D[3]};
     // dual = 0.5 (-t.rv, rw t + t x rv): into t and into real
-    const Vec rxg = rel_cross(rv, Gdv);
+    const Vec rxg = cross(rv, Gdv);
     const Vec g_t = {0.5 * (-Gdw * rv.x + r.w * Gdv.x + rxg.x), 0.5 * (-Gdw * rv.y + r.w * Gdv.y + rxg.y),
                      0.5 * (-Gdw * rv.z + r.w * Gdv.z + rxg.z)};
-    const Vec gxt = rel_cross(Gdv, t);
-    const Quat g_real_all = {G[0] + 0.5 * rel_dot(t, Gdv), G[1] + 0.5 * (-Gdw * t.x + gxt.x),
+    const Vec gxt = cross(Gdv, t);
+    const Quat g_real_all = {G[0] + 0.5 * dot(t, Gdv), G[1] + 0.5 * (-Gdw * t.x + gxt.x),
                              G[2] + 0.5 * (-Gdw * t.y + gxt.y), G[3] + 0.5 * (-Gdw * t.z + gxt.z)};
     // real = q_rel / |q_rel|; q_rel = a c
-    const Quat g_qrel = rel_unit_grad(r, g_real_all, e.inv_rel);
-    Quat g_a = rel_mul(g_qrel, rel_conj(e.c));
-    Quat g_c = rel_mul(rel_conj(e.a), g_qrel);
+    const Quat g_qrel = unit_grad(r, g_real_all, e.inv_rel);
+    Quat g_a = mul(g_qrel, conj(e.c));
+    Quat g_c = mul(conj(e.a), g_qrel);
     // t_rel = R(a) ti + p_t
     const Quat ga_rot = rel_rotate_grad_q(e.a, e.ti, g_t);
     g_a = {g_a.w + ga_rot.w, g_a.x + ga_rot.x, g_a.y + ga_rot.y, g_a.z + ga_rot.z};
-    const Vec g_ti = rel_rotate(rel_conj(e.a), g_t);  // R(a)^T g_t
+    const Vec g_ti = rel_rotate(conj(e.a), g_t);  // R(a)^T g_t
     // ti = -R(c) p_r
     const Vec p = {pr[3 * u], pr[3 * u + 1], pr[3 * u + 2]};
     const Vec m_gti = {-g_ti.x, -g_ti.y, -g_ti.z};
-    const Vec g_p = rel_rotate(rel_conj(e.c), m_gti);  // R(c)^T (-g_ti)
+    const Vec g_p = rel_rotate(conj(e.c), m_gti);  // R(c)^T (-g_ti)
     const Quat gc_rot = rel_rotate_grad_q(e.c, p, m_gti);
     g_c = {g_c.w + gc_rot.w, g_c.x + gc_rot.x, g_c.y + gc_rot.y, g_c.z + gc_rot.z};
     // c = conj(b); a, b = normalised inputs
-    const Quat g_b = rel_conj(g_c);
-    const Quat gq_t = rel_unit_grad(e.a, g_a, e.inv_a);
-    const Quat gq_r = rel_unit_grad(rel_conj(e.c), g_b, e.inv_b);
+    const Quat g_b = conj(g_c);
+    const Quat gq_t = unit_grad(e.a, g_a, e.inv_a);
+    const Quat gq_r = unit_grad(conj(e.c), g_b, e.inv_b);
     float* o = oqt + 4 * u;
     o[0] = float(gq_t.w), o[1] = float(gq_t.x), o[2] = float(gq_t.y), o[3] = float(gq_t.z);
     o = oqr + 4 * u;

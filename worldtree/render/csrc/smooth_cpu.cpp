@@ -30,17 +30,11 @@
 
 #include <omp.h>
 
+#include "quat_cpu.h"
+
 namespace {
 
-struct Q4 {
-  double w, x, y, z;
-};
-
-inline Q4 sm_mul(const Q4& a, const Q4& b) {  // Hamilton product a b
-  return {a.w * b.w - a.x * b.x - a.y * b.y - a.z * b.z, a.w * b.x + a.x * b.w + a.y * b.z - a.z * b.y,
-          a.w * b.y - a.x * b.z + a.y * b.w + a.z * b.x, a.w * b.z + a.x * b.y - a.y * b.x + a.z * b.w};
-}
-inline Q4 sm_conj(const Q4& q) { return {q.w, -q.x, -q.y, -q.z}; }
+using namespace motion_quat;
 
 constexpr double kTiny = FLT_MIN;  // torch.finfo(float32).tiny: the float32 tensor version's clamp
 
@@ -48,7 +42,7 @@ constexpr double kTiny = FLT_MIN;  // torch.finfo(float32).tiny: the float32 ten
 struct AngleParts {
   double rw, rx, ry, rz, sq, s;
 };
-inline AngleParts sm_angle_parts(const Q4& a, const Q4& b) {
+inline AngleParts sm_angle_parts(const Quat& a, const Quat& b) {
   AngleParts p;
   p.rw = a.w * b.w + a.x * b.x + a.y * b.y + a.z * b.z;
   p.rx = a.w * b.x - b.w * a.x - (a.y * b.z - a.z * b.y);
@@ -58,13 +52,13 @@ inline AngleParts sm_angle_parts(const Q4& a, const Q4& b) {
   p.s = std::sqrt(std::max(p.sq, kTiny));
   return p;
 }
-inline double sm_angle(const Q4& a, const Q4& b) {
+inline double sm_angle(const Quat& a, const Quat& b) {
   const AngleParts p = sm_angle_parts(a, b);
   return 2.0 * std::atan2(p.s, std::fabs(p.rw));
 }
 
 // Adds w * d angle(a, b) / d(a, b) to ga, gb.
-inline void sm_angle_grad(const Q4& a, const Q4& b, double w, Q4& ga, Q4& gb) {
+inline void sm_angle_grad(const Quat& a, const Quat& b, double w, Quat& ga, Quat& gb) {
   const AngleParts p = sm_angle_parts(a, b);
   const double c = std::fabs(p.rw), den = p.s * p.s + c * c;
   const double d_s = 2.0 * c / den * w, d_c = -2.0 * p.s / den * w;
@@ -98,20 +92,8 @@ struct SmoothIn {
 };
 
 // The unit quaternions of node m at every frame (and 1 / |q|, 0 for the identity fallback).
-inline void sm_units(const SmoothIn& in, int64_t m, std::vector<Q4>& qn, std::vector<double>& inv) {
-  for (int64_t t = 0; t < in.T; ++t) {
-    const float* q = in.quat + 4 * (t * in.M + m);
-    const double w = q[0], x = q[1], y = q[2], z = q[3];
-    const double n2 = w * w + x * x + y * y + z * z;
-    if (!(n2 > in.eps2)) {
-      qn[t] = {1.0, 0.0, 0.0, 0.0};
-      inv[t] = 0.0;
-    } else {
-      const double r = 1.0 / std::sqrt(n2);
-      qn[t] = {w * r, x * r, y * r, z * r};
-      inv[t] = r;
-    }
-  }
+inline void sm_units(const SmoothIn& in, int64_t m, std::vector<Quat>& qn, std::vector<double>& inv) {
+  for (int64_t t = 0; t < in.T; ++t) qn[t] = unit(load(in.quat + 4 * (t * in.M + m)), in.eps2, &inv[t]);
 }
 
 inline const float* sm_p(const SmoothIn& in, int64_t t, int64_t m) { return in.pos + 3 * (t * in.M + m); }
@@ -135,7 +117,7 @@ at::Tensor motion_smooth_forward(at::Tensor pos, at::Tensor quat, double eps, in
   std::vector<double> part(4 * M, 0.0);
 #pragma omp parallel num_threads(int(std::max<int64_t>(threads, 1)))
   {
-    std::vector<Q4> qn(T), d(T > 1 ? T - 1 : 0);
+    std::vector<Quat> qn(T), d(T > 1 ? T - 1 : 0);
     std::vector<double> inv(T);
 #pragma omp for schedule(static)
     for (int64_t m = 0; m < M; ++m) {
@@ -145,7 +127,7 @@ at::Tensor motion_smooth_forward(at::Tensor pos, at::Tensor quat, double eps, in
         const float *p0 = sm_p(in, t, m), *p1 = sm_p(in, t + 1, m);
         vx += sm_norm3(double(p1[0]) - p0[0], double(p1[1]) - p0[1], double(p1[2]) - p0[2], &sq);
         vr += sm_angle(qn[t], qn[t + 1]);
-        d[t] = sm_mul(qn[t + 1], sm_conj(qn[t]));
+        d[t] = mul(qn[t + 1], conj(qn[t]));
       }
       for (int64_t t = 0; t + 2 < T; ++t) {
         const float *p0 = sm_p(in, t, m), *p1 = sm_p(in, t + 1, m), *p2 = sm_p(in, t + 2, m);
@@ -181,13 +163,13 @@ std::vector<at::Tensor> motion_smooth_backward(at::Tensor pos, at::Tensor quat, 
   const double wv = gi[0] / nv, wvr = gi[1] / nv, wa = gi[2] / na, war = gi[3] / na;
 #pragma omp parallel num_threads(int(std::max<int64_t>(threads, 1)))
   {
-    std::vector<Q4> qn(T), d(T > 1 ? T - 1 : 0), gqn(T), gd(T > 1 ? T - 1 : 0);
+    std::vector<Quat> qn(T), d(T > 1 ? T - 1 : 0), gqn(T), gd(T > 1 ? T - 1 : 0);
     std::vector<double> inv(T), gx(3 * T);
 #pragma omp for schedule(static)
     for (int64_t m = 0; m < M; ++m) {
       sm_units(in, m, qn, inv);
-      std::fill(gqn.begin(), gqn.end(), Q4{0, 0, 0, 0});
-      std::fill(gd.begin(), gd.end(), Q4{0, 0, 0, 0});
+      std::fill(gqn.begin(), gqn.end(), Quat{0, 0, 0, 0});
+      std::fill(gd.begin(), gd.end(), Quat{0, 0, 0, 0});
       std::fill(gx.begin(), gx.end(), 0.0);
       double sq;
       for (int64_t t = 0; t + 1 < T; ++t) {
@@ -198,7 +180,7 @@ std::vector<at::Tensor> motion_smooth_backward(at::Tensor pos, at::Tensor quat, 
         gx[3 * (t + 1)] += k * dx, gx[3 * (t + 1) + 1] += k * dy, gx[3 * (t + 1) + 2] += k * dz;
         gx[3 * t] -= k * dx, gx[3 * t + 1] -= k * dy, gx[3 * t + 2] -= k * dz;
         sm_angle_grad(qn[t], qn[t + 1], wvr, gqn[t], gqn[t + 1]);
-        d[t] = sm_mul(qn[t + 1], sm_conj(qn[t]));
+        d[t] = mul(qn[t + 1], conj(qn[t]));
       }
       for (int64_t t = 0; t + 2 < T; ++t) {
         const float *p0 = sm_p(in, t, m), *p1 = sm_p(in, t + 1, m), *p2 = sm_p(in, t + 2, m);
@@ -214,18 +196,15 @@ std::vector<at::Tensor> motion_smooth_backward(at::Tensor pos, at::Tensor quat, 
       }
       // d(t) = x y* with x = qn(t+1), y = qn(t): g_x = g_d y, g_y = conj(conj(x) g_d)
       for (int64_t t = 0; t + 1 < T; ++t) {
-        const Q4 g_x = sm_mul(gd[t], qn[t]);
-        const Q4 g_y = sm_conj(sm_mul(sm_conj(qn[t + 1]), gd[t]));
+        const Quat g_x = mul(gd[t], qn[t]);
+        const Quat g_y = conj(mul(conj(qn[t + 1]), gd[t]));
         gqn[t + 1].w += g_x.w, gqn[t + 1].x += g_x.x, gqn[t + 1].y += g_x.y, gqn[t + 1].z += g_x.z;
         gqn[t].w += g_y.w, gqn[t].x += g_y.x, gqn[t].y += g_y.y, gqn[t].z += g_y.z;
       }
       for (int64_t t = 0; t < T; ++t) {
-        const Q4& n = qn[t];
-        const Q4& gg = gqn[t];
-        const double dt = n.w * gg.w + n.x * gg.x + n.y * gg.y + n.z * gg.z, r = inv[t];
+        const Quat g_q = unit_grad(qn[t], gqn[t], inv[t]);
         float* o = gq + 4 * (t * M + m);
-        o[0] = float((gg.w - n.w * dt) * r), o[1] = float((gg.x - n.x * dt) * r);
-        o[2] = float((gg.y - n.y * dt) * r), o[3] = float((gg.z - n.z * dt) * r);
+        o[0] = float(g_q.w), o[1] = float(g_q.x), o[2] = float(g_q.y), o[3] = float(g_q.z);
         float* op = gp + 3 * (t * M + m);
         op[0] = float(gx[3 * t]), op[1] = float(gx[3 * t + 1]), op[2] = float(gx[3 * t + 2]);
       }
