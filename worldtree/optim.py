@@ -9,13 +9,15 @@ Schedules are small frozen dataclasses called with the step number (0-based) and
 - :class:`CosineLR`: ``lr(s) = final + (init - final) (1 + cos(pi t)) / 2``.
 
 :class:`GroupedAdam` keeps the name of each group so that density control can swap a tensor for a grown or
-shrunk one and carry its Adam moments along (:meth:`GroupedAdam.replace_param`).
+shrunk one and carry its Adam moments along (:meth:`GroupedAdam.replace_param`). It takes torch's fused Adam
+(one kernel per tensor instead of about ten) wherever torch has one for the tensors (:func:`fused_supported`):
+the same update, rounded in another order (last-bit differences), about a third cheaper on a CPU.
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
 
 import torch
@@ -119,6 +121,22 @@ def gaussian_schedules(
     }
 
 
+_FUSED_DEVICES = ("cpu", "cuda")
+_FUSED_DTYPES = (torch.float16, torch.bfloat16, torch.float32, torch.float64)
+
+
+def fused_supported(params: Iterable[torch.Tensor]) -> bool:
+    """Whether torch's fused Adam takes every tensor of ``params``: dense floating tensors on one CPU or CUDA
+    device (what ``torch.optim.Adam(..., fused=True)`` accepts); ``False`` for none."""
+    ps = list(params)
+    if not ps:
+        return False
+    dev = ps[0].device
+    return dev.type in _FUSED_DEVICES and all(
+        p.device == dev and p.dtype in _FUSED_DTYPES and p.layout == torch.strided for p in ps
+    )
+
+
 class GroupedAdam:
     """``torch.optim.Adam`` with one group per named tensor and a learning-rate schedule per group.
 
@@ -127,6 +145,8 @@ class GroupedAdam:
         schedules: name -> schedule; every name in ``params`` needs one.
         eps: Adam epsilon (3DGS uses 1e-15 because its gradients are tiny).
         betas: Adam betas.
+        fused: torch's fused update; ``None`` takes it where :func:`fused_supported` says so. A checkpoint
+            keeps the choice it was made with (``load_state_dict`` restores the saved groups).
     """
 
     def __init__(
@@ -135,13 +155,16 @@ class GroupedAdam:
         schedules: Mapping[str, Schedule],
         eps: float = 1e-15,
         betas: tuple[float, float] = (0.9, 0.999),
+        fused: bool | None = None,
     ):
         missing = [k for k in params if k not in schedules]
         if missing:
             raise ValueError(f"no learning-rate schedule for parameter groups {missing}")
         self.schedules = dict(schedules)
         groups = [{"params": [p], "name": k, "lr": self.schedules[k](0)} for k, p in params.items()]
-        self.optimizer = torch.optim.Adam(groups, eps=eps, betas=betas)
+        if fused is None:
+            fused = fused_supported(params.values())
+        self.optimizer = torch.optim.Adam(groups, eps=eps, betas=betas, fused=fused or None)
 
     @property
     def names(self) -> list[str]:

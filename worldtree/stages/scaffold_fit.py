@@ -19,6 +19,7 @@ import torch
 from worldtree.infra import stop_request, thread_governor
 from worldtree.motion.regularizers import MotionLossConfig, motion_losses
 from worldtree.motion.scaffold import Scaffold
+from worldtree.optim import fused_supported
 
 
 @dataclass
@@ -54,7 +55,8 @@ def fit_scaffold(
         return history
     unit = scaffold.unit
     opt = torch.optim.Adam(
-        [{"params": [scaffold.pos], "lr": cfg.lr_pos * unit}, {"params": [scaffold.quat], "lr": cfg.lr_quat}]
+        [{"params": [scaffold.pos], "lr": cfg.lr_pos * unit}, {"params": [scaffold.quat], "lr": cfg.lr_quat}],
+        fused=fused_supported([scaffold.pos, scaffold.quat]) or None,
     )
     target = observed_pos.detach().to(scaffold.pos)
     w = observed.to(scaffold.pos.dtype)
