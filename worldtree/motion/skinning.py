@@ -259,8 +259,6 @@ def _compiled_ops(points, quats, nb_pos_ref, nb_sigma, nb_real, nb_dual, valid, 
     floats = [points, quats, nb_pos_ref, nb_sigma, nb_real, nb_dual]
     if correction is not None:
         floats.append(correction)
-    if any(t.device.type != "cpu" or t.dtype != torch.float32 for t in floats):
-        return None
     if points.dim() != 2 or points.shape[1] != 3 or nb_sigma.dim() != 2:
         return None
     n, k = points.shape[0], nb_sigma.shape[1]
@@ -275,7 +273,7 @@ def _compiled_ops(points, quats, nb_pos_ref, nb_sigma, nb_real, nb_dual, valid, 
         return None
     from worldtree.render import cpu_kernel  # the rasterizer's extension also holds the skinning kernel
 
-    return cpu_kernel.ops()
+    return cpu_kernel.ops_for(*floats)
 
 
 class _DeformCompiled(torch.autograd.Function):
