@@ -137,6 +137,15 @@ def fused_supported(params: Iterable[torch.Tensor]) -> bool:
     )
 
 
+def adam_fused(params: Iterable[torch.Tensor], want: bool | None = None) -> bool | None:
+    """The ``fused`` argument for ``torch.optim.Adam`` over ``params``: ``True`` when asked, or when not said
+    (``want`` None) and :func:`fused_supported`; otherwise ``None``, never ``False``: ``False`` would also turn
+    off the multi-tensor (foreach) path torch takes by default on CUDA."""
+    if want is None:
+        want = fused_supported(params)
+    return True if want else None
+
+
 class GroupedAdam:
     """``torch.optim.Adam`` with one group per named tensor and a learning-rate schedule per group.
 
@@ -162,9 +171,9 @@ class GroupedAdam:
             raise ValueError(f"no learning-rate schedule for parameter groups {missing}")
         self.schedules = dict(schedules)
         groups = [{"params": [p], "name": k, "lr": self.schedules[k](0)} for k, p in params.items()]
-        if fused is None:
-            fused = fused_supported(params.values())
-        self.optimizer = torch.optim.Adam(groups, eps=eps, betas=betas, fused=fused or None)
+        self.optimizer = torch.optim.Adam(
+            groups, eps=eps, betas=betas, fused=adam_fused(params.values(), fused)
+        )
 
     @property
     def names(self) -> list[str]:

@@ -21,27 +21,11 @@ def test_fused_and_single_variants_make_the_same_update():
         for ga, gb, g0 in groups:
             # Same start, same gradients (same seed), 4 steps of lr 1e-3: equal to float32 rounding.
             torch.testing.assert_close(ga["params"][0], gb["params"][0], rtol=0, atol=1e-6)
-            assert (
-                ga["params"][0] - g0["params"][0]
-            ).abs().min() > 1e-4  # every element moved (about lr a step)
+            # Every element moved (about lr a step).
+            assert (ga["params"][0] - g0["params"][0]).abs().min() > 1e-4
 
 
 def test_main_prints_one_line_per_thread_count_and_round(capsys):
-    main(
-        [
-            "--static",
-            "20",
-            "--dynamic",
-            "5",
-            "--other",
-            "3",
-            "--steps",
-            "2",
-            "--rounds",
-            "2",
-            "--threads",
-            "1",
-        ]
-    )
+    main("--static 20 --dynamic 5 --other 3 --steps 2 --rounds 2 --threads 1".split())
     lines = capsys.readouterr().out.strip().splitlines()
     assert len(lines) == 2 and all("single" in ln and "fused" in ln for ln in lines)

@@ -13,6 +13,7 @@ from worldtree.optim import (
     CosineLR,
     ExponentialLR,
     GroupedAdam,
+    adam_fused,
     fused_supported,
     gaussian_schedules,
 )
@@ -132,6 +133,13 @@ def test_fused_supported_only_for_dense_float_tensors_on_one_device():
     assert not fused_supported([torch.zeros(3, device="meta")])
     if torch.cuda.is_available():
         assert not fused_supported([f, f.cuda()])
+
+
+def test_adam_fused_is_true_or_none_never_false():
+    """None leaves torch its own default (foreach on CUDA); False would switch that off as well."""
+    f, i = torch.zeros(3), torch.zeros(3, dtype=torch.int64)
+    assert adam_fused([f]) is True and adam_fused([i]) is None
+    assert adam_fused([f], want=False) is None and adam_fused([i], want=True) is True
 
 
 def test_missing_schedule_is_an_error():

@@ -19,7 +19,7 @@ import torch
 from worldtree.infra import stop_request, thread_governor
 from worldtree.motion.regularizers import MotionLossConfig, motion_losses
 from worldtree.motion.scaffold import Scaffold
-from worldtree.optim import fused_supported
+from worldtree.optim import adam_fused
 
 
 @dataclass
@@ -56,7 +56,7 @@ def fit_scaffold(
     unit = scaffold.unit
     opt = torch.optim.Adam(
         [{"params": [scaffold.pos], "lr": cfg.lr_pos * unit}, {"params": [scaffold.quat], "lr": cfg.lr_quat}],
-        fused=fused_supported([scaffold.pos, scaffold.quat]) or None,
+        fused=adam_fused([scaffold.pos, scaffold.quat]),
     )
     target = observed_pos.detach().to(scaffold.pos)
     w = observed.to(scaffold.pos.dtype)
