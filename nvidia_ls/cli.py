@@ -170,7 +170,7 @@ def import_(
 ) -> None:
     from rich.progress import Progress
 
-    from nvidia_ls.importer import import_scene, run_args
+    from nvidia_ls.importer import OPTIONAL_WHY, import_scene, run_args
 
     console = _console()
     with Progress(console=console, transient=True) as prog:
@@ -189,16 +189,22 @@ def import_(
             f"2D priors without poses: wtbench prep {path} --epi-from-flow --preview", highlight=False,
             soft_wrap=True,
         )  # fmt: skip
-    args = run_args(path)
-    if args:
+    args, optional = run_args(path), run_args(path, optional=True)
+    if args or optional:
         import shlex
 
         run = ["wtbench", "run", "--scene", str(path), "--method", "base"]
         # One line whatever the terminal's width (soft_wrap: no line breaks inserted), so that the command
         # copied from a log runs as it is.
-        console.print(
-            "run with its priors: " + shlex.join(run + args), highlight=False, markup=False, soft_wrap=True
-        )
+        if args:
+            console.print(
+                "run with its priors: " + shlex.join(run + args), highlight=False, markup=False, soft_wrap=True
+            )
+        if optional:
+            console.print(
+                f"not suggested, {OPTIONAL_WHY}: " + shlex.join(run + args + optional),
+                highlight=False, markup=False, soft_wrap=True,
+            )  # fmt: skip
 
 
 # Options generated from ImportConfig like build's (one source of defaults and help).

@@ -454,6 +454,7 @@ def _write_priors(
     W, H = size
     record_priors: dict = {}
     args: list[str] = []
+    optional: list[str] = []  # options of an imported prior measured below the classical one on real footage
     if depth_files:
         sub = "disp" if src.depth_kind == "disparity" else "depth"
         ddir = _mkdir(tmp / IMPORTED / sub)
@@ -470,7 +471,7 @@ def _write_priors(
         record_priors["depth"] = {"path": f"{IMPORTED}/{sub}", "kind": src.depth_kind,
                                   "source": str(src.depth_dir.resolve()),
                                   "scaled_by": world_scale if src.depth_kind == "depth" else 1.0}  # fmt: skip
-        args += ["--depth-maps", f"{IMPORTED}/{sub}", "--set", f"priors.depth_import.kind={src.depth_kind}"]
+        depth_args = ["--depth-maps", f"{IMPORTED}/{sub}", "--set", f"priors.depth_import.kind={src.depth_kind}"]
         if src.depth_kind == "disparity":  # relative (MiDaS-like): its scale is unknown
             # Used only on the moving pixels, where stereo measures nothing (on Balloon1 MiDaS is 11-16% off
             # the static background where stereo is 1-2% off, and extrapolated into the strips only an end
@@ -478,10 +479,14 @@ def _write_priors(
             # of get under fill"), scaled per frame to the stereo without a shift: one wall's narrow range of
             # depth fixes no shift, and the one a line fits there puts a nearer moving object far too far
             # (docs/priors.md, "A scale without a shift").
-            args += ["--set", "priors.depth_import.fit_scale_shift=true",
-                     "--set", "priors.depth_import.fit_shift=false",
-                     "--set", "priors.depth_import.merge=fill",
-                     "--set", "priors.depth_import.fill_static=classical"]  # fmt: skip
+            depth_args += ["--set", "priors.depth_import.fit_scale_shift=true",
+                           "--set", "priors.depth_import.fit_shift=false",
+                           "--set", "priors.depth_import.merge=fill",
+                           "--set", "priors.depth_import.fill_static=classical"]  # fmt: skip
+            # Even so, not suggested: see OPTIONAL_WHY.
+            optional += depth_args
+        else:
+            args += depth_args
     if src.flow:
         fdir = _mkdir(tmp / IMPORTED / "flow")
         sizes = set()
@@ -509,6 +514,9 @@ def _write_priors(
         args += ["--masks", f"{IMPORTED}/masks"]
     if record_priors:
         doc = {"priors": record_priors, "wtbench_run_args": args}
+        if optional:
+            doc["wtbench_run_args_optional"] = optional
+            doc["optional_why"] = OPTIONAL_WHY
         atomic_write_json(tmp / "imported.json", doc)
     return record_priors
 
@@ -575,8 +583,19 @@ def _mkdir(p: Path) -> Path:
 PATH_OPTIONS = ("--depth-maps", "--flow", "--masks")
 
 
-def run_args(scene: str | Path) -> list[str]:
-    """The ``wtbench run`` options that use a scene's imported priors (from ``imported.json``; [] if none).
+OPTIONAL_WHY = (
+    "relative (MiDaS-like) disparity, scaled per frame to the stereo and used on the moving pixels, drew "
+    "Balloon1's balloon and person worse from its test camera than the classical depth (the three test views "
+    "the shared diagnostics image shows, Base quick, two seeds, 20.02 dB with RAFT's flow against 21.67 with "
+    "RAFT's flow alone and 21.26 with classical priors; docs/priors.md)"
+)
+"""Why ``imported.json``'s optional options are not among those ``nvls import`` suggests."""
+
+
+def run_args(scene: str | Path, optional: bool = False) -> list[str]:
+    """The ``wtbench run`` options that use a scene's imported priors (from ``imported.json``; [] if none);
+    with ``optional``, those of the priors imported but not suggested (``wtbench_run_args_optional``: relative
+    disparity, :data:`OPTIONAL_WHY`).
 
     Folder values are stored relative to the scene and returned as absolute paths inside it; a value that is
     absolute or leads outside the scene is a one-line :class:`UserError` naming ``imported.json``.
@@ -594,7 +613,7 @@ def run_args(scene: str | Path) -> list[str]:
         raise UserError(
             f"{path}: not readable JSON ({e}); import the scene again with `nvls import`"
         ) from None
-    key = "wtbench_run_args"
+    key = "wtbench_run_args_optional" if optional else "wtbench_run_args"
     args = doc.get(key, []) if isinstance(doc, dict) else None
     if not isinstance(args, list) or not all(isinstance(a, str) for a in args):
         raise UserError(f"{path}: '{key}' must be a list of strings; import the scene again")

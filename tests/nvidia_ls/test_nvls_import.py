@@ -99,12 +99,14 @@ def test_imported_priors_equal_the_exact_ones(exported, imported):
     args = run_args(imported)
     assert args[args.index("--flow") + 1] == str((imported / "imported" / "flow").resolve())
     assert "priors.flow.import_missing=classical" in args  # the gaps of 3 frames the folder lacks
-    # relative disparity is suggested scaled to the stereo without a shift, and only where stereo measures
-    # nothing (the moving pixels)
-    assert args[args.index("--depth-maps") + 1] == str((imported / "imported" / "disp").resolve())
+    # relative disparity is imported but not suggested (below the classical depth on real footage) ...
+    assert "--depth-maps" not in args and not any("depth_import" in a for a in args)
+    assert rec["optional_why"]
+    # ... its options are kept apart: scaled to the stereo without a shift, only where stereo measures nothing
+    opt = run_args(imported, optional=True)
+    assert opt[opt.index("--depth-maps") + 1] == str((imported / "imported" / "disp").resolve())
     for s in ("kind=disparity", "fit_scale_shift=true", "fit_shift=false", "merge=fill", "fill_static=classical"):
-        assert f"priors.depth_import.{s}" in args, s
-    assert "optional_why" not in rec and "wtbench_run_args_optional" not in rec
+        assert f"priors.depth_import.{s}" in opt, s
     H, W = CFG.height, CFG.width
     disp = read_depth(imported / "imported" / "disp", T, H, W, DepthImportConfig(kind="disparity"))
     np.testing.assert_allclose(disp, 3.0 / gt["depth"] + 0.1, rtol=1e-6)
@@ -120,7 +122,7 @@ def test_run_args_follow_a_moved_scene_and_stay_inside_it(imported, tmp_path):
 
     moved = tmp_path / "moved"
     shutil.copytree(imported, moved)
-    args = run_args(moved)
+    args = run_args(moved) + run_args(moved, optional=True)
     for opt in ("--depth-maps", "--flow", "--masks"):
         value = args[args.index(opt) + 1]
         assert value.startswith(str(moved.resolve())), (opt, value)
@@ -135,6 +137,11 @@ def test_run_args_follow_a_moved_scene_and_stay_inside_it(imported, tmp_path):
     (moved / "imported.json").write_text(json.dumps(rec))
     with pytest.raises(UserError, match="wtbench_run_args"):
         run_args(moved)
+    rec["wtbench_run_args"] = []
+    rec["wtbench_run_args_optional"] = "--depth-maps"  # not a list
+    (moved / "imported.json").write_text(json.dumps(rec))
+    with pytest.raises(UserError, match="wtbench_run_args_optional"):
+        run_args(moved, optional=True)
     (moved / "imported.json").write_text("{not json")
     with pytest.raises(UserError, match="imported.json"):
         run_args(moved)

@@ -11,6 +11,7 @@ import sys
 import pytest
 
 from benchmarks.fixtures.planar_scene import PlanarScene, PlanarSceneConfig
+from nvidia_ls.importer import OPTIONAL_WHY
 from tests.nvidia_ls.dynamicnerf_export import export_dynamicnerf
 
 
@@ -29,9 +30,12 @@ def test_run_command_is_one_line_in_a_narrow_log(tmp_path):
     argv = shlex.split(line.removeprefix("run with its priors: "))
     assert argv[:3] == ["wtbench", "run", "--scene"] and argv[3] == str(out / "src")
     assert argv[argv.index("--masks") + 1] == str(out / "src" / "imported" / "masks")
-    assert argv[argv.index("--depth-maps") + 1] == str(out / "src" / "imported" / "disp")
-    assert "priors.depth_import.fit_shift=false" in argv
-    assert not any(ln.startswith("not suggested") for ln in r.stderr.splitlines())
+    assert "--depth-maps" not in argv  # relative disparity: offered on its own line, not suggested
+    opt = next(ln for ln in r.stderr.splitlines() if ln.startswith("not suggested, "))
+    assert ": " not in OPTIONAL_WHY  # the line's one ": " comes before the command
+    full = shlex.split(opt.partition(": ")[2])
+    assert full[: len(argv)] == argv and full[full.index("--depth-maps") + 1] == str(out / "src" / "imported" / "disp")
+    assert "priors.depth_import.fit_shift=false" in full
 
 
 def test_ctrl_c_during_an_import_names_no_checkpoint(tmp_path, monkeypatch, capsys):
