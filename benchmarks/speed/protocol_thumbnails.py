@@ -14,12 +14,18 @@ the panel's and the render's, as :mod:`benchmarks.speed.loo_breakdown` keys it).
 scored the same way, which calibrates the proxy against the full-size scores the issue quotes (at t = 5 static
 17.48 / Base 18.54 / WorldTree 18.08 here against 17.21 / 18.18 / 17.65 at 480x270).
 
+With ``--depth`` it also measures the balloon's depth where the capture itself fixes it: SIFT features of the
+balloon (its colour key) matched between training frame t (camera t) and the test panel (camera 0 at the same
+time), triangulated with the two cameras' given poses (matches reprojecting farther than 3 px are dropped),
+give the balloon's depth in camera t at those pixels; the run's rendered depth of frame t at the same pixels is
+compared with it (median ``log(run / measured)``: issue 28's depth error, on real footage, at three times).
+
 Three small views of one scene, at a third of the protocol's pixels: a check of where a change moves the real
 test views, not a benchmark, and not something to choose settings by (that would tune to the scored data).
 
 Usage::
 
-    python -m benchmarks.speed.protocol_thumbnails RUN_DIR [RUN_DIR ...] [--image PNG] [--panels]
+    python -m benchmarks.speed.protocol_thumbnails RUN_DIR [RUN_DIR ...] [--image PNG] [--panels] [--depth]
 """
 
 from __future__ import annotations
@@ -105,6 +111,116 @@ def run_scores(run_dir: Path, panels: dict[int, dict[str, np.ndarray]]) -> dict[
     return out
 
 
+def match_points(
+    img_a: np.ndarray, img_b: np.ndarray, region_a: np.ndarray, region_b: np.ndarray, ratio: float = 0.75
+) -> tuple[np.ndarray, np.ndarray]:
+    """SIFT matches inside ``region_a`` / ``region_b`` (``[H, W]`` bool) of two uint8 RGB images, kept by Lowe's
+    ratio test: pixel coordinates ``[N, 2]`` (x, y) in each image."""
+    import cv2
+
+    sift = cv2.SIFT_create(4000)
+    found = [
+        sift.detectAndCompute(cv2.cvtColor(img, cv2.COLOR_RGB2GRAY), reg.astype(np.uint8) * 255)
+        for img, reg in ((img_a, region_a), (img_b, region_b))
+    ]
+    (ka, da), (kb, db) = found
+    if da is None or db is None or len(ka) < 2 or len(kb) < 2:
+        return np.zeros((0, 2), np.float64), np.zeros((0, 2), np.float64)
+    pairs = cv2.BFMatcher().knnMatch(da, db, k=2)
+    good = [m[0] for m in pairs if len(m) == 2 and m[0].distance < ratio * m[1].distance]
+    pa = np.array([ka[g.queryIdx].pt for g in good], np.float64).reshape(-1, 2)
+    pb = np.array([kb[g.trainIdx].pt for g in good], np.float64).reshape(-1, 2)
+    return pa, pb
+
+
+def triangulate_depth(
+    K_a: np.ndarray, w2c_a: np.ndarray, K_b: np.ndarray, w2c_b: np.ndarray,
+    pa: np.ndarray, pb: np.ndarray, max_px: float = 3.0,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Depth in camera a (scene units) of the point matched at ``pa`` in a and ``pb`` in b (``[N, 2]`` pixels;
+    ``K`` ``[3, 3]``, ``w2c`` ``[4, 4]``), by linear triangulation; and ``[N]`` bool: in front of both cameras
+    and reprojecting within ``max_px`` in both."""  # fmt: skip
+    import cv2
+
+    if len(pa) == 0:
+        return np.zeros(0), np.zeros(0, bool)
+    P = [np.asarray(K, np.float64) @ np.asarray(w, np.float64)[:3] for K, w in ((K_a, w2c_a), (K_b, w2c_b))]
+    Xh = cv2.triangulatePoints(P[0], P[1], pa.T.astype(np.float64), pb.T.astype(np.float64))
+    w = np.where(np.abs(Xh[3]) > 1e-12, Xh[3], 1e-12)
+    X = np.vstack([Xh[:3] / w, np.ones(len(pa))])
+    keep = np.ones(len(pa), bool)
+    z_a = np.zeros(len(pa))
+    for Pi, pix, idx in ((P[0], pa, 0), (P[1], pb, 1)):
+        x = Pi @ X
+        z = x[2]
+        keep &= z > 0
+        proj = (x[:2] / np.where(np.abs(z) > 1e-12, z, 1e-12)).T
+        keep &= np.linalg.norm(proj - pix, axis=1) <= max_px
+        if idx == 0:
+            z_a = z
+    return z_a, keep
+
+
+def panel_to_image(points: np.ndarray, width: int, height: int) -> np.ndarray:
+    """Pixel coordinates ``[N, 2]`` in a panel's uncovered part -> the same points in the ``width`` x ``height``
+    image it was shrunk from (pixel centres mapped onto pixel centres)."""
+    sx, sy = width / PANEL_W, height / PANEL_H
+    return np.stack([(points[:, 0] + 0.5) * sx - 0.5, (points[:, 1] + LABEL_ROWS + 0.5) * sy - 0.5], 1)
+
+
+def _depth_against(run, ct, depth: np.ndarray, img, up, region_img, region_up) -> dict[str, float]:
+    """Triangulate the matches of two regions (training frame, test panel brought to the frame's width) and
+    compare the run's ``depth`` ``[H, W]`` of frame t with it at the same pixels."""
+    c0 = run.cameras["train_000"]
+    pa, pb_up = match_points(img, up, region_img, region_up)
+    pb = panel_to_image(pb_up * (PANEL_W / ct.width), ct.width, ct.height)
+    z, keep = triangulate_depth(ct.K.numpy(), ct.w2c.numpy(), c0.K.numpy(), c0.w2c.numpy(), pa, pb)
+    x = np.clip(np.rint(pa[:, 0]).astype(int), 0, ct.width - 1)
+    y = np.clip(np.rint(pa[:, 1]).astype(int), 0, ct.height - 1)
+    d = depth[y, x]
+    ok = keep & np.isfinite(d) & (d > 0)
+    if not ok.any():
+        return {"points": 0.0, "measured": float("nan"), "run": float("nan"), "log_ratio": float("nan")}
+    return {"points": float(ok.sum()), "measured": float(np.median(z[ok])), "run": float(np.median(d[ok])),
+            "log_ratio": float(np.median(np.log(d[ok] / z[ok])))}  # fmt: skip
+
+
+def balloon_depth(run_dir: Path, panels: dict[int, dict[str, np.ndarray]]) -> dict[int, dict[str, dict]]:
+    """Per time of :data:`TIMES`, for the balloon and for the wall: the depth in camera t triangulated from
+    training frame t and the test panel (median, scene units; ``points`` used), the run's rendered depth at
+    those pixels (median) and the median ``log(run / measured)``. The wall is the left quarter of both images
+    outside the balloon (dilated 20 px), where nothing moves on Balloon1: its ratio is the run's own scale
+    against the given cameras' (bundle adjustment moves them), so the balloon's ratio less the wall's is its
+    depth error in the run's own frame."""
+    import cv2
+
+    from benchmarks.api import load_run
+    from worldtree.imageio import read_image
+    from worldtree.scene_schema import read_cameras, resolve_inside
+
+    run = load_run(run_dir, device="cpu")
+    doc = read_cameras(run.scene_dir)
+    out = {}
+    for t in TIMES:
+        ct = run.cameras[f"train_{t:03d}"]
+        img = read_image(resolve_inside(run.scene_dir, doc.frames[ct.frame].file, run.scene_dir / "cameras.json"))
+        test = panels[t]["test"]
+        # Matched at the run's scale: the panel brought up to the image's width.
+        up = cv2.resize(test, (ct.width, round(test.shape[0] * ct.width / PANEL_W)), interpolation=cv2.INTER_CUBIC)
+        depth = run.render(ct, t, mode="depth").numpy()
+        keys = [colour_key(x, BALLOON_HUE, 0.25, 0) for x in (img, up)]
+        walls = []
+        for x in (img, up):
+            wall = np.zeros(x.shape[:2], bool)
+            wall[:, : x.shape[1] // 4] = True
+            walls.append(wall & ~colour_key(x, BALLOON_HUE, 0.25, 20))
+        out[t] = {
+            "balloon": _depth_against(run, ct, depth, img, up, *keys),
+            "wall": _depth_against(run, ct, depth, img, up, *walls),
+        }
+    return out
+
+
 def _line(name: str, scores: dict[int, dict[str, float | None]]) -> str:
     def f(v):
         return "-" if v is None else f"{v:.2f}"
@@ -121,6 +237,7 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument(
         "--panels", action="store_true", help="Also score the image's own static/Base/WorldTree panels."
     )
+    ap.add_argument("--depth", action="store_true", help="Also measure the balloon's depth against each run's.")
     args = ap.parse_args(argv)
     panels = read_panels(args.image)
     print("PSNR dB against the test-view panels (balloon / background)")
@@ -129,6 +246,13 @@ def main(argv: list[str] | None = None) -> None:
             print(_line(f"image's {col}", {t: panel_scores(p[col], p["test"]) for t, p in panels.items()}))
     for run in args.runs:
         print(_line(str(run), run_scores(run, panels)))
+        if args.depth:
+            cells = [
+                f"t={t}: {b['measured']:.3f} measured ({b['points']:.0f} points), run {b['run']:.3f} "
+                f"({b['log_ratio']:+.2f}; wall {w['log_ratio']:+.2f}, {w['points']:.0f} points)"
+                for t, (b, w) in ((t, (r["balloon"], r["wall"])) for t, r in balloon_depth(run, panels).items())
+            ]
+            print("  balloon depth in camera t, log(run / measured): " + "  ".join(cells))
 
 
 if __name__ == "__main__":

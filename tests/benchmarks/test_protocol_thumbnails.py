@@ -16,9 +16,12 @@ from benchmarks.speed.protocol_thumbnails import (
     PANEL_H,
     PANEL_W,
     TIMES,
+    match_points,
     panel_scores,
+    panel_to_image,
     read_panels,
     shrink,
+    triangulate_depth,
 )
 from worldtree.infra.errors import UserError
 
@@ -89,3 +92,55 @@ def test_scores_follow_a_numpy_psnr_and_put_a_moved_balloon_in_its_region():
     assert s["psnr"] == pytest.approx(_numpy_psnr(pred, ref), abs=1e-3)
     # Outside both disks only the +-3 noise differs (about 38.6 dB); inside, a whole disk is wrong twice.
     assert s["background"] > 35.0 > 15.0 > s["balloon"]
+
+
+def _cameras(baseline: float):
+    """Two 480x270 cameras of focal 460 px, the second ``baseline`` units to the right of the first."""
+    K = np.array([[460.0, 0, 239.5], [0, 460.0, 134.5], [0, 0, 1]])
+    w2c_a = np.eye(4)
+    w2c_b = np.eye(4)
+    w2c_b[0, 3] = -baseline  # centre at +baseline on x
+    return K, w2c_a, w2c_b
+
+
+def test_triangulation_recovers_a_plane_and_drops_what_no_point_explains():
+    K, wa, wb = _cameras(0.1)
+    rng = np.random.default_rng(0)
+    pa = rng.uniform([20, 20], [460, 250], (50, 2))
+    z = 2.0
+    pb = pa - np.array([460.0 * 0.1 / z, 0.0])  # a point at depth z moves f B / z to the left in b
+    depth, keep = triangulate_depth(K, wa, K, wb, pa, pb)
+    assert keep.all()
+    np.testing.assert_allclose(depth, z, rtol=1e-6)
+    # A match off the epipolar line by 10 px reprojects 5 px off in each view: dropped at 3 px.
+    bad = pb.copy()
+    bad[0, 1] += 10.0
+    # A match that moved the wrong way is a point behind the cameras: dropped.
+    bad[1, 0] = pa[1, 0] + 23.0
+    _, keep = triangulate_depth(K, wa, K, wb, pa, bad)
+    assert not keep[0] and not keep[1] and keep[2:].all()
+    d0, k0 = triangulate_depth(K, wa, K, wb, np.zeros((0, 2)), np.zeros((0, 2)))
+    assert d0.size == 0 and k0.size == 0
+
+
+def test_a_textured_plane_matched_into_a_shrunk_panel_gives_its_depth():
+    # The whole path of --depth on a closed-form pair: a textured plane at depth 2 seen by two cameras 0.1
+    # apart (the second image is the first shifted by f B / z = 23 px), the second shrunk into a panel as the
+    # diagnostics image's were, matched back at the first image's scale and triangulated.
+    import cv2
+
+    K, wa, wb = _cameras(0.1)
+    rng = np.random.default_rng(2)
+    tex = cv2.resize(rng.integers(0, 256, (68, 120, 3)).astype(np.uint8), (480, 270), interpolation=cv2.INTER_CUBIC)
+    shifted = cv2.warpAffine(tex, np.float32([[1, 0, -23.0], [0, 1, 0]]), (480, 270), borderMode=cv2.BORDER_REFLECT)
+    panel = shrink(shifted)
+    up = cv2.resize(panel, (480, round(panel.shape[0] * 1.5)), interpolation=cv2.INTER_CUBIC)
+    region_a = np.zeros((270, 480), bool)
+    region_a[40:230, 60:420] = True
+    region_b = np.zeros(up.shape[:2], bool)
+    region_b[20:200, 40:400] = True
+    pa, pb_up = match_points(tex, up, region_a, region_b)
+    pb = panel_to_image(pb_up / 1.5, 480, 270)
+    depth, keep = triangulate_depth(K, wa, K, wb, pa, pb)
+    assert keep.sum() >= 20
+    assert abs(np.median(depth[keep]) / 2.0 - 1.0) < 0.02  # the panel's third of the pixels: about 0.2 px
