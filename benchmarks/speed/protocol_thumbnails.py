@@ -256,10 +256,7 @@ def main(argv: list[str] | None = None) -> None:
 
 
 if __name__ == "__main__":
-    import sys
-
     try:
         main()
-    except UserError as e:
-        print(f"error: {e}", file=sys.stderr)
-        raise SystemExit(2) from None
+    except UserError as e:  # a one-line message naming the file or option, no traceback
+        raise SystemExit(f"error: {e}") from None
