@@ -586,8 +586,8 @@ PATH_OPTIONS = ("--depth-maps", "--flow", "--masks")
 OPTIONAL_WHY = (
     "relative (MiDaS-like) disparity, scaled per frame to the stereo and used on the moving pixels, drew "
     "Balloon1's balloon and person worse from its test camera than the classical depth (the three test views "
-    "the shared diagnostics image shows, Base quick, two seeds, 20.02 dB with RAFT's flow against 21.67 with "
-    "RAFT's flow alone and 21.26 with classical priors; docs/priors.md)"
+    "the shared diagnostics image shows, Base quick, two seeds, 20.04 dB with RAFT's flow against 21.70 with "
+    "RAFT's flow alone and 21.28 with classical priors; docs/priors.md)"
 )
 """Why ``imported.json``'s optional options are not among those ``nvls import`` suggests."""
 

@@ -3,7 +3,7 @@
 The real test views of ``../shared/real_nvidia/Balloon1`` (rig camera 0 at every time) are withheld. The
 diagnostics image ``../shared/real_nvidia/diagnostics/balloon1_protocol_quick.png`` shows three of them (t = 2,
 5, 8) beside renders of older runs: a grid of 3 rows x 5 panels of 320 x 180 pixels (training frame t, the test
-view, static, Base, WorldTree), each the 480x270 protocol image shrunk with bilinear filtering, its top
+view, static, Base, WorldTree), each the 480x270 protocol image shrunk by OpenCV's area filter, its top
 ``LABEL_ROWS`` rows covered by a caption. That layout was read off the image, and the test checks it: the first
 panel of every row equals the shared training frame t shrunk the same way to about 40 dB.
 
@@ -74,11 +74,12 @@ def read_panels(image: Path) -> dict[int, dict[str, np.ndarray]]:
 
 
 def shrink(img: np.ndarray) -> np.ndarray:
-    """uint8 ``[H, W, 3]`` -> the uncovered part of a panel, ``[PANEL_H - LABEL_ROWS, PANEL_W, 3]`` (PIL's
-    bilinear filter, which reproduces the image's training panels best of PIL's filters)."""
-    from PIL import Image
+    """uint8 ``[H, W, 3]`` -> the uncovered part of a panel, ``[PANEL_H - LABEL_ROWS, PANEL_W, 3]`` (OpenCV's
+    area filter: the image's training panels are the shared frames brought to 480x270 and shrunk by it, to the
+    last bit)."""
+    import cv2
 
-    small = np.asarray(Image.fromarray(img).resize((PANEL_W, PANEL_H), Image.BILINEAR))
+    small = cv2.resize(np.ascontiguousarray(img), (PANEL_W, PANEL_H), interpolation=cv2.INTER_AREA)
     return np.ascontiguousarray(small[LABEL_ROWS:])
 
 
