@@ -26,6 +26,7 @@ test views, not a benchmark, and not something to choose settings by (that would
 Usage::
 
     python -m benchmarks.speed.protocol_thumbnails RUN_DIR [RUN_DIR ...] [--image PNG] [--panels] [--depth]
+        [--save SHEET.png]
 """
 
 from __future__ import annotations
@@ -94,8 +95,9 @@ def panel_scores(pred: np.ndarray, ref: np.ndarray) -> dict[str, float | None]:
     }
 
 
-def run_scores(run_dir: Path, panels: dict[int, dict[str, np.ndarray]]) -> dict[int, dict[str, float | None]]:
-    """Scores of training frame 0's camera of the run in ``run_dir`` at every time in :data:`TIMES`."""
+def run_renders(run_dir: Path) -> dict[int, np.ndarray]:
+    """Training frame 0's camera of the run in ``run_dir`` at every time in :data:`TIMES`, shrunk as the panels
+    (:func:`shrink`)."""
     from benchmarks.api import load_run
     from worldtree.pixels import as_uint8
 
@@ -105,11 +107,19 @@ def run_scores(run_dir: Path, panels: dict[int, dict[str, np.ndarray]]) -> dict[
     missing = [t for t in TIMES if t not in set(int(x) for x in run.times)]
     if missing:
         raise UserError(f"{run_dir}: no time {missing[0]}; the image shows times {TIMES}")
-    out = {}
-    for t in TIMES:
-        img = as_uint8(run.render("train_000", t)).numpy()
-        out[t] = panel_scores(shrink(img), panels[t]["test"])
-    return out
+    return {t: shrink(as_uint8(run.render("train_000", t)).numpy()) for t in TIMES}
+
+
+def run_scores(run_dir: Path, panels: dict[int, dict[str, np.ndarray]]) -> dict[int, dict[str, float | None]]:
+    """Scores of training frame 0's camera of the run in ``run_dir`` at every time in :data:`TIMES`."""
+    return {t: panel_scores(img, panels[t]["test"]) for t, img in run_renders(run_dir).items()}
+
+
+def contact_sheet(panels: dict[int, dict[str, np.ndarray]], renders: list[dict[int, np.ndarray]]) -> np.ndarray:
+    """uint8 ``[rows, cols, 3]``: a row per time of :data:`TIMES`, the test panel first, then each run's render
+    (:func:`run_renders`) in the order given."""
+    rows = [np.concatenate([panels[t]["test"]] + [r[t] for r in renders], axis=1) for t in TIMES]
+    return np.concatenate(rows, axis=0)
 
 
 def match_points(
@@ -239,14 +249,23 @@ def main(argv: list[str] | None = None) -> None:
         "--panels", action="store_true", help="Also score the image's own static/Base/WorldTree panels."
     )
     ap.add_argument("--depth", action="store_true", help="Also measure the balloon's depth against each run's.")
+    ap.add_argument(
+        "--save", type=Path, default=None, metavar="PNG",
+        help="Also write a sheet: a row per time, the test view then each run's render.",
+    )  # fmt: skip
     args = ap.parse_args(argv)
+    if args.save is not None and args.save.suffix.lower() not in (".png", ".jpg", ".jpeg"):
+        raise UserError(f"--save {args.save}: give a .png or .jpg file")
     panels = read_panels(args.image)
     print("PSNR dB against the test-view panels (balloon / background)")
     if args.panels or not args.runs:
         for col in COLUMNS[2:]:
             print(_line(f"image's {col}", {t: panel_scores(p[col], p["test"]) for t, p in panels.items()}))
+    sheets = []
     for run in args.runs:
-        print(_line(str(run), run_scores(run, panels)))
+        renders = run_renders(run)
+        sheets.append(renders)
+        print(_line(str(run), {t: panel_scores(img, panels[t]["test"]) for t, img in renders.items()}))
         if args.depth:
             cells = [
                 f"t={t}: {b['measured']:.3f} measured ({b['points']:.0f} points), run {b['run']:.3f} "
@@ -254,6 +273,11 @@ def main(argv: list[str] | None = None) -> None:
                 for t, (b, w) in ((t, (r["balloon"], r["wall"])) for t, r in balloon_depth(run, panels).items())
             ]
             print("  balloon depth in camera t, log(run / measured): " + "  ".join(cells))
+    if args.save is not None:
+        from worldtree.imageio import write_image
+
+        write_image(args.save, contact_sheet(panels, sheets))  # atomic: a whole sheet or none
+        print(f"wrote {args.save}")
 
 
 if __name__ == "__main__":

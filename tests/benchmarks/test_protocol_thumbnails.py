@@ -16,6 +16,8 @@ from benchmarks.speed.protocol_thumbnails import (
     PANEL_H,
     PANEL_W,
     TIMES,
+    contact_sheet,
+    main,
     match_points,
     panel_scores,
     panel_to_image,
@@ -145,3 +147,22 @@ def test_a_textured_plane_matched_into_a_shrunk_panel_gives_its_depth():
     depth, keep = triangulate_depth(K, wa, K, wb, pa, pb)
     assert keep.sum() >= 20
     assert abs(np.median(depth[keep]) / 2.0 - 1.0) < 0.02  # the panel's third of the pixels: about 0.2 px
+
+
+def test_the_sheet_puts_the_test_view_first_and_each_run_after_it():
+    rng = np.random.default_rng(4)
+    shape = (PANEL_H - LABEL_ROWS, PANEL_W, 3)
+    panels = {t: {"test": rng.integers(0, 256, shape, dtype=np.uint8)} for t in TIMES}
+    runs = [{t: rng.integers(0, 256, shape, dtype=np.uint8) for t in TIMES} for _ in range(2)]
+    sheet = contact_sheet(panels, runs)
+    assert sheet.shape == (shape[0] * len(TIMES), PANEL_W * 3, 3)
+    for i, t in enumerate(TIMES):
+        rows = slice(i * shape[0], (i + 1) * shape[0])
+        np.testing.assert_array_equal(sheet[rows, :PANEL_W], panels[t]["test"])
+        np.testing.assert_array_equal(sheet[rows, 2 * PANEL_W :], runs[1][t])
+
+
+def test_save_wants_an_image_file(tmp_path: Path):
+    with pytest.raises(UserError, match="--save .*sheet.txt"):
+        main([str(tmp_path / "run"), "--save", str(tmp_path / "sheet.txt")])
+    assert not (tmp_path / "sheet.txt").exists()
