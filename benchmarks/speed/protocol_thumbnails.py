@@ -5,7 +5,7 @@ diagnostics image ``../shared/real_nvidia/diagnostics/balloon1_protocol_quick.pn
 5, 8) beside renders of older runs: a grid of 3 rows x 5 panels of 320 x 180 pixels (training frame t, the test
 view, static, Base, WorldTree), each the 480x270 protocol image shrunk by OpenCV's area filter, its top
 ``LABEL_ROWS`` rows covered by a caption. That layout was read off the image, and the test checks it: the first
-panel of every row equals the shared training frame t shrunk the same way to about 40 dB.
+panel of every row equals the shared training frame t shrunk the same way, to the last bit.
 
 This script renders a finished run's test camera (training frame 0's camera, drawn from frame 0's fitted pose)
 at those times, shrinks each render as the panels were made and scores it against the test-view panel below the
@@ -49,7 +49,9 @@ TIMES = (2, 5, 8)
 COLUMNS = ("train", "test", "static", "base", "worldtree")
 """The panels of a row, left to right."""
 BALLOON_HUE = (70.0, 170.0)
-"""The balloon's green (hue degrees), as leave-one-out's breakdown keys it; saturation >= 0.25, dilated 6 px."""
+"""The balloon's green (hue degrees), as leave-one-out's breakdown keys it."""
+KEY_SAT = 0.25
+"""Least saturation (0-1) of the balloon's colour key."""
 SHARED = Path(__file__).resolve().parents[2].parent / "shared"
 DEFAULT_IMAGE = SHARED / "real_nvidia" / "diagnostics" / "balloon1_protocol_quick.png"
 
@@ -87,7 +89,7 @@ def shrink(img: np.ndarray) -> np.ndarray:
 def panel_scores(pred: np.ndarray, ref: np.ndarray) -> dict[str, float | None]:
     """PSNR (dB) of ``pred`` against the test panel ``ref`` (both uint8, the same shape): whole, inside the
     balloon (the union of both images' colour keys) and outside it; None for an empty region."""
-    region = colour_key(ref, BALLOON_HUE, 0.25, 6) | colour_key(pred, BALLOON_HUE, 0.25, 6)
+    region = colour_key(ref, BALLOON_HUE, KEY_SAT, 6) | colour_key(pred, BALLOON_HUE, KEY_SAT, 6)
     return {
         "psnr": score(pred, ref),
         "balloon": score(pred, ref, region) if region.any() else None,
@@ -95,11 +97,10 @@ def panel_scores(pred: np.ndarray, ref: np.ndarray) -> dict[str, float | None]:
     }
 
 
-def run_renders(run_dir: Path) -> dict[int, np.ndarray]:
-    """Training frame 0's camera of the run in ``run_dir`` at every time in :data:`TIMES`, shrunk as the panels
-    (:func:`shrink`)."""
+def load_protocol_run(run_dir: Path):
+    """The finished run in ``run_dir`` (:class:`benchmarks.api.LoadedRun`, on the CPU), checked to have
+    training frame 0 and every time of :data:`TIMES`."""
     from benchmarks.api import load_run
-    from worldtree.pixels import as_uint8
 
     run = load_run(run_dir, device="cpu")
     if "train_000" not in run.cameras:
@@ -107,12 +108,15 @@ def run_renders(run_dir: Path) -> dict[int, np.ndarray]:
     missing = [t for t in TIMES if t not in set(int(x) for x in run.times)]
     if missing:
         raise UserError(f"{run_dir}: no time {missing[0]}; the image shows times {TIMES}")
+    return run
+
+
+def run_renders(run) -> dict[int, np.ndarray]:
+    """Training frame 0's camera of a loaded run (:func:`load_protocol_run`) at every time in :data:`TIMES`,
+    shrunk as the panels (:func:`shrink`)."""
+    from worldtree.pixels import as_uint8
+
     return {t: shrink(as_uint8(run.render("train_000", t)).numpy()) for t in TIMES}
-
-
-def run_scores(run_dir: Path, panels: dict[int, dict[str, np.ndarray]]) -> dict[int, dict[str, float | None]]:
-    """Scores of training frame 0's camera of the run in ``run_dir`` at every time in :data:`TIMES`."""
-    return {t: panel_scores(img, panels[t]["test"]) for t, img in run_renders(run_dir).items()}
 
 
 def contact_sheet(panels: dict[int, dict[str, np.ndarray]], renders: list[dict[int, np.ndarray]]) -> np.ndarray:
@@ -160,16 +164,13 @@ def triangulate_depth(
     w = np.where(np.abs(Xh[3]) > 1e-12, Xh[3], 1e-12)
     X = np.vstack([Xh[:3] / w, np.ones(len(pa))])
     keep = np.ones(len(pa), bool)
-    z_a = np.zeros(len(pa))
-    for Pi, pix, idx in ((P[0], pa, 0), (P[1], pb, 1)):
+    depths = []
+    for Pi, pix in ((P[0], pa), (P[1], pb)):
         x = Pi @ X
-        z = x[2]
-        keep &= z > 0
-        proj = (x[:2] / np.where(np.abs(z) > 1e-12, z, 1e-12)).T
-        keep &= np.linalg.norm(proj - pix, axis=1) <= max_px
-        if idx == 0:
-            z_a = z
-    return z_a, keep
+        depths.append(x[2])
+        proj = (x[:2] / np.where(np.abs(x[2]) > 1e-12, x[2], 1e-12)).T
+        keep &= (x[2] > 0) & (np.linalg.norm(proj - pix, axis=1) <= max_px)
+    return depths[0], keep
 
 
 def panel_to_image(points: np.ndarray, width: int, height: int) -> np.ndarray:
@@ -196,8 +197,8 @@ def _depth_against(run, ct, depth: np.ndarray, img, up, region_img, region_up) -
             "log_ratio": float(np.median(np.log(d[ok] / z[ok])))}  # fmt: skip
 
 
-def balloon_depth(run_dir: Path, panels: dict[int, dict[str, np.ndarray]]) -> dict[int, dict[str, dict]]:
-    """Per time of :data:`TIMES`, for the balloon and for the wall: the depth in camera t triangulated from
+def balloon_depth(run, panels: dict[int, dict[str, np.ndarray]]) -> dict[int, dict[str, dict]]:
+    """Per time of :data:`TIMES`, for the balloon and for the wall of a loaded run (:func:`load_protocol_run`): the depth in camera t triangulated from
     training frame t and the test panel (median, scene units; ``points`` used), the run's rendered depth at
     those pixels (median) and the median ``log(run / measured)``. The wall is the left quarter of both images
     outside the balloon (dilated 20 px), where nothing moves on Balloon1: its ratio is the run's own scale
@@ -205,11 +206,9 @@ def balloon_depth(run_dir: Path, panels: dict[int, dict[str, np.ndarray]]) -> di
     depth error in the run's own frame."""
     import cv2
 
-    from benchmarks.api import load_run
     from worldtree.imageio import read_image
     from worldtree.scene_schema import read_cameras, resolve_inside
 
-    run = load_run(run_dir, device="cpu")
     doc = read_cameras(run.scene_dir)
     out = {}
     for t in TIMES:
@@ -219,12 +218,12 @@ def balloon_depth(run_dir: Path, panels: dict[int, dict[str, np.ndarray]]) -> di
         # Matched at the run's scale: the panel brought up to the image's width.
         up = cv2.resize(test, (ct.width, round(test.shape[0] * ct.width / PANEL_W)), interpolation=cv2.INTER_CUBIC)
         depth = run.render(ct, t, mode="depth").numpy()
-        keys = [colour_key(x, BALLOON_HUE, 0.25, 0) for x in (img, up)]
+        keys = [colour_key(x, BALLOON_HUE, KEY_SAT, 0) for x in (img, up)]
         walls = []
         for x in (img, up):
             wall = np.zeros(x.shape[:2], bool)
             wall[:, : x.shape[1] // 4] = True
-            walls.append(wall & ~colour_key(x, BALLOON_HUE, 0.25, 20))
+            walls.append(wall & ~colour_key(x, BALLOON_HUE, KEY_SAT, 20))
         out[t] = {
             "balloon": _depth_against(run, ct, depth, img, up, *keys),
             "wall": _depth_against(run, ct, depth, img, up, *walls),
@@ -262,16 +261,19 @@ def main(argv: list[str] | None = None) -> None:
         for col in COLUMNS[2:]:
             print(_line(f"image's {col}", {t: panel_scores(p[col], p["test"]) for t, p in panels.items()}))
     sheets = []
-    for run in args.runs:
+    for run_dir in args.runs:
+        run = load_protocol_run(run_dir)  # loaded once for the renders and the depth
         renders = run_renders(run)
         sheets.append(renders)
-        print(_line(str(run), {t: panel_scores(img, panels[t]["test"]) for t, img in renders.items()}))
+        print(_line(str(run_dir), {t: panel_scores(img, panels[t]["test"]) for t, img in renders.items()}))
         if args.depth:
-            cells = [
-                f"t={t}: {b['measured']:.3f} measured ({b['points']:.0f} points), run {b['run']:.3f} "
-                f"({b['log_ratio']:+.2f}; wall {w['log_ratio']:+.2f}, {w['points']:.0f} points)"
-                for t, (b, w) in ((t, (r["balloon"], r["wall"])) for t, r in balloon_depth(run, panels).items())
-            ]
+            cells = []
+            for t, r in balloon_depth(run, panels).items():
+                b, w = r["balloon"], r["wall"]
+                cells.append(
+                    f"t={t}: {b['measured']:.3f} measured ({b['points']:.0f} points), run {b['run']:.3f} "
+                    f"({b['log_ratio']:+.2f}; wall {w['log_ratio']:+.2f}, {w['points']:.0f} points)"
+                )
             print("  balloon depth in camera t, log(run / measured): " + "  ".join(cells))
     if args.save is not None:
         from worldtree.imageio import write_image
