@@ -20,13 +20,21 @@ time), triangulated with the two cameras' given poses (matches reprojecting fart
 give the balloon's depth in camera t at those pixels; the run's rendered depth of frame t at the same pixels is
 compared with it (median ``log(run / measured)``: issue 28's depth error, on real footage, at three times).
 
+With ``--dynamic-scale K[,K...]`` it asks what the balloon's depth alone would change: the dynamic Gaussians that
+draw the balloon in training frame t (their centre projects inside the frame's colour key, dilated
+``SELECT_DILATE_PX``) are moved along their rays from camera t by the factor K (centre ``c + K (x - c)``, sizes
+times K), which leaves frame t's own image as it was and moves the balloon in every other camera as a depth K
+times the run's would; camera 0 is then scored at each K. Beside the PSNR every line reports where the balloon
+lands (:func:`balloon_placement`): the offset of its colour key's centroid from the test view's, in pixels of
+the 480x270 protocol image, and the keys' IoU, issue 28's screen error on real footage.
+
 Three small views of one scene, at a third of the protocol's pixels: a check of where a change moves the real
 test views, not a benchmark, and not something to choose settings by (that would tune to the scored data).
 
 Usage::
 
     python -m benchmarks.speed.protocol_thumbnails RUN_DIR [RUN_DIR ...] [--image PNG] [--panels] [--depth]
-        [--save SHEET.png]
+        [--dynamic-scale K[,K...]] [--save SHEET.png]
 """
 
 from __future__ import annotations
@@ -52,6 +60,11 @@ BALLOON_HUE = (70.0, 170.0)
 """The balloon's green (hue degrees), as leave-one-out's breakdown keys it."""
 KEY_SAT = 0.25
 """Least saturation (0-1) of the balloon's colour key."""
+SELECT_DILATE_PX = 4
+"""Margin (px of training frame t) around the balloon's colour key inside which a dynamic Gaussian's centre counts
+as drawing the balloon (``--dynamic-scale``)."""
+PROTOCOL_W = 480
+"""Width of the protocol image the panels were shrunk from; placement offsets are in its pixels."""
 SHARED = Path(__file__).resolve().parents[2].parent / "shared"
 DEFAULT_IMAGE = SHARED / "real_nvidia" / "diagnostics" / "balloon1_protocol_quick.png"
 
@@ -97,6 +110,50 @@ def panel_scores(pred: np.ndarray, ref: np.ndarray) -> dict[str, float | None]:
     }
 
 
+def balloon_placement(pred: np.ndarray, ref: np.ndarray) -> dict[str, float]:
+    """Where ``pred`` draws the balloon against the test panel ``ref`` (both uint8 ``[h, w, 3]`` panels): the offset
+    ``dx, dy`` of its colour key's centroid from the panel's and its length ``offset_px``, in pixels of the
+    protocol image (:data:`PROTOCOL_W` wide), and the IoU of the two keys; NaN offsets (IoU 0) when either image
+    shows no balloon."""
+    keys = [colour_key(x, BALLOON_HUE, KEY_SAT, 0) for x in (pred, ref)]
+    union = int((keys[0] | keys[1]).sum())
+    iou = float((keys[0] & keys[1]).sum() / union) if union else 0.0
+    if not (keys[0].any() and keys[1].any()):
+        return {"dx": float("nan"), "dy": float("nan"), "offset_px": float("nan"), "iou": iou}
+    (yp, xp), (yr, xr) = (np.argwhere(k).mean(0) for k in keys)
+    up = PROTOCOL_W / ref.shape[1]
+    dx, dy = float((xp - xr) * up), float((yp - yr) * up)
+    return {"dx": dx, "dy": dy, "offset_px": float(np.hypot(dx, dy)), "iou": iou}
+
+
+def scale_about(frame, centre, select, k: float):
+    """``frame`` (:class:`worldtree.gaussian_frame.GaussianFrame`) with the Gaussians ``select`` (``[N]`` bool)
+    moved along their rays from ``centre`` (``[3]``, model world units) by the factor ``k`` > 0: centres
+    ``centre + k (x - centre)``, log-scales ``+ log k``. Seen from a camera at ``centre`` they cover the same
+    pixels; from any other camera they sit where a depth ``k`` times theirs would put them."""
+    import dataclasses
+    import math
+
+    import torch
+
+    if not k > 0.0 or not math.isfinite(k):
+        raise UserError(f"--dynamic-scale {k}: give factors > 0, e.g. 0.85,1.0")
+    sel = select.to(frame.means.device)[:, None]
+    c = torch.as_tensor(centre, dtype=frame.means.dtype, device=frame.means.device)
+    means = torch.where(sel, c + k * (frame.means - c), frame.means)
+    log_scales = torch.where(sel, frame.log_scales + math.log(k), frame.log_scales)
+    return dataclasses.replace(frame, means=means, log_scales=log_scales)
+
+
+def project(K, w2c, points):
+    """Pixels ``[N, 2]`` and camera depths ``[N]`` of world ``points`` ``[N, 3]`` seen by ``K`` [3, 3] / ``w2c``
+    [4, 4] (OpenCV; a point behind the camera gets depth <= 0 and a clamped, meaningless pixel)."""
+    cam = points @ w2c[:3, :3].T + w2c[:3, 3]
+    z = cam[:, 2]
+    uv = cam[:, :2] / z.clamp_min(1e-9)[:, None]
+    return uv * K.diagonal()[:2] + K[:2, 2], z
+
+
 def load_protocol_run(run_dir: Path):
     """The finished run in ``run_dir`` (:class:`benchmarks.api.LoadedRun`, on the CPU), checked to have
     training frame 0 and every time of :data:`TIMES`."""
@@ -117,6 +174,54 @@ def run_renders(run) -> dict[int, np.ndarray]:
     from worldtree.pixels import as_uint8
 
     return {t: shrink(as_uint8(run.render("train_000", t)).numpy()) for t in TIMES}
+
+
+def balloon_gaussians(run, t: int, key: np.ndarray):
+    """The frame a loaded run draws at ``t`` and ``[N]`` bool: its dynamic Gaussians whose centre projects, in front
+    of training camera t (its fitted pose), inside ``key`` (``[H, W]`` bool at that camera's size)."""
+    import torch
+
+    frame = run.gaussians_at(t)
+    ct = run.cameras[f"train_{t:03d}"]
+    w2c = run.model_w2c(ct, t)
+    uv, z = project(ct.K.float(), w2c.float(), frame.means)
+    inside = (z > 0) & (uv[:, 0] >= -0.5) & (uv[:, 0] < key.shape[1] - 0.5) & (uv[:, 1] >= -0.5)
+    inside &= uv[:, 1] < key.shape[0] - 0.5
+    x = uv[:, 0].round().long().clamp(0, key.shape[1] - 1)
+    y = uv[:, 1].round().long().clamp(0, key.shape[0] - 1)
+    on_key = torch.from_numpy(np.ascontiguousarray(key))[y, x]
+    return frame, frame.dynamic & inside & on_key
+
+
+def dynamic_scale_renders(run, ks: list[float]) -> dict[float, dict[int, np.ndarray]]:
+    """``{k: {t: panel}}``: training frame 0's camera at every time of :data:`TIMES`, with the balloon's dynamic
+    Gaussians (:func:`balloon_gaussians`, the key of training frame t dilated :data:`SELECT_DILATE_PX`) moved
+    by :func:`scale_about` about camera t's centre, shrunk as the panels."""
+    import torch
+
+    from worldtree.gaussian_frame import render_frame
+    from worldtree.imageio import read_image
+    from worldtree.pixels import as_uint8
+    from worldtree.scene_schema import read_cameras, resolve_inside
+
+    doc = read_cameras(run.scene_dir)
+    backend = run.config.photometric.backend
+    c0 = run.cameras["train_000"]
+    out: dict[float, dict[int, np.ndarray]] = {k: {} for k in ks}
+    for t in TIMES:
+        ct = run.cameras[f"train_{t:03d}"]
+        img = read_image(resolve_inside(run.scene_dir, doc.frames[ct.frame].file, run.scene_dir / "cameras.json"))
+        key = colour_key(img[..., :3], BALLOON_HUE, KEY_SAT, SELECT_DILATE_PX)
+        frame, sel = balloon_gaussians(run, t, key)
+        w2c_t = run.model_w2c(ct, t)
+        centre = -(w2c_t[:3, :3].T @ w2c_t[:3, 3])
+        pose0 = run.model_w2c(c0, t)
+        for k in ks:
+            moved = scale_about(frame, centre, sel, k)
+            with torch.no_grad():
+                rgb = render_frame(moved, c0.K, pose0, c0.width, c0.height, "rgb", backend)
+            out[k][t] = shrink(as_uint8(rgb.cpu()).numpy())
+    return out
 
 
 def contact_sheet(panels: dict[int, dict[str, np.ndarray]], renders: list[dict[int, np.ndarray]]) -> np.ndarray:
@@ -240,6 +345,24 @@ def _line(name: str, scores: dict[int, dict[str, float | None]]) -> str:
     return f"{name}: " + "  ".join(cells) + f"  mean {mean:.2f}"
 
 
+def _placement_line(renders: dict[int, np.ndarray], panels) -> str:
+    cells = []
+    for t, img in renders.items():
+        p = balloon_placement(img, panels[t]["test"])
+        cells.append(f"t={t}: {p['offset_px']:.0f} px ({p['dx']:+.0f}, {p['dy']:+.0f}) IoU {p['iou']:.2f}")
+    return "  balloon placement (centroid offset at 480x270): " + "  ".join(cells)
+
+
+def _factors(text: str) -> list[float]:
+    try:
+        ks = [float(x) for x in text.split(",") if x.strip()]
+    except ValueError:
+        raise UserError(f"--dynamic-scale {text}: give comma-separated factors, e.g. 0.85,1.0") from None
+    if not ks or not all(np.isfinite(k) and k > 0 for k in ks):
+        raise UserError(f"--dynamic-scale {text}: give factors > 0, e.g. 0.85,1.0")
+    return ks
+
+
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("runs", type=Path, nargs="*", help="Finished runs on Balloon1 (12-frame protocol).")
@@ -252,7 +375,12 @@ def main(argv: list[str] | None = None) -> None:
         "--save", type=Path, default=None, metavar="PNG",
         help="Also write a sheet: a row per time, the test view then each run's render.",
     )  # fmt: skip
+    ap.add_argument(
+        "--dynamic-scale", default=None, metavar="K[,K...]",
+        help="Also score each run with its balloon's dynamic Gaussians moved to K times their depth in camera t.",
+    )  # fmt: skip
     args = ap.parse_args(argv)
+    ks = _factors(args.dynamic_scale) if args.dynamic_scale is not None else []
     if args.save is not None and args.save.suffix.lower() not in (".png", ".jpg", ".jpeg"):
         raise UserError(f"--save {args.save}: give a .png or .jpg file")
     panels = read_panels(args.image)
@@ -266,6 +394,11 @@ def main(argv: list[str] | None = None) -> None:
         renders = run_renders(run)
         sheets.append(renders)
         print(_line(str(run_dir), {t: panel_scores(img, panels[t]["test"]) for t, img in renders.items()}))
+        print(_placement_line(renders, panels))
+        for k, moved in dynamic_scale_renders(run, ks).items() if ks else ():
+            scores = {t: panel_scores(img, panels[t]["test"]) for t, img in moved.items()}
+            print(_line(f"  balloon at {k:g} x its depth", scores))
+            print("  " + _placement_line(moved, panels))
         if args.depth:
             cells = []
             for t, r in balloon_depth(run, panels).items():

@@ -8,6 +8,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+import torch
 
 from benchmarks.speed.protocol_thumbnails import (
     COLUMNS,
@@ -15,13 +16,19 @@ from benchmarks.speed.protocol_thumbnails import (
     LABEL_ROWS,
     PANEL_H,
     PANEL_W,
+    PROTOCOL_W,
     TIMES,
+    _factors,
+    balloon_gaussians,
+    balloon_placement,
     contact_sheet,
     main,
     match_points,
     panel_scores,
     panel_to_image,
+    project,
     read_panels,
+    scale_about,
     shrink,
     triangulate_depth,
 )
@@ -166,3 +173,118 @@ def test_save_wants_an_image_file(tmp_path: Path):
     with pytest.raises(UserError, match="--save .*sheet.txt"):
         main([str(tmp_path / "run"), "--save", str(tmp_path / "sheet.txt")])
     assert not (tmp_path / "sheet.txt").exists()
+
+
+def _disc(mask_shape, cx: float, cy: float, r: float) -> np.ndarray:
+    yy, xx = np.mgrid[: mask_shape[0], : mask_shape[1]]
+    return (xx - cx) ** 2 + (yy - cy) ** 2 <= r**2
+
+
+def test_placement_gives_a_moved_balloons_offset_in_protocol_pixels_and_the_lens_iou():
+    h, w = PANEL_H - LABEL_ROWS, PANEL_W
+    grey = np.full((h, w, 3), 128, np.uint8)
+    green = np.array([40, 200, 60], np.uint8)
+    ref, pred = grey.copy(), grey.copy()
+    r, dx, dy = 30.0, 12.0, -5.0
+    ref[_disc((h, w), 120, 80, r)] = green
+    pred[_disc((h, w), 120 + dx, 80 + dy, r)] = green
+    p = balloon_placement(pred, ref)
+    up = PROTOCOL_W / PANEL_W  # a panel pixel is 1.5 protocol pixels
+    assert p["dx"] == pytest.approx(dx * up, abs=0.2) and p["dy"] == pytest.approx(dy * up, abs=0.2)
+    assert p["offset_px"] == pytest.approx(np.hypot(dx, dy) * up, abs=0.3)
+    # Two discs of radius r whose centres are d apart overlap in a lens of area 2 r^2 acos(d / 2r) - d/2 sqrt(4r^2 - d^2).
+    d = np.hypot(dx, dy)
+    lens = 2 * r**2 * np.arccos(d / (2 * r)) - d / 2 * np.sqrt(4 * r**2 - d**2)
+    assert p["iou"] == pytest.approx(lens / (2 * np.pi * r**2 - lens), abs=0.02)
+    same = balloon_placement(ref, ref)
+    assert same["offset_px"] == 0.0 and same["iou"] == 1.0
+    none = balloon_placement(grey, ref)
+    assert np.isnan(none["offset_px"]) and none["iou"] == 0.0
+
+
+def _frame(means: torch.Tensor, dynamic: torch.Tensor):
+    from worldtree.gaussian_frame import GaussianFrame
+    from worldtree.stages.cameras import Sim3
+
+    n = means.shape[0]
+    quats = torch.nn.functional.normalize(torch.randn(n, 4, generator=torch.Generator().manual_seed(3)), dim=1)
+    return GaussianFrame(
+        0, means, quats, torch.full((n, 3), -3.0), torch.full((n,), 0.5), torch.zeros(n, 3), dynamic,
+        Sim3.identity(),
+    )  # fmt: skip
+
+
+def _look(centre: np.ndarray, yaw: float) -> torch.Tensor:
+    """OpenCV world-to-camera pose of a camera at ``centre`` turned by ``yaw`` about the y axis."""
+    c, s = np.cos(yaw), np.sin(yaw)
+    R = np.array([[c, 0, -s], [0, 1, 0], [s, 0, c]])
+    w2c = np.eye(4)
+    w2c[:3, :3] = R
+    w2c[:3, 3] = -R @ centre
+    return torch.tensor(w2c, dtype=torch.float32)
+
+
+def test_scaling_about_a_camera_keeps_its_image_and_scales_depth_and_size():
+    K = torch.tensor([[300.0, 0, 160], [0, 300.0, 90], [0, 0, 1]])
+    centre = np.array([0.3, -0.1, -2.0])
+    w2c = _look(centre, 0.2)
+    g = torch.Generator().manual_seed(0)
+    means = torch.randn(50, 3, generator=g) * 0.3
+    select = torch.rand(50, generator=g) < 0.5
+    frame = _frame(means, torch.ones(50, dtype=torch.bool))
+    moved = scale_about(frame, torch.tensor(centre, dtype=torch.float32), select, 0.8)
+    uv0, z0 = project(K, w2c, frame.means)
+    uv1, z1 = project(K, w2c, moved.means)
+    torch.testing.assert_close(uv1, uv0, atol=1e-3, rtol=0)
+    torch.testing.assert_close(z1[select], 0.8 * z0[select], atol=1e-5, rtol=1e-5)
+    torch.testing.assert_close(moved.means[~select], frame.means[~select])
+    torch.testing.assert_close(moved.log_scales[select], frame.log_scales[select] + np.log(0.8))
+    torch.testing.assert_close(moved.log_scales[~select], frame.log_scales[~select])
+    # Another camera sees the selected points where points at 0.8 of their depth along the same rays would be.
+    other = _look(centre + np.array([0.5, 0.0, 0.0]), 0.2)
+    uv_other, _ = project(K, other, moved.means)
+    pts = frame.means[select]
+    c = torch.tensor(centre, dtype=torch.float32)
+    torch.testing.assert_close(uv_other[select], project(K, other, c + 0.8 * (pts - c))[0])
+    for bad in (0.0, -1.0, float("nan")):
+        with pytest.raises(UserError, match="--dynamic-scale"):
+            scale_about(frame, c, select, bad)
+
+
+def test_factors_are_read_or_refused_by_option_name():
+    assert _factors("0.85, 1.0") == [0.85, 1.0]
+    for bad in ("", "a,1", "0", "-0.5", "inf"):
+        with pytest.raises(UserError, match="--dynamic-scale"):
+            _factors(bad)
+
+
+class _FakeRun:
+    """What :func:`balloon_gaussians` reads of a loaded run: a frame, the training camera and its model pose."""
+
+    def __init__(self, frame, K, w2c, width, height):
+        from benchmarks.api import Camera
+
+        self._frame = frame
+        self._w2c = w2c
+        self.cameras = {"train_005": Camera("train_005", "train", K, w2c, width, height, 5, 5)}
+
+    def gaussians_at(self, t):
+        return self._frame
+
+    def model_w2c(self, camera, t):
+        return self._w2c
+
+
+def test_the_balloons_gaussians_are_the_dynamic_ones_in_front_of_the_camera_on_its_key():
+    K = torch.tensor([[100.0, 0, 49.5], [0, 100.0, 29.5], [0, 0, 1]])
+    w2c = torch.eye(4)
+    key = np.zeros((60, 100), bool)
+    key[10:30, 20:60] = True  # the balloon: x 20..59, y 10..29
+    pix = [(40, 20), (40, 20), (40, 20), (80, 50), (59, 29), (60, 29)]
+    depth = [1.0, 1.0, -1.0, 1.0, 2.0, 2.0]  # the third behind the camera
+    rows = [[(u - 49.5) / 100 * z, (v - 29.5) / 100 * z, z] for (u, v), z in zip(pix, depth, strict=True)]
+    means = torch.tensor(rows)
+    dynamic = torch.tensor([True, False, True, True, True, True])
+    _, sel = balloon_gaussians(_FakeRun(_frame(means, dynamic), K, w2c, 100, 60), 5, key)
+    # On the key and dynamic; the static one, the one behind, the one off the key and the one a pixel past it: not.
+    assert sel.tolist() == [True, False, False, False, True, False]
