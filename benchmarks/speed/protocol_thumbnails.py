@@ -145,15 +145,6 @@ def scale_about(frame, centre, select, k: float):
     return dataclasses.replace(frame, means=means, log_scales=log_scales)
 
 
-def project(K, w2c, points):
-    """Pixels ``[N, 2]`` and camera depths ``[N]`` of world ``points`` ``[N, 3]`` seen by ``K`` [3, 3] / ``w2c``
-    [4, 4] (OpenCV; a point behind the camera gets depth <= 0 and a clamped, meaningless pixel)."""
-    cam = points @ w2c[:3, :3].T + w2c[:3, 3]
-    z = cam[:, 2]
-    uv = cam[:, :2] / z.clamp_min(1e-9)[:, None]
-    return uv * K.diagonal()[:2] + K[:2, 2], z
-
-
 def load_protocol_run(run_dir: Path):
     """The finished run in ``run_dir`` (:class:`benchmarks.api.LoadedRun`, on the CPU), checked to have
     training frame 0 and every time of :data:`TIMES`."""
@@ -176,15 +167,27 @@ def run_renders(run) -> dict[int, np.ndarray]:
     return {t: shrink(as_uint8(run.render("train_000", t)).numpy()) for t in TIMES}
 
 
+def training_image(run, doc, t: int) -> np.ndarray:
+    """Training frame t of a loaded run's scene as stored (uint8 ``[H, W, C]``); ``doc`` its
+    :func:`worldtree.scene_schema.read_cameras`."""
+    from worldtree.imageio import read_image
+    from worldtree.scene_schema import resolve_inside
+
+    ct = run.cameras[f"train_{t:03d}"]
+    return read_image(resolve_inside(run.scene_dir, doc.frames[ct.frame].file, run.scene_dir / "cameras.json"))
+
+
 def balloon_gaussians(run, t: int, key: np.ndarray):
     """The frame a loaded run draws at ``t`` and ``[N]`` bool: its dynamic Gaussians whose centre projects, in front
     of training camera t (its fitted pose), inside ``key`` (``[H, W]`` bool at that camera's size)."""
     import torch
 
+    from worldtree.motion.lift import project_points
+
     frame = run.gaussians_at(t)
     ct = run.cameras[f"train_{t:03d}"]
     w2c = run.model_w2c(ct, t)
-    uv, z = project(ct.K.float(), w2c.float(), frame.means)
+    uv, z = project_points(frame.means, ct.K.float(), w2c.float())
     inside = (z > 0) & (uv[:, 0] >= -0.5) & (uv[:, 0] < key.shape[1] - 0.5) & (uv[:, 1] >= -0.5)
     inside &= uv[:, 1] < key.shape[0] - 0.5
     x = uv[:, 0].round().long().clamp(0, key.shape[1] - 1)
@@ -200,21 +203,18 @@ def dynamic_scale_renders(run, ks: list[float]) -> dict[float, dict[int, np.ndar
     import torch
 
     from worldtree.gaussian_frame import render_frame
-    from worldtree.imageio import read_image
     from worldtree.pixels import as_uint8
-    from worldtree.scene_schema import read_cameras, resolve_inside
+    from worldtree.scene_schema import read_cameras
+    from worldtree.stages.cameras import centres
 
     doc = read_cameras(run.scene_dir)
     backend = run.config.photometric.backend
     c0 = run.cameras["train_000"]
     out: dict[float, dict[int, np.ndarray]] = {k: {} for k in ks}
     for t in TIMES:
-        ct = run.cameras[f"train_{t:03d}"]
-        img = read_image(resolve_inside(run.scene_dir, doc.frames[ct.frame].file, run.scene_dir / "cameras.json"))
-        key = colour_key(img[..., :3], BALLOON_HUE, KEY_SAT, SELECT_DILATE_PX)
+        key = colour_key(training_image(run, doc, t)[..., :3], BALLOON_HUE, KEY_SAT, SELECT_DILATE_PX)
         frame, sel = balloon_gaussians(run, t, key)
-        w2c_t = run.model_w2c(ct, t)
-        centre = -(w2c_t[:3, :3].T @ w2c_t[:3, 3])
+        centre = centres(run.model_w2c(run.cameras[f"train_{t:03d}"], t))
         pose0 = run.model_w2c(c0, t)
         for k in ks:
             moved = scale_about(frame, centre, sel, k)
@@ -311,14 +311,13 @@ def balloon_depth(run, panels: dict[int, dict[str, np.ndarray]]) -> dict[int, di
     depth error in the run's own frame."""
     import cv2
 
-    from worldtree.imageio import read_image
-    from worldtree.scene_schema import read_cameras, resolve_inside
+    from worldtree.scene_schema import read_cameras
 
     doc = read_cameras(run.scene_dir)
     out = {}
     for t in TIMES:
         ct = run.cameras[f"train_{t:03d}"]
-        img = read_image(resolve_inside(run.scene_dir, doc.frames[ct.frame].file, run.scene_dir / "cameras.json"))
+        img = training_image(run, doc, t)
         test = panels[t]["test"]
         # Matched at the run's scale: the panel brought up to the image's width.
         up = cv2.resize(test, (ct.width, round(test.shape[0] * ct.width / PANEL_W)), interpolation=cv2.INTER_CUBIC)

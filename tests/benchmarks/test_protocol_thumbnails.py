@@ -26,7 +26,6 @@ from benchmarks.speed.protocol_thumbnails import (
     match_points,
     panel_scores,
     panel_to_image,
-    project,
     read_panels,
     scale_about,
     shrink,
@@ -34,6 +33,7 @@ from benchmarks.speed.protocol_thumbnails import (
 )
 from worldtree.imageio import read_image, write_image
 from worldtree.infra.errors import UserError
+from worldtree.motion.lift import project_points
 
 FRAMES = DEFAULT_IMAGE.parents[1] / "Balloon1" / "images"
 
@@ -233,8 +233,8 @@ def test_scaling_about_a_camera_keeps_its_image_and_scales_depth_and_size():
     select = torch.rand(50, generator=g) < 0.5
     frame = _frame(means, torch.ones(50, dtype=torch.bool))
     moved = scale_about(frame, torch.tensor(centre, dtype=torch.float32), select, 0.8)
-    uv0, z0 = project(K, w2c, frame.means)
-    uv1, z1 = project(K, w2c, moved.means)
+    uv0, z0 = project_points(frame.means, K, w2c)
+    uv1, z1 = project_points(moved.means, K, w2c)
     torch.testing.assert_close(uv1, uv0, atol=1e-3, rtol=0)
     torch.testing.assert_close(z1[select], 0.8 * z0[select], atol=1e-5, rtol=1e-5)
     torch.testing.assert_close(moved.means[~select], frame.means[~select])
@@ -242,10 +242,10 @@ def test_scaling_about_a_camera_keeps_its_image_and_scales_depth_and_size():
     torch.testing.assert_close(moved.log_scales[~select], frame.log_scales[~select])
     # Another camera sees the selected points where points at 0.8 of their depth along the same rays would be.
     other = _look(centre + np.array([0.5, 0.0, 0.0]), 0.2)
-    uv_other, _ = project(K, other, moved.means)
+    uv_other, _ = project_points(moved.means, K, other)
     pts = frame.means[select]
     c = torch.tensor(centre, dtype=torch.float32)
-    torch.testing.assert_close(uv_other[select], project(K, other, c + 0.8 * (pts - c))[0])
+    torch.testing.assert_close(uv_other[select], project_points(c + 0.8 * (pts - c), K, other)[0])
     for bad in (0.0, -1.0, float("nan")):
         with pytest.raises(UserError, match="--dynamic-scale"):
             scale_about(frame, c, select, bad)
