@@ -524,8 +524,12 @@ def _compute_priors(scene, cfg: PriorsConfig | None, cache_dir, progress: Progre
         mask_conf = mask.astype(np.float32)
         mask_src = f"epipolar (threshold {cfg.epi.threshold_px} px)"
     dynamic = epipolar.label_dynamic_tracks(xy, vis, mask, cfg.epi.track_min_frames)
-    if depth_src == "classical":
+    if depth_src == "classical" and (cfg.masks_source is None or cfg.depth.fill_imported_masks):
         depth, depth_conf = _refill_dynamic(depth, depth_conf, mask, imgs, cfg)
+    elif depth_src == "classical":
+        # An imported mask outlines whole objects: the fill would put each at the depth behind it (the
+        # config's docstring); the sweep's value stays, unconfident.
+        depth_conf = np.where(mask, 0.0, depth_conf).astype(np.float32)
     elif fill is not None:
         # Stereo on moving objects is noise even where it looks confident: the network depth replaces it.
         if stereo is not None:

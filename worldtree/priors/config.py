@@ -101,6 +101,13 @@ class DepthConfig:
     the frame's confident inverse depth (:func:`worldtree.priors.depth.edge_aware_fill`): the two are blended
     with weights ``support`` and ``fill_support``. A region no other camera sees (a rig's end strip) then
     continues the wall beside it instead of taking the frame's mean depth. 0: the mean, the old fallback."""
+    fill_imported_masks: bool = False
+    """On the pixels of imported dynamic masks, replace the stereo depth by the fill from the static
+    surroundings, as on the method's own masks. Off (default): they keep the plane sweep's value, at confidence
+    0 either way. An imported mask covers each moving object whole, and the fill puts all of it at the depth of
+    what is behind it; on four generated scenes the sweep's value (matched across times) left the objects
+    nearer their depth and scored +0.4 to +1.0 dB mPSNR (docs/base_method.md, session 49). The method's own
+    masks start small; there the choice measured level, and they are filled as before."""
     near: float | None = None
     """Nearest depth hypothesis in scene units; None uses the scene's near bound."""
     far: float | None = None

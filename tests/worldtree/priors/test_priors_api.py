@@ -304,3 +304,31 @@ def test_imported_flow_gets_the_gaps_it_lacks_from_dis(scene, computed, tmp_path
     assert len(calls) == scene.num_frames - 1  # the gap-1 pairs
     np.testing.assert_array_equal(classical.flow[(0, 3)].flow, pri.flow[(0, 3)].flow)
     assert len(classical.flow) == len(pri.flow)
+
+
+def test_imported_masks_keep_the_sweeps_depth_unless_asked_to_fill(scene, planar, tmp_path):
+    from worldtree.imageio import write_image
+
+    _, fr = planar
+    gt = fr["mask"]
+    T = scene.num_frames
+
+    def masks(name, m):
+        d = tmp_path / name
+        d.mkdir()
+        for t in range(T):
+            write_image(d / f"{t:05d}.png", m[t])
+        return str(d)
+
+    # An imported all-empty mask leaves the classical depth as the plane sweep made it: the reference.
+    raw = compute_priors(scene, dataclasses.replace(FAST, masks_source=masks("empty", np.zeros_like(gt))), None)
+    cfg = dataclasses.replace(FAST, masks_source=masks("gt", gt))
+    kept = compute_priors(scene, cfg, None)
+    filled = compute_priors(
+        scene, dataclasses.replace(cfg, depth=dataclasses.replace(FAST.depth, fill_imported_masks=True)), None
+    )
+    np.testing.assert_array_equal(kept.depth, raw.depth)
+    assert not kept.depth_conf[gt].any() and not filled.depth_conf[gt].any()
+    np.testing.assert_array_equal(kept.depth_conf[~gt], raw.depth_conf[~gt])
+    np.testing.assert_array_equal(filled.depth[~gt], raw.depth[~gt])
+    assert np.abs(filled.depth[gt] - raw.depth[gt]).max() > 0
