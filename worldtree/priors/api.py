@@ -371,12 +371,17 @@ def _dilate(mask: np.ndarray, px: int) -> np.ndarray:
     return np.stack([cv2.dilate(m.astype(np.uint8), k) > 0 for m in mask])
 
 
-def _refill_dynamic(depth, conf, mask, imgs, cfg: PriorsConfig) -> tuple[np.ndarray, np.ndarray]:
-    """Zero the confidence on dynamic pixels and replace their depth by the edge-aware fill.
+def _refill_dynamic(
+    depth, conf, mask, imgs, cfg: PriorsConfig, refill: bool = True
+) -> tuple[np.ndarray, np.ndarray]:
+    """Zero the confidence on dynamic pixels and (``refill``) replace their depth by the edge-aware fill.
 
     Multi-view stereo assumes a static world, so its matches on moving objects are noise; the fill is a
-    smooth guess from the surrounding static surfaces (confidence 0 says so).
+    smooth guess from the surrounding static surfaces (confidence 0 says so). Without ``refill`` the sweep's
+    value stays, unconfident.
     """
+    if not refill:
+        return depth.astype(np.float32), np.where(mask, 0.0, conf).astype(np.float32)
     depth, conf = depth.copy(), conf.copy()
 
     def fill(t: int) -> np.ndarray | None:
@@ -524,12 +529,11 @@ def _compute_priors(scene, cfg: PriorsConfig | None, cache_dir, progress: Progre
         mask_conf = mask.astype(np.float32)
         mask_src = f"epipolar (threshold {cfg.epi.threshold_px} px)"
     dynamic = epipolar.label_dynamic_tracks(xy, vis, mask, cfg.epi.track_min_frames)
-    if depth_src == "classical" and (cfg.masks_source is None or cfg.depth.fill_imported_masks):
-        depth, depth_conf = _refill_dynamic(depth, depth_conf, mask, imgs, cfg)
-    elif depth_src == "classical":
-        # An imported mask outlines whole objects: the fill would put each at the depth behind it (the
-        # config's docstring); the sweep's value stays, unconfident.
-        depth_conf = np.where(mask, 0.0, depth_conf).astype(np.float32)
+    if depth_src == "classical":
+        # An imported mask outlines whole objects: the fill would put each at the depth behind it
+        # (`DepthConfig.fill_imported_masks`).
+        refill = cfg.masks_source is None or cfg.depth.fill_imported_masks
+        depth, depth_conf = _refill_dynamic(depth, depth_conf, mask, imgs, cfg, refill)
     elif fill is not None:
         # Stereo on moving objects is noise even where it looks confident: the network depth replaces it.
         if stereo is not None:

@@ -18,6 +18,16 @@ from worldtree.priors.imported import write_flo
 FAST = PriorsConfig(depth=DepthConfig(num_planes=32))
 
 
+def _write_masks(folder, masks):
+    """``masks`` ``[T, H, W]`` bool as one PNG per frame in ``folder`` (created); returns ``folder``."""
+    from worldtree.imageio import write_image
+
+    folder.mkdir()
+    for t, m in enumerate(masks):
+        write_image(folder / f"{t:05d}.png", m)
+    return folder
+
+
 @pytest.fixture(scope="module")
 def scene(planar):
     sc, fr = planar
@@ -155,14 +165,9 @@ def test_imported_sources(scene, computed, tmp_path):
     ddir.mkdir()
     for t in range(T):
         np.save(ddir / f"{t:05d}.npy", 1.0 / pri.depth[t])  # disparity
-    mdir = tmp_path / "masks"
-    mdir.mkdir()
-    from worldtree.imageio import write_image
-
     gt = np.zeros((T, H, W), bool)
     gt[:, 10:30, 20:50] = True
-    for t in range(T):
-        write_image(mdir / f"{t:05d}.png", gt[t])
+    mdir = _write_masks(tmp_path / "masks", gt)
     fdir = tmp_path / "flow"
     fdir.mkdir()
     for (i, j), fp in pri.flow.items():
@@ -307,22 +312,12 @@ def test_imported_flow_gets_the_gaps_it_lacks_from_dis(scene, computed, tmp_path
 
 
 def test_imported_masks_keep_the_sweeps_depth_unless_asked_to_fill(scene, planar, tmp_path):
-    from worldtree.imageio import write_image
-
     _, fr = planar
     gt = fr["mask"]
-    T = scene.num_frames
-
-    def masks(name, m):
-        d = tmp_path / name
-        d.mkdir()
-        for t in range(T):
-            write_image(d / f"{t:05d}.png", m[t])
-        return str(d)
-
     # An imported all-empty mask leaves the classical depth as the plane sweep made it: the reference.
-    raw = compute_priors(scene, dataclasses.replace(FAST, masks_source=masks("empty", np.zeros_like(gt))), None)
-    cfg = dataclasses.replace(FAST, masks_source=masks("gt", gt))
+    empty = _write_masks(tmp_path / "empty", np.zeros_like(gt))
+    raw = compute_priors(scene, dataclasses.replace(FAST, masks_source=str(empty)), None)
+    cfg = dataclasses.replace(FAST, masks_source=str(_write_masks(tmp_path / "gt", gt)))
     kept = compute_priors(scene, cfg, None)
     filled = compute_priors(
         scene, dataclasses.replace(cfg, depth=dataclasses.replace(FAST.depth, fill_imported_masks=True)), None
