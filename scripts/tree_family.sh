@@ -11,7 +11,8 @@
 set -euo pipefail
 out=${1:?usage: scripts/tree_family.sh OUT [NAMES]}
 
-# name: nvls synth options (160x90 and --depth are added to all). Seed 0 throughout; the names say what varies.
+# name: nvls synth options (160x90 and --depth are added to all). Seed 0 unless a name ends in _sN; the names
+# say what varies.
 family=(
   "rows_loop_40: --steps 40"
   "arc_straight_40: --rig arc --path straight --steps 40"
@@ -29,6 +30,13 @@ family=(
   "arc_straight_12: --rig arc --path straight --steps 12"
   "row_turning_12: --rig row --path turning --steps 12"
   "rows_enter_leave_12: --path enter_leave --steps 12"
+  # Held out (session 50): seeds, speeds, object counts, lenses and lengths that no measurement above chose.
+  "rows_fast_40_s5: --motion fast --steps 40 --seed 5"
+  "arc_slow_fast_40_s5: --rig arc --motion slow_fast --steps 40 --seed 5"
+  "row_one_object_24_s5: --rig row --objects 1 --steps 24 --seed 5"
+  "rows_turning_wide_40_s6: --path turning --rig-width 3.0 --fov-deg 50 --steps 40 --seed 6"
+  "arc_enter_leave_24_s7: --rig arc --path enter_leave --steps 24 --seed 7"
+  "row_smooth_shuffled_40_s7: --rig row --texture smooth --camera-order shuffled --steps 40 --seed 7"
 )
 names=()
 for entry in "${family[@]}"; do names+=("${entry%%:*}"); done
