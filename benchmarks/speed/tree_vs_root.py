@@ -1,7 +1,9 @@
 """Does the tree beat its root? One markdown row per scene from the run folders of `wtbench sweep --grid tree`
 (the root alone, depths 1 and 2, ``--depth auto``): mPSNR, PSNR, CPU seconds and Gaussians of each (as
 `wtbench table` counts them, :func:`benchmarks.reporting.results.cost_metrics`), the gains
-over the root and auto's share of depth 2's CPU time, then the means over scenes.
+over the root and auto's share of depth 2's CPU time, what auto grew and why (its root's decision from
+``timing.json``'s ``method_stats.tree.auto``: kept as a leaf with the reason, or split into N nodes), then the
+means over scenes.
 
 Usage::
 
@@ -45,9 +47,21 @@ def collect(roots: list[Path]) -> dict[str, dict[str, list[dict]]]:
             cost = cost_metrics(timing, json.loads(model.read_text()) if model.exists() else None)
             out[run.parent.parent.name][depth].append({
                 "mpsnr": float(mean["mpsnr"]), "psnr": float(mean["psnr"]), "cpu_s": cost["cpu_time_s"],
-                "gaussians": cost["n_gaussians"],
+                "gaussians": cost["n_gaussians"], "grown": grown(timing),
             })  # fmt: skip
     return out
+
+
+def grown(timing: dict) -> str:
+    """What a tree run grew, from its ``timing.json``: ``"leaf: REASON"`` when the root was kept alone by
+    ``--depth auto`` (the reason up to its first colon, e.g. ``depth unmeasured``), ``"N nodes"`` otherwise,
+    ``""`` for a run that recorded no tree."""
+    tree = (timing.get("method_stats") or {}).get("tree") or {}
+    nodes = tree.get("nodes") or []
+    root = (tree.get("auto") or {}).get("1") or {}
+    if len(nodes) <= 1 and root and not root.get("split", False):
+        return "leaf: " + str(root.get("reason", "")).split(":")[0]
+    return f"{len(nodes)} nodes" if nodes else ""
 
 
 def _avg(runs: list[dict], key: str) -> float:
@@ -57,8 +71,8 @@ def _avg(runs: list[dict], key: str) -> float:
 def table(data: dict[str, dict[str, list[dict]]], noise: float = 0.0) -> str:
     """The markdown table (see the module docstring)."""
     head = ("| scene | root mPSNR | d1 | d2 | auto | d1 - root | d2 - root | auto - best fixed | PSNR root / d2 | "
-            "CPU s root / d1 / d2 / auto | auto CPU / d2 | Gaussians root / d2 / auto |")  # fmt: skip
-    rows = [head, "|" + "|".join([" --- "] * 12) + "|"]
+            "CPU s root / d1 / d2 / auto | auto CPU / d2 | Gaussians root / d2 / auto | auto grew |")  # fmt: skip
+    rows = [head, "|" + "|".join([" --- "] * 13) + "|"]
     gains: dict[str, list[float]] = defaultdict(list)
     for scene in sorted(data):
         d = data[scene]
@@ -76,12 +90,12 @@ def table(data: dict[str, dict[str, list[dict]]], noise: float = 0.0) -> str:
             f"| {scene} | {m['0']:.2f} | {m['1']:.2f} | {m['2']:.2f} | {m['auto']:.2f} | {g1:+.2f} | "
             f"{g2:+.2f}{flag} | {ga:+.2f} | {p['0']:.2f} / {p['2']:.2f} | {c['0']:.0f} / {c['1']:.0f} / "
             f"{c['2']:.0f} / {c['auto']:.0f} | {c['auto'] / c['2']:.0%} | {g['0']:.0f} / {g['2']:.0f} / "
-            f"{g['auto']:.0f} |"
+            f"{g['auto']:.0f} | {' / '.join(sorted({r['grown'] for r in d.get('auto', [])}))} |"
         )
     if gains:
         rows.append(
             f"| **mean of {len(data)}** | | | | | {np.mean(gains['d1']):+.2f} | {np.mean(gains['d2']):+.2f} | "
-            f"{np.mean(gains['auto_best']):+.2f} | | | {np.mean(gains['auto_cpu']):.0%} | |"
+            f"{np.mean(gains['auto_best']):+.2f} | | | {np.mean(gains['auto_cpu']):.0%} | | |"
         )
     return "\n".join(rows)
 

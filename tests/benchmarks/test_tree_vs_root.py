@@ -1,0 +1,78 @@
+"""`benchmarks.speed.tree_vs_root`: the tree grid's table from run folders, checked against hand-made runs whose
+scores, CPU seconds and auto decisions are known."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from benchmarks.speed.tree_vs_root import collect, grown, table
+
+
+def _run(root: Path, scene: str, name: str, depth, mpsnr: float, psnr: float, cpu_s: float, tree: dict | None,
+         ablate: tuple[str, ...] = ()) -> None:  # fmt: skip
+    run = root / scene / "worldtree" / name
+    run.mkdir(parents=True)
+    (run / "config.json").write_text(json.dumps({"config": {"depth": depth, "ablate": list(ablate)}}))
+    (run / "metrics.json").write_text(json.dumps({"mean": {"mpsnr": mpsnr, "psnr": psnr}}))
+    stats = {"tree": tree} if tree is not None else {}
+    timing = {"stages_cpu_s": {"train": cpu_s, "eval": 5.0}, "num_gaussians": 1000, "method_stats": stats}
+    (run / "timing.json").write_text(json.dumps(timing))
+    (run / "DONE").write_text("")
+
+
+def _leaf_tree(reason: str) -> dict:
+    return {"nodes": [1], "auto": {"1": {"split": False, "reason": reason, "applied": False}}}
+
+
+def _grown_tree(n: int) -> dict:
+    return {"nodes": list(range(1, n + 1)), "auto": {"1": {"split": True, "reason": "excess 0.03 >= 0.004"}}}
+
+
+@pytest.fixture
+def runs(tmp_path: Path) -> Path:
+    # Scene a: the tree gains, auto grows three nodes; scene b: auto keeps the root for want of a measured depth.
+    _run(tmp_path, "a", "quick-depth0", 0, 20.0, 25.0, 60.0, None)
+    _run(tmp_path, "a", "quick-depth1", 1, 20.4, 25.1, 90.0, _grown_tree(3))
+    _run(tmp_path, "a", "quick-depth2", 2, 20.9, 25.0, 150.0, _grown_tree(7))
+    _run(tmp_path, "a", "quick-depthauto", "auto", 20.5, 25.0, 120.0, _grown_tree(3))
+    _run(tmp_path, "b", "quick-tpt", 2, 18.0, 24.0, 70.0, None, ablate=("tpt",))  # the root by ablation
+    _run(tmp_path, "b", "quick-depth1", 1, 18.16, 24.0, 100.0, _grown_tree(3))
+    _run(tmp_path, "b", "quick-depth2", 2, 17.9, 23.9, 140.0, _grown_tree(7))
+    _run(tmp_path, "b", "quick-depthauto", "auto", 18.0, 24.0, 56.0,
+         _leaf_tree("depth unmeasured: mean depth confidence 0 on the moving pixels < 0.5"))  # fmt: skip
+    return tmp_path
+
+
+def test_grown_names_a_kept_root_by_its_reason_and_a_tree_by_its_nodes():
+    assert grown({"method_stats": {"tree": _leaf_tree("near-static: 7.2 px < 16")}}) == "leaf: near-static"
+    assert grown({"method_stats": {"tree": _grown_tree(5)}}) == "5 nodes"
+    assert grown({"method_stats": {}}) == ""
+    assert grown({}) == ""
+
+
+def test_collect_reads_depths_including_the_ablated_root(runs: Path):
+    data = collect([runs])
+    assert sorted(data) == ["a", "b"]
+    assert sorted(data["b"]) == ["0", "1", "2", "auto"]  # ablate tpt counts as depth 0
+    assert data["b"]["auto"][0]["grown"] == "leaf: depth unmeasured"
+    # CPU seconds leave out the scoring (eval), as `wtbench table` counts them.
+    assert data["a"]["2"][0]["cpu_s"] == pytest.approx(150.0)
+
+
+def test_table_gains_shares_and_means_by_hand(runs: Path):
+    rows = {r.split("|")[1].strip(): [c.strip() for c in r.split("|")[1:-1]] for r in table(collect([runs]), 0.05)
+            .splitlines()[2:]}  # fmt: skip
+    a, b, mean = rows["a"], rows["b"], rows["**mean of 2**"]
+    # a: d1 - root 0.4, d2 - root 0.9, auto - best fixed (d2) -0.4, auto CPU 120 / 150.
+    assert a[5:8] == ["+0.40", "+0.90", "-0.40"]
+    assert a[10] == "80%"
+    assert a[12] == "3 nodes"
+    # b: the best fixed depth is depth 1 (18.16); depth 2 loses 0.1 > the 0.05 noise and is flagged.
+    assert b[5:8] == ["+0.16", "-0.10 (below)", "-0.16"]
+    assert b[10] == "40%"
+    assert b[12] == "leaf: depth unmeasured"
+    assert mean[5:8] == ["+0.28", "+0.40", "-0.28"]
+    assert mean[10] == "60%"
