@@ -61,7 +61,7 @@ def grown(timing: dict) -> str:
     root = (tree.get("auto") or {}).get("1") or {}
     if len(nodes) <= 1 and root and not root.get("split", False):
         return "leaf: " + str(root.get("reason", "")).split(":")[0]
-    return f"{len(nodes)} nodes" if nodes else ""
+    return f"{len(nodes)} node{'s' if len(nodes) != 1 else ''}" if nodes else ""
 
 
 def _avg(runs: list[dict], key: str) -> float:

@@ -49,6 +49,9 @@ def runs(tmp_path: Path) -> Path:
 def test_grown_names_a_kept_root_by_its_reason_and_a_tree_by_its_nodes():
     assert grown({"method_stats": {"tree": _leaf_tree("near-static: 7.2 px < 16")}}) == "leaf: near-static"
     assert grown({"method_stats": {"tree": _grown_tree(5)}}) == "5 nodes"
+    # A split whose children were all dropped leaves the root alone, not a leaf by auto's decision.
+    dropped = {"nodes": [1], "auto": {"1": {"split": True, "reason": "excess 0.03 >= 0.004"}}}
+    assert grown({"method_stats": {"tree": dropped}}) == "1 node"
     assert grown({"method_stats": {}}) == ""
     assert grown({}) == ""
 
