@@ -3,7 +3,7 @@ scores, CPU seconds and auto decisions are known."""
 
 from __future__ import annotations
 
-import json
+import importlib.util
 from pathlib import Path
 
 import pytest
@@ -11,16 +11,24 @@ import pytest
 from benchmarks.speed.tree_vs_root import collect, grown, table
 
 
-def _run(root: Path, scene: str, name: str, depth, mpsnr: float, psnr: float, cpu_s: float, tree: dict | None,
+def _fixture():
+    path = Path(__file__).with_name("runs_fixture.py")
+    spec = importlib.util.spec_from_file_location("wt_tests_runs_fixture_tree_vs_root", path)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+rf = _fixture()
+
+
+def _run(root: Path, scene: str, tag: str, depth, mpsnr: float, psnr: float, cpu_s: float, tree: dict | None,
          ablate: tuple[str, ...] = ()) -> None:  # fmt: skip
-    run = root / scene / "worldtree" / name
-    run.mkdir(parents=True)
-    (run / "config.json").write_text(json.dumps({"config": {"depth": depth, "ablate": list(ablate)}}))
-    (run / "metrics.json").write_text(json.dumps({"mean": {"mpsnr": mpsnr, "psnr": psnr}}))
-    stats = {"tree": tree} if tree is not None else {}
-    timing = {"stages_cpu_s": {"train": cpu_s, "eval": 5.0}, "num_gaussians": 1000, "method_stats": stats}
-    (run / "timing.json").write_text(json.dumps(timing))
-    (run / "DONE").write_text("")
+    """A finished WorldTree run folder in the real format (:func:`runs_fixture.write_run`); its CPU seconds as
+    counted are ``cpu_s`` for training plus the fixture's 0.5 s of loading (scoring is left out)."""
+    stats = {"num_gaussians": 1000, **({"tree": tree} if tree is not None else {})}
+    rf.write_run(root, scene, "worldtree", tag, {"mpsnr": mpsnr, "psnr": psnr},
+                 config={"depth": depth, "ablate": list(ablate)}, train_cpu_s=cpu_s, method_stats=stats)  # fmt: skip
 
 
 def _leaf_tree(reason: str) -> dict:
@@ -61,21 +69,21 @@ def test_collect_reads_depths_including_the_ablated_root(runs: Path):
     assert sorted(data) == ["a", "b"]
     assert sorted(data["b"]) == ["0", "1", "2", "auto"]  # ablate tpt counts as depth 0
     assert data["b"]["auto"][0]["grown"] == "leaf: depth unmeasured"
-    # CPU seconds leave out the scoring (eval), as `wtbench table` counts them.
-    assert data["a"]["2"][0]["cpu_s"] == pytest.approx(150.0)
+    # CPU seconds leave out the scoring (eval), as `wtbench table` counts them: loading 0.5 + training 150.
+    assert data["a"]["2"][0]["cpu_s"] == pytest.approx(150.5)
 
 
 def test_table_gains_shares_and_means_by_hand(runs: Path):
     rows = {r.split("|")[1].strip(): [c.strip() for c in r.split("|")[1:-1]] for r in table(collect([runs]), 0.05)
             .splitlines()[2:]}  # fmt: skip
     a, b, mean = rows["a"], rows["b"], rows["**mean of 2**"]
-    # a: d1 - root 0.4, d2 - root 0.9, auto - best fixed (d2) -0.4, auto CPU 120 / 150.
+    # a: d1 - root 0.4, d2 - root 0.9, auto - best fixed (d2) -0.4, auto CPU 120.5 / 150.5.
     assert a[5:8] == ["+0.40", "+0.90", "-0.40"]
     assert a[10] == "80%"
     assert a[12] == "3 nodes"
     # b: the best fixed depth is depth 1 (18.16); depth 2 loses 0.1 > the 0.05 noise and is flagged.
     assert b[5:8] == ["+0.16", "-0.10 (below)", "-0.16"]
-    assert b[10] == "40%"
+    assert b[10] == "40%"  # 56.5 / 140.5
     assert b[12] == "leaf: depth unmeasured"
     assert mean[5:8] == ["+0.28", "+0.40", "-0.28"]
     assert mean[10] == "60%"
