@@ -13,6 +13,7 @@ import socket
 import sys
 import threading
 import time
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
@@ -35,6 +36,9 @@ TRAIN_COLOUR = (120, 120, 120)
 CURRENT_COLOUR = (40, 120, 230)
 #: Opacity (0..255) of a frustum's image plane.
 FRUSTUM_PLANE_ALPHA = 40
+#: Frames kept of those last sent (all tabs), for :meth:`Viewer.wait_for_frame`: a drag's last previews, then
+#: its full image, outlive a waiter that wakes late on a busy machine.
+FRAME_HISTORY = 8
 
 
 def check_can_serve(host: str, port: int) -> None:
@@ -261,7 +265,6 @@ class ClientView:
             f"{image.shape[1]}x{image.shape[0]} {enc.format} in {seconds * 1000:.0f} ms"
         )
         v.record(
-            self.client.client_id,
             Frame(image, sent, enc.format, req.locked.name if req.locked else None, req.time, req.mode,
                   req.moving, box, seconds),
         )  # fmt: skip
@@ -295,7 +298,7 @@ class Viewer:
         self.playing = False
         self.scale = cam.scene_scale([c.w2c for c in source.cameras]) if source.cameras else 1.0
         self.initial_camera = find_test_camera(source) or (source.cameras[0] if source.cameras else None)
-        self.frames: dict[int, Frame] = {}
+        self.frames: deque[Frame] = deque(maxlen=FRAME_HISTORY)
         self._frame_cond = threading.Condition()
         self._seq = 0
         self._render_lock = threading.Lock()
@@ -451,21 +454,21 @@ class Viewer:
         if view is not None:
             view.stop()
 
-    def record(self, client_id: int, frame: Frame) -> None:
-        """Keep ``frame`` as the last one sent to ``client_id`` (tests read :attr:`frames`)."""
+    def record(self, frame: Frame) -> None:
+        """Keep ``frame`` among the last :data:`FRAME_HISTORY` sent (tests read :attr:`frames`)."""
         with self._frame_cond:
             self._seq += 1
             frame.seq = self._seq
-            self.frames[client_id] = frame
+            self.frames.append(frame)
             self._frame_cond.notify_all()
 
     def wait_for_frame(self, accept: Callable[[Frame], bool], timeout: float = 30.0) -> Frame:
-        """Block until a tab was sent a frame that ``accept`` takes; return it (TimeoutError after
-        ``timeout`` seconds)."""
+        """Block until a tab was sent a frame that ``accept`` takes; return the newest such frame of those
+        kept (TimeoutError after ``timeout`` seconds)."""
         deadline = time.monotonic() + timeout
         with self._frame_cond:
             while True:
-                for f in sorted(self.frames.values(), key=lambda f: -f.seq):
+                for f in reversed(self.frames):
                     if accept(f):
                         return f
                 left = deadline - time.monotonic()

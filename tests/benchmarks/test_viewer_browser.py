@@ -138,11 +138,17 @@ def test_viewer_in_the_browser(viewer, browser, run_dir):
     px_later = _wait_canvas(browser, lambda p: np.abs(p.astype(int) - px.astype(int)).sum(-1).max() > 60)
     assert (np.abs(px_later.astype(int) - px.astype(int)).sum(-1) > 60).sum() > 1000
 
-    # Dragging the camera: small JPEG previews of the free camera, then the full image once it is still.
+    # Dragging the camera: small JPEG previews of the free camera, then the full image once it is still. The drag
+    # lasts several times STILL_S in small steps, so a render thread that wakes late on a busy machine still
+    # finds the camera moving; the previews outlive the drag among the frames the viewer keeps.
+    from benchmarks.viewer.server import STILL_S
+
     canvas = browser.find_element("css selector", "canvas")
-    ActionChains(browser).move_to_element(canvas).click_and_hold().move_by_offset(40, 10).move_by_offset(
-        40, 10
-    ).release().perform()
+    drag = ActionChains(browser).move_to_element(canvas).click_and_hold()
+    steps = 20
+    for _ in range(steps):
+        drag = drag.move_by_offset(4, 1).pause(8 * STILL_S / steps)
+    drag.release().perform()
     preview = viewer.wait_for_frame(lambda f: f.seq > later.seq and f.camera is None and f.preview, TIMEOUT)
     assert preview.format == "jpeg"
     still = viewer.wait_for_frame(
