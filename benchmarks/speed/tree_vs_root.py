@@ -10,7 +10,9 @@ Usage::
     python -m benchmarks.speed.tree_vs_root RUNS_DIR [RUNS_DIR ...] [--noise DB]
 
 A run folder counts as ``depth D`` from its recorded options (``config.json``); several runs of one scene and
-depth (e.g. seeds) are averaged. ``--noise`` marks a gain below minus that many dB as a loss beyond noise.
+depth (e.g. seeds) are averaged. A depth a scene was not run at (e.g. only the root and depth 2) reads ``-``, as
+does every figure made from it; the best fixed depth is the best of those run, and each mean is over the scenes
+that have its figure. ``--noise`` marks a gain below minus that many dB as a loss beyond noise.
 """
 
 from __future__ import annotations
@@ -68,6 +70,11 @@ def _avg(runs: list[dict], key: str) -> float:
     return float(np.mean([r[key] for r in runs])) if runs else float("nan")
 
 
+def _fmt(v: float, spec: str) -> str:
+    """``v`` formatted by ``spec``, or ``-`` where it is missing (NaN: a depth not run)."""
+    return "-" if v != v else format(v, spec)
+
+
 def table(data: dict[str, dict[str, list[dict]]], noise: float = 0.0) -> str:
     """The markdown table (see the module docstring)."""
     head = ("| scene | root mPSNR | d1 | d2 | auto | d1 - root | d2 - root | auto - best fixed | PSNR root / d2 | "
@@ -80,22 +87,29 @@ def table(data: dict[str, dict[str, list[dict]]], noise: float = 0.0) -> str:
         p = {k: _avg(d.get(k, []), "psnr") for k in DEPTHS}
         c = {k: _avg(d.get(k, []), "cpu_s") for k in DEPTHS}
         g = {k: _avg(d.get(k, []), "gaussians") for k in DEPTHS}
-        best = max(m["0"], m["1"], m["2"])
+        fixed = [m[k] for k in ("0", "1", "2") if m[k] == m[k]]
+        best = max(fixed) if fixed else float("nan")
         g1, g2, ga = m["1"] - m["0"], m["2"] - m["0"], m["auto"] - best
-        for k, v in (("d1", g1), ("d2", g2), ("auto_best", ga), ("auto_cpu", c["auto"] / c["2"])):
+        share = c["auto"] / c["2"] if c["2"] > 0 else float("nan")
+        for k, v in (("d1", g1), ("d2", g2), ("auto_best", ga), ("auto_cpu", share)):
             if v == v:
                 gains[k].append(v)
         flag = " (below)" if g2 < -noise else ""
         rows.append(
-            f"| {scene} | {m['0']:.2f} | {m['1']:.2f} | {m['2']:.2f} | {m['auto']:.2f} | {g1:+.2f} | "
-            f"{g2:+.2f}{flag} | {ga:+.2f} | {p['0']:.2f} / {p['2']:.2f} | {c['0']:.0f} / {c['1']:.0f} / "
-            f"{c['2']:.0f} / {c['auto']:.0f} | {c['auto'] / c['2']:.0%} | {g['0']:.0f} / {g['2']:.0f} / "
-            f"{g['auto']:.0f} | {' / '.join(sorted({r['grown'] for r in d.get('auto', [])}))} |"
+            f"| {scene} | {_fmt(m['0'], '.2f')} | {_fmt(m['1'], '.2f')} | {_fmt(m['2'], '.2f')} | "
+            f"{_fmt(m['auto'], '.2f')} | {_fmt(g1, '+.2f')} | {_fmt(g2, '+.2f')}{flag} | {_fmt(ga, '+.2f')} | "
+            f"{_fmt(p['0'], '.2f')} / {_fmt(p['2'], '.2f')} | {' / '.join(_fmt(c[k], '.0f') for k in DEPTHS)} | "
+            f"{_fmt(share, '.0%')} | {' / '.join(_fmt(g[k], '.0f') for k in ('0', '2', 'auto'))} | "
+            f"{' / '.join(sorted({r['grown'] for r in d.get('auto', [])}))} |"
         )
-    if gains:
+    if data:
+
+        def mean(k: str, spec: str) -> str:
+            return _fmt(float(np.mean(gains[k])) if gains[k] else float("nan"), spec)
+
         rows.append(
-            f"| **mean of {len(data)}** | | | | | {np.mean(gains['d1']):+.2f} | {np.mean(gains['d2']):+.2f} | "
-            f"{np.mean(gains['auto_best']):+.2f} | | | {np.mean(gains['auto_cpu']):.0%} | | |"
+            f"| **mean of {len(data)}** | | | | | {mean('d1', '+.2f')} | {mean('d2', '+.2f')} | "
+            f"{mean('auto_best', '+.2f')} | | | {mean('auto_cpu', '.0%')} | | |"
         )
     return "\n".join(rows)
 

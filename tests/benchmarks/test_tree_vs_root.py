@@ -87,3 +87,23 @@ def test_table_gains_shares_and_means_by_hand(runs: Path):
     assert b[12] == "leaf: depth unmeasured"
     assert mean[5:8] == ["+0.28", "+0.40", "-0.28"]
     assert mean[10] == "60%"
+
+
+def test_a_depth_not_run_reads_dash_and_means_skip_it(tmp_path: Path):
+    # Scene a has the whole grid; scene c only its root and depth 2 (no depth 1, no auto).
+    _run(tmp_path, "a", "quick-depth0", 0, 20.0, 25.0, 60.0, None)
+    _run(tmp_path, "a", "quick-depth1", 1, 20.4, 25.1, 90.0, _grown_tree(3))
+    _run(tmp_path, "a", "quick-depth2", 2, 20.9, 25.0, 150.0, _grown_tree(7))
+    _run(tmp_path, "a", "quick-depthauto", "auto", 20.5, 25.0, 120.0, _grown_tree(3))
+    _run(tmp_path, "c", "quick-depth0", 0, 15.0, 21.0, 40.0, None)
+    _run(tmp_path, "c", "quick-depth2", 2, 15.3, 20.9, 90.0, _grown_tree(7))
+    text = table(collect([tmp_path]), 0.05)
+    assert "nan" not in text
+    rows = {r.split("|")[1].strip(): [c.strip() for c in r.split("|")[1:-1]] for r in text.splitlines()[2:]}
+    c, mean = rows["c"], rows["**mean of 2**"]
+    assert c[1:5] == ["15.00", "-", "15.30", "-"]
+    assert c[5:8] == ["-", "+0.30", "-"]  # auto - best fixed: no auto
+    assert c[9] == "40 / - / 90 / -" and c[10] == "-"
+    # Means over the scenes that have the figure: d1 and auto from a alone, d2 from both (0.9 and 0.3).
+    assert mean[5:8] == ["+0.40", "+0.60", "-0.40"]
+    assert mean[10] == "80%"
