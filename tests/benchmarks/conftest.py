@@ -1,4 +1,5 @@
-"""Fixtures shared by the `wtbench run` tests: a tiny scene and a cheap static quick preset."""
+"""Fixtures shared by the `wtbench run` tests: a tiny scene, a cheap static quick preset, finished tiny runs, and
+the hand-made run folders' writer."""
 
 from __future__ import annotations
 
@@ -25,13 +26,24 @@ def small_quick(monkeypatch):
     )
 
 
+def _helper(name: str):
+    """The module ``tests/benchmarks/<name>.py`` (the suite runs in importlib mode: helpers load by path)."""
+    import importlib.util
+
+    path = Path(__file__).with_name(f"{name}.py")
+    spec = importlib.util.spec_from_file_location(f"wt_tests_{name}", path)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
 @pytest.fixture(scope="session")
 def api_runs(tmp_path_factory, write_tiny_scene) -> dict[str, Path]:
     """Finished tiny static, Base and WorldTree runs (tests/benchmarks/api_runs.py), made once per session."""
-    import importlib.util
+    return _helper("api_runs").make_runs(tmp_path_factory.mktemp("api_runs"), write_tiny_scene)
 
-    path = Path(__file__).with_name("api_runs.py")
-    spec = importlib.util.spec_from_file_location("wt_tests_api_runs", path)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod.make_runs(tmp_path_factory.mktemp("api_runs"), write_tiny_scene)
+
+@pytest.fixture(scope="session")
+def runs_fixture():
+    """``tests/benchmarks/runs_fixture.py``: ``write_run`` writes a finished run folder in the real format."""
+    return _helper("runs_fixture")

@@ -3,7 +3,6 @@ scores, CPU seconds and auto decisions are known."""
 
 from __future__ import annotations
 
-import importlib.util
 from pathlib import Path
 
 import pytest
@@ -11,21 +10,10 @@ import pytest
 from benchmarks.speed.tree_vs_root import collect, grown, table
 
 
-def _fixture():
-    path = Path(__file__).with_name("runs_fixture.py")
-    spec = importlib.util.spec_from_file_location("wt_tests_runs_fixture_tree_vs_root", path)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
-
-
-rf = _fixture()
-
-
-def _run(root: Path, scene: str, tag: str, depth, mpsnr: float, psnr: float, cpu_s: float, tree: dict | None,
+def _run(rf, root: Path, scene: str, tag: str, depth, mpsnr: float, psnr: float, cpu_s: float, tree: dict | None,
          ablate: tuple[str, ...] = ()) -> None:  # fmt: skip
-    """A finished WorldTree run folder in the real format (:func:`runs_fixture.write_run`); its CPU seconds as
-    counted are ``cpu_s`` for training plus the fixture's 0.5 s of loading (scoring is left out)."""
+    """A finished WorldTree run folder in the real format (``rf.write_run``, the ``runs_fixture`` fixture); its
+    CPU seconds as counted are ``cpu_s`` for training plus the fixture's 0.5 s of loading (scoring is left out)."""
     stats = {"num_gaussians": 1000, **({"tree": tree} if tree is not None else {})}
     rf.write_run(root, scene, "worldtree", tag, {"mpsnr": mpsnr, "psnr": psnr},
                  config={"depth": depth, "ablate": list(ablate)}, train_cpu_s=cpu_s, method_stats=stats)  # fmt: skip
@@ -40,16 +28,17 @@ def _grown_tree(n: int) -> dict:
 
 
 @pytest.fixture
-def runs(tmp_path: Path) -> Path:
+def runs(tmp_path: Path, runs_fixture) -> Path:
     # Scene a: the tree gains, auto grows three nodes; scene b: auto keeps the root for want of a measured depth.
-    _run(tmp_path, "a", "quick-depth0", 0, 20.0, 25.0, 60.0, None)
-    _run(tmp_path, "a", "quick-depth1", 1, 20.4, 25.1, 90.0, _grown_tree(3))
-    _run(tmp_path, "a", "quick-depth2", 2, 20.9, 25.0, 150.0, _grown_tree(7))
-    _run(tmp_path, "a", "quick-depthauto", "auto", 20.5, 25.0, 120.0, _grown_tree(3))
-    _run(tmp_path, "b", "quick-tpt", 2, 18.0, 24.0, 70.0, None, ablate=("tpt",))  # the root by ablation
-    _run(tmp_path, "b", "quick-depth1", 1, 18.16, 24.0, 100.0, _grown_tree(3))
-    _run(tmp_path, "b", "quick-depth2", 2, 17.9, 23.9, 140.0, _grown_tree(7))
-    _run(tmp_path, "b", "quick-depthauto", "auto", 18.0, 24.0, 56.0,
+    _run(runs_fixture, tmp_path, "a", "quick-depth0", 0, 20.0, 25.0, 60.0, None)
+    _run(runs_fixture, tmp_path, "a", "quick-depth1", 1, 20.4, 25.1, 90.0, _grown_tree(3))
+    _run(runs_fixture, tmp_path, "a", "quick-depth2", 2, 20.9, 25.0, 150.0, _grown_tree(7))
+    _run(runs_fixture, tmp_path, "a", "quick-depthauto", "auto", 20.5, 25.0, 120.0, _grown_tree(3))
+    # The root of scene b by ablation.
+    _run(runs_fixture, tmp_path, "b", "quick-tpt", 2, 18.0, 24.0, 70.0, None, ablate=("tpt",))
+    _run(runs_fixture, tmp_path, "b", "quick-depth1", 1, 18.16, 24.0, 100.0, _grown_tree(3))
+    _run(runs_fixture, tmp_path, "b", "quick-depth2", 2, 17.9, 23.9, 140.0, _grown_tree(7))
+    _run(runs_fixture, tmp_path, "b", "quick-depthauto", "auto", 18.0, 24.0, 56.0,
          _leaf_tree("depth unmeasured: mean depth confidence 0 on the moving pixels < 0.5"))  # fmt: skip
     return tmp_path
 
@@ -89,14 +78,14 @@ def test_table_gains_shares_and_means_by_hand(runs: Path):
     assert mean[10] == "60%"
 
 
-def test_a_depth_not_run_reads_dash_and_means_skip_it(tmp_path: Path):
+def test_a_depth_not_run_reads_dash_and_means_skip_it(tmp_path: Path, runs_fixture):
     # Scene a has the whole grid; scene c only its root and depth 2 (no depth 1, no auto).
-    _run(tmp_path, "a", "quick-depth0", 0, 20.0, 25.0, 60.0, None)
-    _run(tmp_path, "a", "quick-depth1", 1, 20.4, 25.1, 90.0, _grown_tree(3))
-    _run(tmp_path, "a", "quick-depth2", 2, 20.9, 25.0, 150.0, _grown_tree(7))
-    _run(tmp_path, "a", "quick-depthauto", "auto", 20.5, 25.0, 120.0, _grown_tree(3))
-    _run(tmp_path, "c", "quick-depth0", 0, 15.0, 21.0, 40.0, None)
-    _run(tmp_path, "c", "quick-depth2", 2, 15.3, 20.9, 90.0, _grown_tree(7))
+    _run(runs_fixture, tmp_path, "a", "quick-depth0", 0, 20.0, 25.0, 60.0, None)
+    _run(runs_fixture, tmp_path, "a", "quick-depth1", 1, 20.4, 25.1, 90.0, _grown_tree(3))
+    _run(runs_fixture, tmp_path, "a", "quick-depth2", 2, 20.9, 25.0, 150.0, _grown_tree(7))
+    _run(runs_fixture, tmp_path, "a", "quick-depthauto", "auto", 20.5, 25.0, 120.0, _grown_tree(3))
+    _run(runs_fixture, tmp_path, "c", "quick-depth0", 0, 15.0, 21.0, 40.0, None)
+    _run(runs_fixture, tmp_path, "c", "quick-depth2", 2, 15.3, 20.9, 90.0, _grown_tree(7))
     text = table(collect([tmp_path]), 0.05)
     assert "nan" not in text
     rows = {r.split("|")[1].strip(): [c.strip() for c in r.split("|")[1:-1]] for r in text.splitlines()[2:]}
