@@ -13,6 +13,7 @@ import torch
 from benchmarks.speed.protocol_thumbnails import (
     COLUMNS,
     DEFAULT_IMAGE,
+    EDGE_COLS,
     LABEL_ROWS,
     PANEL_H,
     PANEL_W,
@@ -104,6 +105,16 @@ def test_scores_follow_a_numpy_psnr_and_put_a_moved_balloon_in_its_region():
     assert s["psnr"] == pytest.approx(_numpy_psnr(pred, ref), abs=1e-3)
     # Outside both disks only the +-3 noise differs (about 38.6 dB); inside, a whole disk is wrong twice.
     assert s["background"] > 35.0 > 15.0 > s["balloon"]
+
+
+def test_edge_score_is_the_left_tenth_alone():
+    rng = np.random.default_rng(2)
+    ref = rng.integers(20, 200, (PANEL_H - LABEL_ROWS, PANEL_W, 3)).astype(np.uint8)
+    pred = ref.copy()
+    pred[:, :EDGE_COLS] += 10  # the left tenth off by 10 grey levels everywhere: 20 log10(255 / 10) dB
+    pred[:, EDGE_COLS:] = 255 - pred[:, EDGE_COLS:]  # the rest far off, which the edge must not see
+    assert EDGE_COLS == 32
+    assert panel_scores(pred, ref)["edge"] == pytest.approx(20 * np.log10(255 / 10), abs=1e-6)
 
 
 def _cameras(baseline: float):
