@@ -30,6 +30,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import sys
 import tempfile
 import time
 from dataclasses import dataclass, field
@@ -70,7 +71,7 @@ from worldtree.render import rasterize
 from worldtree.stages.photometric import PhotometricConfig, PhotometricFit, anchored_depth_l1
 from worldtree.strategy import DensifyStrategy, remove
 from worldtree.trainer import TrainContext, Trainer, TrainerConfig, TrainSummary
-from worldtree.tree.adaptive import AutoSplitConfig, assess_fit
+from worldtree.tree.adaptive import AutoSplitConfig, assess_fit, depth_conf_sums
 from worldtree.tree.build import TreeConfig, TreeResult, grow_tree, node_output, read_node_input
 from worldtree.tree.inherit import InheritConfig
 from worldtree.tree.node import NodeState, distinct_gaussians, same_gaussians, share_static_model
@@ -825,6 +826,21 @@ def _root_only(s: WorldTreeState, root_decision: dict[str, Any] | None = None) -
     s.renderer = _tree_renderer(s)
 
 
+def moving_depth_conf(depth_conf: torch.Tensor, dynamic: torch.Tensor) -> float | None:
+    """Mean of the depth prior's confidence ``depth_conf`` ``[T, H, W]`` (in [0, 1]) over the ``dynamic``
+    ``[T, H, W]`` pixels: how much of the moving objects' depth the prior measures (None: nothing moves)."""
+    n = int(dynamic.bool().sum())
+    return float(depth_conf_sums(depth_conf, dynamic).sum()) / n if n else None
+
+
+#: Said once when a fixed-depth tree grows over moving pixels whose depth the prior does not measure.
+UNMEASURED_NOTE = (
+    "note: the depth prior measures {conf:.0%} of the moving pixels' depth; children have gained over their "
+    "root only where it is measured (docs/worldtree_method.md, \"How good a depth the tree's gain needs\"): "
+    "import a depth with --depth-maps, or --depth auto keeps the root here"
+)
+
+
 def _grow(s: WorldTreeState, no_ancestors: bool) -> None:
     c = s.cfg
     tcfg = c.tree_config()
@@ -832,13 +848,17 @@ def _grow(s: WorldTreeState, no_ancestors: bool) -> None:
     if tcfg.auto is not None:  # --depth auto: does the trained root need children?
         assessment = assess_fit(s.fit, s.P["epi_mask"].bool(), tcfg.min_len, tcfg.auto, s.P["depth_conf"])
         root_decision, root_measured = assessment.decision.to_dict(), assessment.to_payload()
+    conf = moving_depth_conf(s.P["depth_conf"], s.P["epi_mask"])
     if (
         tcfg.max_depth == 0
         or s.scene.num_frames < tcfg.min_len
         or (root_decision is not None and not root_decision["split"])
     ):
         _root_only(s, root_decision)
+        s.info["tree"]["moving_depth_conf"] = conf
         return
+    if tcfg.auto is None and conf is not None and conf < c.auto_split.min_depth_conf:
+        print(UNMEASURED_NOTE.format(conf=conf), file=sys.stderr, flush=True)
     ckpt = s.checkpoint_dir
     tree_dir = (ckpt if ckpt is not None else Path(tempfile.mkdtemp(prefix="worldtree-tree-"))) / "tree"
     tree_dir.mkdir(parents=True, exist_ok=True)
@@ -856,6 +876,7 @@ def _grow(s: WorldTreeState, no_ancestors: bool) -> None:
             s.states[j] = _frozen(NodeState.from_payload(st.to_payload(), s.device))
     share_static_model(s.states)
     s.info["tree"] = _tree_info(s, res)
+    s.info["tree"]["moving_depth_conf"] = conf
     if tcfg.auto is not None:
         s.info["tree"]["auto"] = {str(j): d for j, d in res.decisions.items()}
     s.renderer = _tree_renderer(s)

@@ -29,9 +29,10 @@ FRAMES = 26
 INTERVALS = {1: [0, 25], 2: [0, 11], 3: [12, 25], 4: [0, 4], 5: [5, 11], 6: [12, 17], 7: [18, 25]}
 
 
-def _wtbench(*args: str) -> None:
+def _wtbench(*args: str) -> str:
     res = CliRunner().invoke(app, ["run", *args])
     assert res.exit_code == 0, res.output
+    return res.output
 
 
 @pytest.fixture(scope="module")
@@ -40,7 +41,7 @@ def runs(tmp_path_factory, write_tiny_scene):
     scene = write_tiny_scene(tmp / "tiny26", frames=FRAMES)
     out = tmp / "runs"
     common = ["--scene", str(scene), "-o", str(out), "--preset", "smoke", "--device", "cpu"]
-    _wtbench("--method", "worldtree", *common)
+    said = _wtbench("--method", "worldtree", *common)
     _wtbench("--method", "worldtree", *common, "--ablate", "sac")
     _wtbench("--method", "worldtree", *common, "--ablate", "tpt")
     _wtbench("--method", "base", *common)
@@ -64,6 +65,7 @@ def runs(tmp_path_factory, write_tiny_scene):
         "auto_grown": grown,
         "tree_on_tpt": folder / "worldtree" / "grown",
         "base_on_tree": folder / "base" / "grown",
+        "default_output": said,
     }
 
 
@@ -334,6 +336,31 @@ def test_depth_auto_keeps_the_root_where_no_prior_measures_the_moving_depth(runs
     assert st["tree"]["nodes"] == [1]
     d = st["tree"]["auto"]["1"]
     assert not d["split"] and d["dynamic_depth_conf"] == 0.0 and d["reason"].startswith("depth unmeasured")
+
+
+def test_a_fixed_depth_tree_says_when_the_moving_depth_is_unmeasured(runs):
+    # The same classical priors: the default (depth 2) tree grows, records the prior's confidence on the moving
+    # pixels (0, as auto measured it above) and says once why its children may not gain.
+    from methods.worldtree import UNMEASURED_NOTE
+
+    assert _stats(runs["default"])["tree"]["moving_depth_conf"] == 0.0
+    assert runs["default_output"].count(UNMEASURED_NOTE.format(conf=0.0)) == 1
+    assert _stats(runs["auto"])["tree"]["moving_depth_conf"] == 0.0  # recorded where auto kept the root too
+
+
+def test_moving_depth_conf_is_the_masked_mean():
+    from methods.worldtree import moving_depth_conf
+
+    g = torch.Generator().manual_seed(0)
+    conf = torch.rand(3, 5, 7, generator=g)
+    mask = torch.rand(3, 5, 7, generator=g) > 0.6
+    expected = float(conf.double()[mask].mean())
+    assert moving_depth_conf(conf, mask) == pytest.approx(expected, rel=1e-12)
+    first = tuple(mask.nonzero()[0])
+    conf[first] = float("nan")  # a non-finite confidence counts as none
+    zeroed = conf.double().nan_to_num(0.0)
+    assert moving_depth_conf(conf, mask) == pytest.approx(float(zeroed[mask].mean()), rel=1e-12)
+    assert moving_depth_conf(conf, torch.zeros_like(mask)) is None  # nothing moves
 
 
 def test_depth_auto_grows_the_tree_its_decisions_say(runs):
