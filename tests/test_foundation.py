@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from worldtree.imageio import read_image, read_mask, write_image
-from worldtree.infra.atomic import atomic_dir, atomic_write_json
+from worldtree.infra.atomic import atomic_dir, atomic_write_json, remove_stale_temporaries
 from worldtree.infra.errors import UserError
 from worldtree.infra.hashing import sha256_file, sha256_files
 
@@ -47,6 +47,39 @@ def test_atomic_dir_refuses_existing_without_force(tmp_path):
     with atomic_dir(final, force=True) as tmp:
         (tmp / "new").write_text("new")
     assert sorted(p.name for p in final.iterdir()) == ["new"]
+
+
+def test_remove_stale_temporaries_takes_what_a_killed_writer_left_and_nothing_else(tmp_path):
+    import os
+    import tempfile
+    from pathlib import Path
+
+    run = tmp_path / "run"
+    (run / "checkpoints").mkdir(parents=True)
+    # Left by writers killed mid-write: the temporaries exactly as atomic_write_bytes / atomic_dir name them.
+    fd, tmp_file = tempfile.mkstemp(prefix=".timing.json.", suffix=".tmp", dir=run)
+    os.close(fd)
+    fd, ckpt_tmp = tempfile.mkstemp(prefix=".ckpt_8.pt.", suffix=".tmp", dir=run / "checkpoints")
+    os.close(fd)
+    partial = Path(tempfile.mkdtemp(prefix=".renders.", suffix=".partial", dir=run))
+    (partial / "v001_t000.png").write_bytes(b"half")
+    (run / ".model.old").mkdir()
+    # Kept: finished outputs, names that only look alike, and a lent root's folder behind a link.
+    for name in ("timing.json", "a.tmp", ".notes.tmp", ".x.TOOLONG12.tmp", "old"):
+        (run / name).write_text("keep")
+    lent = tmp_path / "other_run" / "checkpoints"
+    lent.mkdir(parents=True)
+    fd, foreign = tempfile.mkstemp(prefix=".ckpt_4.pt.", suffix=".tmp", dir=lent)  # another run's live write
+    os.close(fd)
+    (run / "lent").symlink_to(lent, target_is_directory=True)
+
+    removed = remove_stale_temporaries(run)
+    assert removed == sorted(Path(p) for p in (tmp_file, ckpt_tmp, partial, run / ".model.old"))
+    assert sorted(p.name for p in run.iterdir()) == [
+        ".notes.tmp", ".x.TOOLONG12.tmp", "a.tmp", "checkpoints", "lent", "old", "timing.json"
+    ]
+    assert list((run / "checkpoints").iterdir()) == [] and Path(foreign).exists()
+    assert remove_stale_temporaries(run) == [] and remove_stale_temporaries(tmp_path / "absent") == []
 
 
 def test_atomic_json_roundtrip(tmp_path):

@@ -41,7 +41,7 @@ import worldtree
 from methods.config_overrides import apply_overrides, sets_digest, split_assignment
 from worldtree.imageio import write_image
 from worldtree.infra import thread_governor
-from worldtree.infra.atomic import atomic_write_json, atomic_write_text
+from worldtree.infra.atomic import atomic_write_json, atomic_write_text, remove_stale_temporaries
 from worldtree.infra.config_ranges import check_config_ranges
 from worldtree.infra.errors import UserError
 from worldtree.infra.output_paths import check_name, check_output_folder, check_replaceable, folder_name_of
@@ -388,6 +388,8 @@ def _execute_locked(req, spec, cfg, folder, root, view, device, timer, method, b
     if req.force and folder.root.exists():
         check_run_folder(folder, force=True)  # again under the lock: what is deleted is what was checked
         shutil.rmtree(folder.root)
+    if folder.root.is_dir():  # what a kill -9 left mid-write; under the lock no live writer owns it
+        remove_stale_temporaries(folder.root)
     if folder.config_json.is_file():
         _check_same_config(folder, record)
         if folder.is_done():

@@ -143,3 +143,22 @@ def test_kill_9_at_random_points_then_the_same_command_finishes_identically(scen
         if isinstance(a[k], torch.Tensor):
             assert torch.equal(a[k], b[k]), k
     assert _stale(runs) == [] and not lock_paths(folder)[1].exists()
+
+
+def test_a_resumed_run_removes_what_a_killed_write_left(scene, tmp_path):
+    """The kill above lands mid-write only by chance; here the leftovers are placed: an unfinished run folder
+    holding a killed atomic write's temporary file and folder. The same command removes them and finishes."""
+    import tempfile
+
+    runs = tmp_path / "runs"
+    folder = runs / "tiny" / "static" / "t"
+    first = subprocess.run(_cmd(scene, runs), env=_env(), capture_output=True, text=True)
+    assert first.returncode == 0, first.stderr
+    (folder / "DONE").unlink()  # unfinished again: the next run resumes it
+    fd, _ = tempfile.mkstemp(prefix=".timing.json.", suffix=".tmp", dir=folder)
+    os.close(fd)
+    tempfile.mkdtemp(prefix=".renders.", suffix=".partial", dir=folder)
+    assert len(_stale(runs)) == 2
+    done = subprocess.run(_cmd(scene, runs), env=_env(), capture_output=True, text=True)
+    assert done.returncode == 0 and "resuming" in done.stderr, done.stderr
+    assert _stale(runs) == [] and (folder / "DONE").is_file()

@@ -121,3 +121,26 @@ def remove_stale_partials(final: str | Path) -> list[Path]:
     for p in stale:
         remove_path(p)
     return stale
+
+
+# What a killed writer leaves: mkstemp/mkdtemp's ``.NAME.`` + 8 random characters + ``.tmp`` / ``.partial``, and
+# atomic_dir's ``.NAME.old``.
+_STALE = re.compile(r"\..+\.(?:[a-z0-9_]{8}\.(?:tmp|partial)|old)")
+
+
+def remove_stale_temporaries(folder: str | Path) -> list[Path]:
+    """Remove, anywhere under ``folder``, what killed :func:`atomic_write_bytes` and :func:`atomic_dir` calls
+    left: ``.NAME.XXXXXXXX.tmp`` files, ``.NAME.XXXXXXXX.partial`` folders and ``.NAME.old``. Linked folders
+    are not entered (a lent root's checkpoints belong to another run). Returns the paths removed.
+
+    Only safe while the caller holds ``folder``'s :class:`worldtree.infra.folder_lock.FolderLock`: then no live
+    writer owns any of them.
+    """
+    removed: list[Path] = []
+    for top, dirs, files in os.walk(folder):  # followlinks=False: a link is listed, never entered
+        for name in [d for d in dirs if _STALE.fullmatch(d)] + [f for f in files if _STALE.fullmatch(f)]:
+            path = Path(top) / name
+            remove_path(path)
+            removed.append(path)
+        dirs[:] = [d for d in dirs if not _STALE.fullmatch(d)]
+    return sorted(removed)
