@@ -108,6 +108,9 @@ class _Request:
 class _ClientState:
     locked: ViewCamera | None = None
     locked_at: float = 0.0
+    #: The poses of the browser's camera an intermediate echo of the last placement may mix: its ``(wxyz,
+    #: position)`` before the server placed it and the placed ones.
+    placing: tuple[tuple[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]] | None = None
     moved_at: float = 0.0
     version: int = 0
     done: int = -1
@@ -148,8 +151,10 @@ class ClientView:
                 st.locked = camera
             return
         wxyz, position = cam.viser_from_w2c(camera.w2c)
+        before = (np.array(c.wxyz, dtype=np.float64), np.array(c.position, dtype=np.float64))
         with st.cond:
             st.locked, st.locked_at = camera, time.monotonic()
+            st.placing = (before, (wxyz, position))
             st.version += 1
             st.cond.notify_all()
         self.viewer.refresh_frusta()
@@ -183,14 +188,26 @@ class ClientView:
                         st.version += 1
                         st.cond.notify_all()
                     return
-                if now - st.locked_at < LOCK_GRACE_S:
-                    return  # an intermediate echo of the pose the server is placing
+                if now - st.locked_at < LOCK_GRACE_S or self._mixes_placement(w2c):
+                    return  # an intermediate echo of the pose the server is placing (late on a busy machine)
                 st.locked, left = None, True
             st.moved_at = now
             st.version += 1
             st.cond.notify_all()
         if left:
             self.viewer.refresh_frusta()
+
+    def _mixes_placement(self, w2c: np.ndarray) -> bool:
+        """Whether the browser pose ``w2c [4, 4]`` is the last placement's rotation or position each taken from
+        before or after it: what the browser echoes while the placement's messages arrive one by one."""
+        if self.state.placing is None:
+            return False
+        (q0, p0), (q1, p1) = self.state.placing
+        return any(
+            cam.same_pose(w2c, cam.w2c_from_viser(q, p), self.viewer.scale, LOCK_TOL)
+            for q in (q0, q1)
+            for p in (p0, p1)
+        )
 
     # -- rendering --------------------------------------------------------------------------------------------
     def _snapshot(self) -> _Request:
@@ -472,8 +489,15 @@ class Viewer:
                     if accept(f):
                         return f
                 left = deadline - time.monotonic()
-                if left <= 0:
-                    raise TimeoutError("no frame as expected was sent")
+                if left <= 0:  # say what was sent instead: a failed wait on a busy machine is read from this
+                    kept = ", ".join(
+                        f"#{f.seq} {f.camera or 'free'} t{f.time} {f.mode}{' preview' if f.preview else ''}"
+                        for f in self.frames
+                    )
+                    raise TimeoutError(
+                        f"no frame as expected was sent in {timeout:g} s (playing: {self.playing}; "
+                        f"the last sent: {kept or 'none'})"
+                    )
                 self._frame_cond.wait(left)
 
     @property

@@ -143,6 +143,42 @@ def test_same_pose_tells_an_echo_from_a_move():
     assert not cam.same_pose(turned, w2c, scale=1.0, tol=1e-3)
 
 
+def test_a_late_echo_of_a_placement_keeps_the_camera_looked_through():
+    """The browser reports a placed pose in pieces; on a busy machine a piece arrives after LOCK_GRACE_S. A
+    report that takes the rotation and the position each from before or after the placement is such an echo;
+    any other pose is the user moving away."""
+    import contextlib
+    import time
+    from types import SimpleNamespace
+
+    from benchmarks.viewer.server import LOCK_GRACE_S, ClientView, _ClientState
+    from benchmarks.viewer.source import ViewCamera
+
+    rng = np.random.default_rng(5)
+    w2c_a, w2c_b, w2c_c = _pose(rng), _pose(rng), _pose(rng)
+    q_a, p_a = cam.viser_from_w2c(w2c_a)
+    q_b, p_b = cam.viser_from_w2c(w2c_b)
+    browser = SimpleNamespace(wxyz=q_a, position=p_a, fov=1.0, aspect=16 / 9, image_width=160, image_height=90)
+    view = object.__new__(ClientView)  # no server, no render thread: the camera bookkeeping alone
+    view.viewer = SimpleNamespace(scale=1.0, refresh_frusta=lambda: None, initial_camera=None)
+    view.client = SimpleNamespace(camera=browser, atomic=contextlib.nullcontext)
+    view.state = _ClientState(ready=True, canvas=(160, 90))
+    target = ViewCamera("train_002", np.diag([100.0, 100.0, 1.0]), w2c_b, 160, 90, 2, is_test=False)
+    view.look_through(target)
+    assert view.state.locked is target and cam.same_pose(cam.w2c_from_viser(browser.wxyz, browser.position), w2c_b, 1.0)
+
+    def report(q, p):
+        view._on_camera(SimpleNamespace(wxyz=q, position=p, image_width=160, image_height=90))
+
+    view.state.locked_at = time.monotonic() - 10 * LOCK_GRACE_S  # the echoes come late
+    for q, p in ((q_b, p_a), (q_a, p_b), (q_a, p_a), (q_b, p_b)):
+        report(np.float32(q).astype(np.float64), np.float32(p).astype(np.float64))  # as the browser rounds
+        assert view.state.locked is target
+    q_c, p_c = cam.viser_from_w2c(w2c_c)
+    report(q_b, p_c)  # the user pans away from the placed camera
+    assert view.state.locked is None
+
+
 def test_scene_up_and_scale():
     # Cameras looking along +z with y down: up is -y; centres spread 2 units from their mean.
     w2cs = np.stack([np.eye(4)] * 3)
