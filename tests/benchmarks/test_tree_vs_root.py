@@ -27,13 +27,18 @@ def _grown_tree(n: int) -> dict:
     return {"nodes": list(range(1, n + 1)), "auto": {"1": {"split": True, "reason": "excess 0.03 >= 0.004"}}}
 
 
+def _scene_a(rf, root: Path) -> None:
+    """Scene a, the whole grid: the tree gains, auto grows three nodes."""
+    _run(rf, root, "a", "quick-depth0", 0, 20.0, 25.0, 60.0, None)
+    _run(rf, root, "a", "quick-depth1", 1, 20.4, 25.1, 90.0, _grown_tree(3))
+    _run(rf, root, "a", "quick-depth2", 2, 20.9, 25.0, 150.0, _grown_tree(7))
+    _run(rf, root, "a", "quick-depthauto", "auto", 20.5, 25.0, 120.0, _grown_tree(3))
+
+
 @pytest.fixture
 def runs(tmp_path: Path, runs_fixture) -> Path:
     # Scene a: the tree gains, auto grows three nodes; scene b: auto keeps the root for want of a measured depth.
-    _run(runs_fixture, tmp_path, "a", "quick-depth0", 0, 20.0, 25.0, 60.0, None)
-    _run(runs_fixture, tmp_path, "a", "quick-depth1", 1, 20.4, 25.1, 90.0, _grown_tree(3))
-    _run(runs_fixture, tmp_path, "a", "quick-depth2", 2, 20.9, 25.0, 150.0, _grown_tree(7))
-    _run(runs_fixture, tmp_path, "a", "quick-depthauto", "auto", 20.5, 25.0, 120.0, _grown_tree(3))
+    _scene_a(runs_fixture, tmp_path)
     # The root of scene b by ablation.
     _run(runs_fixture, tmp_path, "b", "quick-tpt", 2, 18.0, 24.0, 70.0, None, ablate=("tpt",))
     _run(runs_fixture, tmp_path, "b", "quick-depth1", 1, 18.16, 24.0, 100.0, _grown_tree(3))
@@ -80,10 +85,7 @@ def test_table_gains_shares_and_means_by_hand(runs: Path):
 
 def test_a_depth_not_run_reads_dash_and_means_skip_it(tmp_path: Path, runs_fixture):
     # Scene a has the whole grid; scene c only its root and depth 2 (no depth 1, no auto).
-    _run(runs_fixture, tmp_path, "a", "quick-depth0", 0, 20.0, 25.0, 60.0, None)
-    _run(runs_fixture, tmp_path, "a", "quick-depth1", 1, 20.4, 25.1, 90.0, _grown_tree(3))
-    _run(runs_fixture, tmp_path, "a", "quick-depth2", 2, 20.9, 25.0, 150.0, _grown_tree(7))
-    _run(runs_fixture, tmp_path, "a", "quick-depthauto", "auto", 20.5, 25.0, 120.0, _grown_tree(3))
+    _scene_a(runs_fixture, tmp_path)
     _run(runs_fixture, tmp_path, "c", "quick-depth0", 0, 15.0, 21.0, 40.0, None)
     _run(runs_fixture, tmp_path, "c", "quick-depth2", 2, 15.3, 20.9, 90.0, _grown_tree(7))
     text = table(collect([tmp_path]), 0.05)

@@ -101,6 +101,10 @@ def remove_path(path: str | Path) -> None:
         shutil.rmtree(path)
 
 
+#: mkstemp's and mkdtemp's random part of a temporary's name: 8 characters of [a-z0-9_].
+_RANDOM = "[a-z0-9_]{8}"
+
+
 def remove_stale_partials(final: str | Path) -> list[Path]:
     """Remove what killed :func:`atomic_dir` calls for ``final`` left beside it: temporary
     ``.NAME.XXXXXXXX.partial`` folders and a ``.NAME.old``. Returns the paths removed.
@@ -113,7 +117,7 @@ def remove_stale_partials(final: str | Path) -> list[Path]:
         return []
     # mkdtemp's random part is 8 characters of [a-z0-9_]; matching it exactly keeps ``A``'s cleanup away
     # from the temporaries of a sibling called ``A.b``.
-    pattern = re.compile(rf"\.{re.escape(final.name)}\.[a-z0-9_]{{8}}\.partial")
+    pattern = re.compile(rf"\.{re.escape(final.name)}\.{_RANDOM}\.partial")
     stale = [p for p in final.parent.iterdir() if pattern.fullmatch(p.name)]
     old = _old_path(final)
     if old.exists() or old.is_symlink():
@@ -125,7 +129,7 @@ def remove_stale_partials(final: str | Path) -> list[Path]:
 
 # What a killed writer leaves: mkstemp/mkdtemp's ``.NAME.`` + 8 random characters + ``.tmp`` / ``.partial``, and
 # atomic_dir's ``.NAME.old``.
-_STALE = re.compile(r"\..+\.(?:[a-z0-9_]{8}\.(?:tmp|partial)|old)")
+_STALE = re.compile(rf"\..+\.(?:{_RANDOM}\.(?:tmp|partial)|old)")
 
 
 def remove_stale_temporaries(folder: str | Path) -> list[Path]:
@@ -138,9 +142,10 @@ def remove_stale_temporaries(folder: str | Path) -> list[Path]:
     """
     removed: list[Path] = []
     for top, dirs, files in os.walk(folder):  # followlinks=False: a link is listed, never entered
-        for name in [d for d in dirs if _STALE.fullmatch(d)] + [f for f in files if _STALE.fullmatch(f)]:
+        stale_dirs = [d for d in dirs if _STALE.fullmatch(d)]
+        dirs[:] = [d for d in dirs if d not in stale_dirs]  # removed below, not walked into
+        for name in stale_dirs + [f for f in files if _STALE.fullmatch(f)]:
             path = Path(top) / name
             remove_path(path)
             removed.append(path)
-        dirs[:] = [d for d in dirs if not _STALE.fullmatch(d)]
     return sorted(removed)
