@@ -71,7 +71,7 @@ from worldtree.render import rasterize
 from worldtree.stages.photometric import PhotometricConfig, PhotometricFit, anchored_depth_l1
 from worldtree.strategy import DensifyStrategy, remove
 from worldtree.trainer import TrainContext, Trainer, TrainerConfig, TrainSummary
-from worldtree.tree.adaptive import AutoSplitConfig, assess_fit, depth_conf_sums
+from worldtree.tree.adaptive import AutoSplitConfig, assess_fit, moving_depth_conf
 from worldtree.tree.build import TreeConfig, TreeResult, grow_tree, node_output, read_node_input
 from worldtree.tree.inherit import InheritConfig
 from worldtree.tree.node import NodeState, distinct_gaussians, same_gaussians, share_static_model
@@ -824,13 +824,6 @@ def _root_only(s: WorldTreeState, root_decision: dict[str, Any] | None = None) -
     if root_decision is not None:
         s.info["tree"]["auto"] = {"1": {**root_decision, "applied": False}}
     s.renderer = _tree_renderer(s)
-
-
-def moving_depth_conf(depth_conf: torch.Tensor, dynamic: torch.Tensor) -> float | None:
-    """Mean of the depth prior's confidence ``depth_conf`` ``[T, H, W]`` (in [0, 1]) over the ``dynamic``
-    ``[T, H, W]`` pixels: how much of the moving objects' depth the prior measures (None: nothing moves)."""
-    n = int(dynamic.bool().sum())
-    return float(depth_conf_sums(depth_conf, dynamic).sum()) / n if n else None
 
 
 #: Said once when a fixed-depth tree grows over moving pixels whose depth the prior does not measure.

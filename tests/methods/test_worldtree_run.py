@@ -348,21 +348,6 @@ def test_a_fixed_depth_tree_says_when_the_moving_depth_is_unmeasured(runs):
     assert _stats(runs["auto"])["tree"]["moving_depth_conf"] == 0.0  # recorded where auto kept the root too
 
 
-def test_moving_depth_conf_is_the_masked_mean():
-    from methods.worldtree import moving_depth_conf
-
-    g = torch.Generator().manual_seed(0)
-    conf = torch.rand(3, 5, 7, generator=g)
-    mask = torch.rand(3, 5, 7, generator=g) > 0.6
-    expected = float(conf.double()[mask].mean())
-    assert moving_depth_conf(conf, mask) == pytest.approx(expected, rel=1e-12)
-    first = tuple(mask.nonzero()[0])
-    conf[first] = float("nan")  # a non-finite confidence counts as none
-    zeroed = conf.double().nan_to_num(0.0)
-    assert moving_depth_conf(conf, mask) == pytest.approx(float(zeroed[mask].mean()), rel=1e-12)
-    assert moving_depth_conf(conf, torch.zeros_like(mask)) is None  # nothing moves
-
-
 def test_depth_auto_grows_the_tree_its_decisions_say(runs):
     st = _stats(runs["auto_grown"])
     cfg = json.loads((runs["auto_grown"] / "config.json").read_text())

@@ -69,8 +69,8 @@ import torch
 from worldtree.tree.tpt import can_split
 
 __all__ = ["AutoSplitConfig", "ChildDecision", "FitAssessment", "SplitDecision", "assess_fit", "decide_child",
-           "decide_fit_split", "decide_split", "depth_conf_sums", "residual_stats", "residual_sums",
-           "scaffold_motion_px", "stats_of_sums"]  # fmt: skip
+           "decide_fit_split", "decide_split", "depth_conf_sums", "moving_depth_conf", "residual_stats",
+           "residual_sums", "scaffold_motion_px", "stats_of_sums"]  # fmt: skip
 
 
 @dataclass(frozen=True)
@@ -205,6 +205,13 @@ def depth_conf_sums(conf: torch.Tensor, dynamic: torch.Tensor) -> torch.Tensor:
         )
     c = torch.nan_to_num(conf.double(), nan=0.0, posinf=0.0, neginf=0.0).clamp(0.0, 1.0)
     return (c * dynamic.bool().to(c.device)).sum((1, 2))
+
+
+def moving_depth_conf(conf: torch.Tensor, dynamic: torch.Tensor) -> float | None:
+    """Mean of the depth prior's confidence ``conf`` ``[T, H, W]`` (in [0, 1]) over the ``dynamic`` ``[T, H, W]``
+    pixels of a whole video: how much of the moving objects' depth the prior measures (None: nothing moves)."""
+    n = int(dynamic.bool().sum())
+    return float(depth_conf_sums(conf, dynamic).sum()) / n if n else None
 
 
 def _mean_conf(conf_sums: torch.Tensor | None, sums: torch.Tensor) -> float | None:

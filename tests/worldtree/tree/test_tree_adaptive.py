@@ -20,6 +20,7 @@ from worldtree.tree.adaptive import (
     decide_fit_split,
     decide_split,
     depth_conf_sums,
+    moving_depth_conf,
     residual_stats,
     residual_sums,
     scaffold_motion_px,
@@ -348,6 +349,19 @@ def test_depth_conf_sums_pool_to_the_mean_over_any_run_of_frames():
         assert abs(float(cs[a:b].sum()) / float(sums[a:b, 1].sum()) - brute) < 1e-12
     with pytest.raises(ValueError):
         depth_conf_sums(conf[0], m[0])
+
+
+def test_moving_depth_conf_is_the_masked_mean():
+    g = torch.Generator().manual_seed(0)
+    conf = torch.rand(3, 5, 7, generator=g)
+    mask = torch.rand(3, 5, 7, generator=g) > 0.6
+    expected = float(conf.double()[mask].mean())
+    assert moving_depth_conf(conf, mask) == pytest.approx(expected, rel=1e-12)
+    first = tuple(mask.nonzero()[0])
+    conf[first] = float("nan")  # a non-finite confidence counts as none
+    zeroed = conf.double().nan_to_num(0.0)
+    assert moving_depth_conf(conf, mask) == pytest.approx(float(zeroed[mask].mean()), rel=1e-12)
+    assert moving_depth_conf(conf, torch.zeros_like(mask)) is None  # nothing moves
 
 
 def test_decide_child_reads_the_parents_depth_confidence():
