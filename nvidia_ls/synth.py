@@ -121,6 +121,13 @@ class SynthConfig:
     box at half that depth and a textured ball held near the rig moving a quarter image width per step)."""
     poses: Path | None = None
     """LLFF poses_bounds.npy whose rig --kind twin reproduces (one row per camera; --cameras must match)."""
+    exposure: float = 0.0
+    """Unmatched cameras: each camera's image is scaled by exp(e), e uniform in +-EXPOSURE, and each of its
+    channels by exp(w), w uniform in +-EXPOSURE/2 (white balance); drawn from --seed and the camera id. 0: the
+    cameras are matched. Ground truth (masks, depth) is unaffected."""
+    noise: float = 0.0
+    """Sensor noise: Gaussian, this standard deviation in 8-bit grey levels, independent per pixel, channel,
+    camera and time step (drawn from --seed). 0: none."""
 
     def check(self) -> None:
         """Raise :class:`UserError` for values the generator cannot honour."""
@@ -135,6 +142,10 @@ class SynthConfig:
             raise SettingError.of_field(self, "objects", "choose 0, 1 or 2")
         if self.supersample < 1:
             raise SettingError.of_field(self, "supersample", "must be >= 1")
+        if not (math.isfinite(self.exposure) and 0.0 <= self.exposure <= 1.0):
+            raise SettingError.of_field(self, "exposure", "choose a spread between 0 and 1 (0.1: +-10 %)")
+        if not (math.isfinite(self.noise) and 0.0 <= self.noise <= 64.0):
+            raise SettingError.of_field(self, "noise", "choose a standard deviation between 0 and 64 grey levels")
         if not 10.0 <= self.fov_deg <= 120.0:
             raise SettingError.of_field(self, "fov_deg", "choose a field of view between 10 and 120 degrees")
         for name, choices in (("motion", MOTIONS), ("image_ext", ("png", "jpg")), ("layout", LAYOUTS),
@@ -801,6 +812,28 @@ def write_raw_scene(
     return out_dir
 
 
+def camera_gains(cfg: SynthConfig, cam: int) -> np.ndarray:
+    """``[3]`` per-channel gain of rig camera ``cam`` (1-based) under ``cfg.exposure`` (ones when it is 0)."""
+    if cfg.exposure == 0.0:
+        return np.ones(3)
+    rng = np.random.default_rng([cfg.seed, 7919, cam])  # its own stream: the scene's draws stay as they were
+    e = rng.uniform(-cfg.exposure, cfg.exposure)
+    w = rng.uniform(-cfg.exposure / 2, cfg.exposure / 2, size=3)
+    return np.exp(e + w)
+
+
+def sensor_image(rgb: np.ndarray, cfg: SynthConfig, cam: int, step: int) -> np.ndarray:
+    """What camera ``cam`` (1-based) records of the rendered ``rgb`` ``[H, W, 3]`` uint8 at time ``step``: its
+    gains (:func:`camera_gains`) and ``cfg.noise`` grey levels of Gaussian noise, rounded and clipped to uint8.
+    Returns ``rgb`` itself when both are off."""
+    if cfg.exposure == 0.0 and cfg.noise == 0.0:
+        return rgb
+    out = rgb.astype(np.float64) * camera_gains(cfg, cam)
+    if cfg.noise > 0.0:
+        out += np.random.default_rng([cfg.seed, 104729, cam, step]).normal(0.0, cfg.noise, size=out.shape)
+    return np.clip(np.rint(out), 0, 255).astype(np.uint8)
+
+
 def _write_camera(tmp: Path, scene, cfg: SynthConfig, ci: int) -> list[float]:
     """Render rig camera ``ci`` (0-based) at every time step: its raw images (or video), ground-truth masks
     and depth. Returns its (near, far)."""
@@ -815,12 +848,13 @@ def _write_camera(tmp: Path, scene, cfg: SynthConfig, ci: int) -> list[float]:
             raise UserError("OpenCV cannot write mp4v videos here; use --layout multiview")
     for t in range(cfg.steps):
         view = renderer.render(float(t))
+        rgb = sensor_image(view.rgb, cfg, cam, t)
         if cfg.layout == "multiview":
-            save_image(tmp / "mv_images" / f"{t:05d}" / f"cam{cam:02d}.{cfg.image_ext}", view.rgb)
+            save_image(tmp / "mv_images" / f"{t:05d}" / f"cam{cam:02d}.{cfg.image_ext}", rgb)
         elif cfg.layout == "camera_folders":
-            save_image(tmp / f"cam{cam:02d}" / f"{t:05d}.{cfg.image_ext}", view.rgb)
+            save_image(tmp / f"cam{cam:02d}" / f"{t:05d}.{cfg.image_ext}", rgb)
         else:
-            writer.write(cv2.cvtColor(view.rgb, cv2.COLOR_RGB2BGR))
+            writer.write(cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
         save_image(gt / "masks" / f"{t:05d}" / f"cam{cam:02d}.png", view.dynamic_mask)
         if cfg.depth:
             (gt / "depth" / f"{t:05d}").mkdir(parents=True, exist_ok=True)

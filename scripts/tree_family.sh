@@ -37,6 +37,14 @@ family=(
   "rows_turning_wide_40_s6: --path turning --rig-width 3.0 --fov-deg 50 --steps 40 --seed 6"
   "arc_enter_leave_24_s7: --rig arc --path enter_leave --steps 24 --seed 7"
   "row_smooth_shuffled_40_s7: --rig row --texture smooth --camera-order shuffled --steps 40 --seed 7"
+  # The six held out above recorded by unmatched cameras (session 53): each camera's exposure within +-10 %,
+  # its white balance within +-5 %, and 2 grey levels of sensor noise; the geometry and textures are theirs.
+  "rows_fast_40_s5_cams: --motion fast --steps 40 --seed 5 --exposure 0.1 --noise 2"
+  "arc_slow_fast_40_s5_cams: --rig arc --motion slow_fast --steps 40 --seed 5 --exposure 0.1 --noise 2"
+  "row_one_object_24_s5_cams: --rig row --objects 1 --steps 24 --seed 5 --exposure 0.1 --noise 2"
+  "rows_turning_wide_40_s6_cams: --path turning --rig-width 3.0 --fov-deg 50 --steps 40 --seed 6 --exposure 0.1 --noise 2"
+  "arc_enter_leave_24_s7_cams: --rig arc --path enter_leave --steps 24 --seed 7 --exposure 0.1 --noise 2"
+  "row_smooth_shuffled_40_s7_cams: --rig row --texture smooth --camera-order shuffled --steps 40 --seed 7 --exposure 0.1 --noise 2"
 )
 names=()
 for entry in "${family[@]}"; do names+=("${entry%%:*}"); done

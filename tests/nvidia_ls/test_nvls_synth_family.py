@@ -346,3 +346,40 @@ def test_alignment_of_a_row_rig_recovers_the_rotation():
     assert al.scale == pytest.approx(2.5, rel=1e-9)
     np.testing.assert_allclose(al.R, rot, atol=1e-9)
     np.testing.assert_allclose(al.t, [0.4, -1.0, 2.0], atol=1e-9)
+
+
+def test_unmatched_cameras_and_sensor_noise_change_only_the_recorded_images(tmp_path):
+    # Each camera records the clean render times its own per-channel gains (exposure in +-e, white balance in
+    # +-e/2) plus noise of the asked standard deviation; masks and depth are those of the clean scene.
+    clean = SynthConfig(cameras=3, steps=2, depth=True, **TINY)
+    sensor = SynthConfig(cameras=3, steps=2, depth=True, exposure=0.2, noise=3.0, **TINY)
+    a, b = write_raw_scene(tmp_path / "A", clean), write_raw_scene(tmp_path / "B", sensor)
+    gains = []
+    for cam in (1, 2, 3):
+        ia = cv2.imread(str(a / "mv_images" / "00001" / f"cam{cam:02d}.png"))[..., ::-1].astype(np.float64)
+        ib = cv2.imread(str(b / "mv_images" / "00001" / f"cam{cam:02d}.png"))[..., ::-1].astype(np.float64)
+        ok = (ia > 20) & (ia < 200)  # away from clipping
+        # Least-squares gain per channel from the two images alone, then the noise left around it.
+        g = np.array([(ia[..., k][ok[..., k]] @ ib[..., k][ok[..., k]]) / (ia[..., k][ok[..., k]] ** 2).sum()
+                      for k in range(3)])  # fmt: skip
+        assert np.all(np.abs(np.log(g)) <= 0.2 + 0.1 + 0.02), g
+        assert np.abs(np.log(g) - np.log(g).mean()).max() <= 0.1 + 0.02, g  # white balance within +-e/2
+        # rounding the clean image and the recorded one adds about 1/12 grey level^2 each
+        resid = (ib - ia * g)[ok]
+        assert 3.0 * 0.85 < resid.std() < math.sqrt(9.0 + 2 / 12) * 1.15, resid.std()
+        gains.append(g)
+        for sub in ("masks", "depth"):
+            ext = "png" if sub == "masks" else "npy"
+            fa, fb = (r / "gt" / sub / "00001" / f"cam{cam:02d}.{ext}" for r in (a, b))
+            assert fa.read_bytes() == fb.read_bytes()
+    assert np.ptp([np.log(g).mean() for g in gains]) > 0.02  # the cameras are not matched
+    # Off by default: the clean capture is the render itself.
+    sc = make_scene(clean)
+    view = render_view(sc, sc.Ks[0], sc.w2cs[0], W, H, 1.0, supersample=clean.supersample)
+    np.testing.assert_array_equal(cv2.imread(str(a / "mv_images" / "00001" / "cam01.png"))[..., ::-1], view.rgb)
+
+
+@pytest.mark.parametrize(("flag", "value"), [("exposure", 1.5), ("exposure", -0.1), ("noise", float("nan"))])
+def test_bad_sensor_values_are_one_line_errors(flag, value):
+    with pytest.raises(UserError, match=flag):
+        SynthConfig(**{flag: value}).check()
