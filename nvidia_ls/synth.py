@@ -128,6 +128,9 @@ class SynthConfig:
     noise: float = 0.0
     """Sensor noise: Gaussian, this standard deviation in 8-bit grey levels, independent per pixel, channel,
     camera and time step (drawn from --seed). 0: none."""
+    shutter: float = 0.0
+    """Motion blur: the fraction of a time step the shutter stays open, centred on the step; the colours are
+    averaged over that interval. 0: an instant. Ground truth (masks, depth) is taken at the step itself."""
 
     def check(self) -> None:
         """Raise :class:`UserError` for values the generator cannot honour."""
@@ -146,6 +149,8 @@ class SynthConfig:
             raise SettingError.of_field(self, "exposure", "choose a spread between 0 and 1 (0.1: +-10 %)")
         if not (math.isfinite(self.noise) and 0.0 <= self.noise <= 64.0):
             raise SettingError.of_field(self, "noise", "choose a standard deviation between 0 and 64 grey levels")
+        if not (math.isfinite(self.shutter) and 0.0 <= self.shutter <= 1.0):
+            raise SettingError.of_field(self, "shutter", "choose a fraction of a time step between 0 and 1")
         if not 10.0 <= self.fov_deg <= 120.0:
             raise SettingError.of_field(self, "fov_deg", "choose a field of view between 10 and 120 degrees")
         for name, choices in (("motion", MOTIONS), ("image_ext", ("png", "jpg")), ("layout", LAYOUTS),
@@ -618,11 +623,26 @@ def _downsample(rgb: np.ndarray, ss: int) -> np.ndarray:
     return as_uint8_array(rgb)
 
 
+SHUTTER_SAMPLES = 8
+"""Instants a colour is averaged over when the shutter is open (``SynthConfig.shutter`` > 0)."""
+
+
+def shutter_times(time: float, shutter: float) -> np.ndarray:
+    """The instants (time steps) averaged for a shutter open ``shutter`` of a step, centred on ``time``: the
+    midpoints of :data:`SHUTTER_SAMPLES` equal parts of the interval, so a motion linear in time is blurred
+    exactly as its average."""
+    if shutter <= 0.0:
+        return np.asarray([time])
+    return time + shutter * ((np.arange(SHUTTER_SAMPLES) + 0.5) / SHUTTER_SAMPLES - 0.5)
+
+
 class _CameraRenderer:
     """Renders one camera at many times, tracing the static set once and only the objects per time."""
 
-    def __init__(self, scene: SynthScene, K, w2c, width: int, height: int, supersample: int):
+    def __init__(self, scene: SynthScene, K, w2c, width: int, height: int, supersample: int,
+                 shutter: float = 0.0):  # fmt: skip
         self.scene = scene
+        self.shutter = shutter
         self.ss = supersample
         self.K = np.asarray(K, float)
         self.w2c = np.asarray(w2c, float)
@@ -670,8 +690,11 @@ class _CameraRenderer:
 
     def render(self, time: float) -> SynthView:
         depth, rgb, oid = self._composite(0, time)  # pixel centres: exact depth and ids
-        if self.ss > 1:
-            _, rgb, _ = self._composite(len(self.rays) - 1, time)
+        k = len(self.rays) - 1
+        if self.shutter > 0.0:
+            rgb = np.mean([self._composite(k, float(u))[1] for u in shutter_times(time, self.shutter)], axis=0)
+        elif self.ss > 1:
+            _, rgb, _ = self._composite(k, time)
         return SynthView(_downsample(rgb, self.ss), depth.astype(np.float32), oid)
 
 
@@ -838,7 +861,9 @@ def _write_camera(tmp: Path, scene, cfg: SynthConfig, ci: int) -> list[float]:
     """Render rig camera ``ci`` (0-based) at every time step: its raw images (or video), ground-truth masks
     and depth. Returns its (near, far)."""
     cam, gt = ci + 1, tmp / "gt"
-    renderer = _CameraRenderer(scene, scene.Ks[ci], scene.w2cs[ci], cfg.width, cfg.height, cfg.supersample)
+    renderer = _CameraRenderer(
+        scene, scene.Ks[ci], scene.w2cs[ci], cfg.width, cfg.height, cfg.supersample, cfg.shutter
+    )
     near_far = _near_far(renderer.static[0][0])
     writer = None
     if cfg.layout == "videos":

@@ -45,6 +45,13 @@ family=(
   "rows_turning_wide_40_s6_cams: --path turning --rig-width 3.0 --fov-deg 50 --steps 40 --seed 6 --exposure 0.1 --noise 2"
   "arc_enter_leave_24_s7_cams: --rig arc --path enter_leave --steps 24 --seed 7 --exposure 0.1 --noise 2"
   "row_smooth_shuffled_40_s7_cams: --rig row --texture smooth --camera-order shuffled --steps 40 --seed 7 --exposure 0.1 --noise 2"
+  # ... and with motion blur: the shutter open half of each step (session 53).
+  "rows_fast_40_s5_blur: --motion fast --steps 40 --seed 5 --shutter 0.5"
+  "arc_slow_fast_40_s5_blur: --rig arc --motion slow_fast --steps 40 --seed 5 --shutter 0.5"
+  "row_one_object_24_s5_blur: --rig row --objects 1 --steps 24 --seed 5 --shutter 0.5"
+  "rows_turning_wide_40_s6_blur: --path turning --rig-width 3.0 --fov-deg 50 --steps 40 --seed 6 --shutter 0.5"
+  "arc_enter_leave_24_s7_blur: --rig arc --path enter_leave --steps 24 --seed 7 --shutter 0.5"
+  "row_smooth_shuffled_40_s7_blur: --rig row --texture smooth --camera-order shuffled --steps 40 --seed 7 --shutter 0.5"
 )
 names=()
 for entry in "${family[@]}"; do names+=("${entry%%:*}"); done

@@ -383,3 +383,29 @@ def test_unmatched_cameras_and_sensor_noise_change_only_the_recorded_images(tmp_
 def test_bad_sensor_values_are_one_line_errors(flag, value):
     with pytest.raises(UserError, match=flag):
         SynthConfig(**{flag: value}).check()
+
+
+def test_an_open_shutter_averages_the_instants_it_spans(tmp_path):
+    # The recorded image is the mean of instant renders over the open interval (checked against renders of
+    # the same scene made here), the static background stays sharp, and the ground truth is the step's own.
+    cfg = SynthConfig(cameras=2, steps=6, motion="fast", shutter=0.8, **TINY)
+    raw = write_raw_scene(tmp_path / "S", cfg)
+    sc = make_scene(SynthConfig(cameras=2, steps=6, motion="fast", **TINY))
+    t, cam = 3, 2
+    got = cv2.imread(str(raw / "mv_images" / f"{t:05d}" / f"cam{cam:02d}.png"))[..., ::-1].astype(np.float64)
+    # An independent average: 64 instants spread over the same interval, through the public renderer.
+    instants = t + 0.8 * (np.arange(64) + 0.5) / 64 - 0.4
+    views = [render_view(sc, sc.Ks[1], sc.w2cs[1], W, H, float(u)) for u in instants]
+    ref = np.mean([v.rgb for v in views], axis=0)
+    sharp = render_view(sc, sc.Ks[1], sc.w2cs[1], W, H, float(t))
+    moving = sharp.dynamic_mask
+    assert moving.sum() > 10
+    swept = np.any([v.dynamic_mask for v in views], axis=0)  # where an object passes while the shutter is open
+    ring = cv2.dilate(swept.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
+    blurred = np.abs(got - ref).mean(-1)[ring].mean()
+    assert blurred < 0.3 * np.abs(sharp.rgb.astype(np.float64) - ref).mean(-1)[ring].mean(), blurred
+    np.testing.assert_array_equal(got[~ring], sharp.rgb[~ring])  # nothing moves there: no blur
+    mask = read_mask(raw / "gt" / "masks" / f"{t:05d}" / f"cam{cam:02d}.png")
+    np.testing.assert_array_equal(mask, moving)
+    assert synth.shutter_times(2.0, 0.0).tolist() == [2.0]
+    np.testing.assert_allclose(synth.shutter_times(2.0, 0.5).mean(), 2.0, atol=1e-12)
